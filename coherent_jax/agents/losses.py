@@ -1,0 +1,110 @@
+"""Pure on-policy loss terms: GAE, the PPO-Clip and A2C policy objectives, value loss.
+
+All functions are elementwise over leading batch axes (time-major ``[T, ...]``
+for `gae`) and return scalars as means, so they can be checked against hand
+computations.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import chex
+import jax
+import jax.numpy as jnp
+
+
+def gae(
+    rewards: jax.Array,
+    values: jax.Array,
+    next_values: jax.Array,
+    terminated: jax.Array,
+    done: jax.Array,
+    gamma: jax.Array | float,
+    lam: jax.Array | float,
+) -> tuple[jax.Array, jax.Array]:
+    """Generalised advantage estimation (Schulman et al. 2016; thesis eq. 2.30-2.31).
+
+        delta_t = r_t + gamma (1 - terminated_t) V(s'_t) - V(s_t)             (2.31)
+        A_t     = delta_t + gamma lambda (1 - done_t) A_{t+1}                   (2.30)
+
+    ``next_values`` is V of the state each step reached (before any auto-reset),
+    so a time-limit truncation (done, not terminated) is bootstrapped while the
+    advantage recursion still stops at the episode boundary. The segment end
+    needs no special case: A_T = 0 and V(s'_{T-1}) is already in delta.
+
+    Args:
+      rewards, values, next_values: [T, ...].
+      terminated, done: [T, ...] bool.
+      gamma, lam: scalars.
+
+    Returns:
+      (advantages, value targets = advantages + values), both [T, ...].
+    """
+    chex.assert_equal_shape([rewards, values, next_values, terminated, done])
+    not_term = 1.0 - terminated.astype(values.dtype)
+    not_done = 1.0 - done.astype(values.dtype)
+    deltas = rewards + gamma * not_term * next_values - values
+
+    def backward(adv_next, inputs):
+        delta, cont = inputs
+        adv = delta + gamma * lam * cont * adv_next
+        return adv, adv
+
+    _, advantages = jax.lax.scan(backward, jnp.zeros_like(deltas[0]), (deltas, not_done), reverse=True)
+    return advantages, advantages + values
+
+
+class PolicyLossInfo(NamedTuple):
+    """Diagnostics of a policy objective, each a scalar."""
+
+    approx_kl: jax.Array
+    clip_fraction: jax.Array
+
+
+def ppo_clip_loss(
+    log_prob: jax.Array, old_log_prob: jax.Array, advantages: jax.Array, clip_eps: jax.Array | float
+) -> tuple[jax.Array, PolicyLossInfo]:
+    """Negative PPO-Clip surrogate (thesis eq. 2.41; eq. 4.53 for Coherent-PPO).
+
+        r_t  = exp(log pi(a_t|.) - log pi_old(a_t|.))
+        L    = -mean_t min(r_t A_t, clip(r_t, 1 - eps, 1 + eps) A_t)
+
+    ``approx_kl`` is the estimator mean((r - 1) - log r) >= 0 of KL(old || new).
+    """
+    chex.assert_equal_shape([log_prob, old_log_prob, advantages])
+    log_ratio = log_prob - old_log_prob
+    ratio = jnp.exp(log_ratio)
+    surrogate = jnp.minimum(ratio * advantages, jnp.clip(ratio, 1 - clip_eps, 1 + clip_eps) * advantages)
+    info = PolicyLossInfo(
+        approx_kl=jax.lax.stop_gradient(jnp.mean((ratio - 1.0) - log_ratio)),
+        clip_fraction=jax.lax.stop_gradient(jnp.mean(jnp.abs(ratio - 1.0) > clip_eps)),
+    )
+    return -jnp.mean(surrogate), info
+
+
+def a2c_loss(
+    log_prob: jax.Array, old_log_prob: jax.Array, advantages: jax.Array
+) -> tuple[jax.Array, PolicyLossInfo]:
+    """Negative vanilla policy-gradient objective (Algorithm 1 step 4; Algorithm 4).
+
+    L = -mean_t log pi(a_t | .) A_t
+    """
+    chex.assert_equal_shape([log_prob, old_log_prob, advantages])
+    log_ratio = jax.lax.stop_gradient(log_prob - old_log_prob)
+    info = PolicyLossInfo(
+        approx_kl=jnp.mean(jnp.exp(log_ratio) - 1.0 - log_ratio),
+        clip_fraction=jnp.zeros((), log_prob.dtype),
+    )
+    return -jnp.mean(log_prob * advantages), info
+
+
+def value_loss(values: jax.Array, targets: jax.Array) -> jax.Array:
+    """Half mean squared error to the value targets (Algorithm 1 step 5)."""
+    chex.assert_equal_shape([values, targets])
+    return 0.5 * jnp.mean(jnp.square(values - targets))
+
+
+def standardize(x: jax.Array, eps: float = 1e-8) -> jax.Array:
+    """(x - mean) / (std + eps) over all elements."""
+    return (x - x.mean()) / (x.std() + eps)

@@ -1,0 +1,262 @@
+"""A2C and PPO-Clip (thesis Algorithms 1, 2, 4, 5) with a pluggable exploration strategy.
+
+One training iteration is one pure function ``TrainState -> (TrainState, metrics)``:
+the rollout of ``num_envs`` envs for ``unroll_length`` steps (`lax.scan`), GAE,
+and every epoch and minibatch of the update, so it jits into one XLA program and
+``jax.vmap`` of it runs a sweep. Minibatches are sets of whole env segments in
+time order, never shuffled single steps: the coherent strategy's log-probability
+is a filter over the segment. A segment that starts mid-episode starts from the
+strategy carry stored when it was collected (like a recurrent policy's stored
+hidden state), treated as a constant by the loss.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from coherent_jax.agents import losses
+from coherent_jax.config import Config
+from coherent_jax.envs.vec_env import EnvState, VecEnv
+from coherent_jax.exploration import make_exploration
+from coherent_jax.exploration.base import Exploration
+from coherent_jax.networks import RunningStats, ValueNetwork, normalize, update_stats
+from coherent_jax.rollout import Transition, evaluate_policy, unroll
+
+
+@struct.dataclass
+class HParams:
+    """Scalars that may vary across the points of a vmapped sweep (all arrays)."""
+
+    lr: jax.Array
+    gamma: jax.Array
+    gae_lambda: jax.Array
+    clip_eps: jax.Array
+    target_kl: jax.Array
+    vf_coef: jax.Array
+    ent_coef: jax.Array
+    explore: dict[str, jax.Array]
+
+
+@struct.dataclass
+class AgentParams:
+    policy: Any
+    value: Any
+
+
+@struct.dataclass
+class TrainState:
+    """Everything an iteration reads and writes.
+
+    Attributes:
+      params: policy (trunk + exploration head) and value parameters.
+      opt_state: Adam state.
+      obs_stats: running observation statistics.
+      env_state: the vectorized environments.
+      carry: per-env exploration state (noise, sampled weights, beliefs).
+      hparams: sweepable scalars.
+      key: PRNG key.
+      iteration: iterations done.
+      env_steps: environment steps done.
+    """
+
+    params: AgentParams
+    opt_state: Any
+    obs_stats: RunningStats
+    env_state: EnvState
+    carry: Any
+    hparams: HParams
+    key: jax.Array
+    iteration: jax.Array
+    env_steps: jax.Array
+
+
+class OnPolicyTrainer:
+    """Builds the pure functions of an A2C/PPO run from a `Config`.
+
+    ``init(key) -> TrainState``, ``iteration(state) -> (state, metrics)`` and
+    ``evaluate(state, key) -> metrics`` are pure and jit-able; the object only
+    holds static configuration.
+    """
+
+    def __init__(self, cfg: Config, env: VecEnv | None = None, eval_env: VecEnv | None = None):
+        self.cfg = cfg
+        self.env = env or VecEnv(cfg.env, cfg.num_envs, cfg.episode_length)
+        self.eval_env = eval_env or VecEnv(cfg.env, cfg.eval_episodes, cfg.episode_length)
+        self.strategy: Exploration = make_exploration(cfg, self.env.action_size)
+        self.value_net = ValueNetwork(tuple(cfg.value_hidden), cfg.activation)
+        self.optimizer = optax.chain(
+            optax.clip_by_global_norm(cfg.max_grad_norm), optax.scale_by_adam(eps=1e-5)
+        )
+        if cfg.algo == "ppo":
+            self.num_epochs, self.num_minibatches = cfg.num_epochs, cfg.num_minibatches
+        else:  # A2C: one gradient step on the whole batch (Algorithm 1)
+            self.num_epochs, self.num_minibatches = 1, 1
+
+    # ------------------------------------------------------------------ init
+    def init_hparams(self) -> HParams:
+        c = self.cfg
+        f = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
+        return HParams(
+            lr=f(c.lr),
+            gamma=f(c.gamma),
+            gae_lambda=f(c.gae_lambda),
+            clip_eps=f(c.clip_eps),
+            target_kl=f(c.target_kl),
+            vf_coef=f(c.vf_coef),
+            ent_coef=f(c.ent_coef),
+            explore=self.strategy.init_hparams(),
+        )
+
+    def init(self, key: jax.Array, hparams: HParams | None = None) -> TrainState:
+        hparams = self.init_hparams() if hparams is None else hparams
+        k_pol, k_val, k_env, k_carry, key = jax.random.split(key, 5)
+        obs_size = self.env.observation_size
+        params = AgentParams(
+            policy=self.strategy.init(k_pol, obs_size),
+            value=self.value_net.init(k_val, jnp.zeros((1, obs_size))),
+        )
+        return TrainState(
+            params=params,
+            opt_state=self.optimizer.init(params),
+            obs_stats=RunningStats.create(obs_size),
+            env_state=self.env.reset(k_env),
+            carry=self.strategy.init_carry(k_carry, params.policy, hparams.explore, self.env.num_envs),
+            hparams=hparams,
+            key=key,
+            iteration=jnp.zeros((), jnp.int32),
+            env_steps=jnp.zeros((), jnp.int32),
+        )
+
+    # ------------------------------------------------------------- iteration
+    def _norm(self, stats: RunningStats, obs: jax.Array) -> jax.Array:
+        return normalize(stats, obs, self.cfg.normalize_obs)
+
+    def _loss(self, params: AgentParams, hp: HParams, stats: RunningStats, batch: dict):
+        """Policy + value loss of one minibatch of whole segments, data [T, m, ...]."""
+        data: Transition = batch["data"]
+        obs = self._norm(stats, data.obs)
+        seg = jax.vmap(self.strategy.log_prob, in_axes=(None, None, 0, 1, 1, 1), out_axes=1)(
+            params.policy, hp.explore, batch["carry0"], obs, data.action, data.first
+        )
+        adv = batch["advantages"]
+        if self.cfg.normalize_advantages:
+            adv = losses.standardize(adv)
+        if self.cfg.algo == "ppo":
+            pi_loss, info = losses.ppo_clip_loss(seg.log_prob, data.log_prob, adv, hp.clip_eps)
+        else:
+            pi_loss, info = losses.a2c_loss(seg.log_prob, data.log_prob, adv)
+        values = self.value_net.apply(params.value, obs)
+        v_loss = losses.value_loss(values, batch["targets"])
+        entropy = jnp.mean(seg.entropy)
+        total = pi_loss + hp.vf_coef * v_loss - hp.ent_coef * entropy
+        aux = {
+            "policy_loss": pi_loss,
+            "value_loss": v_loss,
+            "entropy": entropy,
+            "approx_kl": info.approx_kl,
+            "clip_fraction": info.clip_fraction,
+        }
+        return total, aux
+
+    def iteration(self, state: TrainState) -> tuple[TrainState, dict[str, jax.Array]]:
+        """Collect, estimate advantages, update (one jit-able step)."""
+        cfg, hp, params, stats = self.cfg, state.hparams, state.params, state.obs_stats
+        key, k_roll, k_perm = jax.random.split(state.key, 3)
+        strategy = self.strategy
+
+        def act(k, carry, obs, first):
+            return strategy.act(k, params.policy, hp.explore, carry, self._norm(stats, obs), first)
+
+        carry0 = state.carry
+        env_state, carry, data = unroll(self.env, act, state.env_state, carry0, k_roll, cfg.unroll_length)
+        values = self.value_net.apply(params.value, self._norm(stats, data.obs))
+        next_values = self.value_net.apply(params.value, self._norm(stats, data.final_obs))
+        advantages, targets = losses.gae(
+            data.reward, values, next_values, data.terminated, data.done, hp.gamma, hp.gae_lambda
+        )
+        batch = {"data": data, "carry0": carry0, "advantages": advantages, "targets": targets}
+        n, mb = self.env.num_envs, self.num_minibatches
+        grad_fn = jax.value_and_grad(self._loss, has_aux=True)
+
+        def sgd_step(c, env_idx):
+            params, opt_state, stopped = c
+            sub = {
+                "data": jax.tree.map(lambda x: x[:, env_idx], batch["data"]),
+                "carry0": jax.tree.map(lambda x: x[env_idx], batch["carry0"]),
+                "advantages": batch["advantages"][:, env_idx],
+                "targets": batch["targets"][:, env_idx],
+            }
+            (_, aux), grads = grad_fn(params, hp, stats, sub)
+            # Algorithm 2/5: stop the epochs once the approximate KL is too large.
+            too_far = jnp.logical_and(hp.target_kl > 0, aux["approx_kl"] > 1.5 * hp.target_kl)
+            stop = jnp.logical_or(stopped, too_far)
+
+            def apply(args):
+                params, opt_state = args
+                updates, opt_state = self.optimizer.update(grads, opt_state, params)
+                params = jax.tree.map(lambda p, u: p - hp.lr * u, params, updates)
+                return params, opt_state
+
+            params, opt_state = jax.lax.cond(stop, lambda a: a, apply, (params, opt_state))
+            aux["grad_norm"] = optax.global_norm(grads)
+            aux["applied"] = (~stop).astype(jnp.float32)
+            return (params, opt_state, stop), aux
+
+        def epoch(c, k):
+            perm = jax.random.permutation(k, n).reshape(mb, n // mb)
+            return jax.lax.scan(sgd_step, c, perm)
+
+        (new_params, opt_state, _), aux = jax.lax.scan(
+            epoch,
+            (params, state.opt_state, jnp.zeros((), bool)),
+            jax.random.split(k_perm, self.num_epochs),
+        )
+        applied = aux.pop("applied")
+        weight = applied / jnp.maximum(applied.sum(), 1.0)
+        metrics = {f"train/{k}": jnp.sum(v * weight) for k, v in aux.items()}
+        metrics["train/updates_applied"] = applied.sum()
+        metrics["train/kl_first_minibatch"] = aux["approx_kl"][0, 0]
+
+        done = data.done
+        n_done = done.sum()
+        metrics["train/episode_return"] = jnp.where(
+            n_done > 0, jnp.sum(data.episode_return) / jnp.maximum(n_done, 1), jnp.nan
+        )
+        metrics["train/episodes"] = n_done.astype(jnp.float32)
+        metrics["train/reward_mean"] = data.reward.mean()
+        var_t = targets.var()
+        metrics["train/explained_variance"] = 1.0 - (targets - values).var() / (var_t + 1e-8)
+        metrics.update({f"train/{k}": v for k, v in strategy.metrics(new_params.policy, hp.explore).items()})
+
+        new_stats = update_stats(stats, data.obs) if cfg.normalize_obs else stats
+        new_state = state.replace(
+            params=new_params,
+            opt_state=opt_state,
+            obs_stats=new_stats,
+            env_state=env_state,
+            carry=carry,
+            key=key,
+            iteration=state.iteration + 1,
+            env_steps=state.env_steps + n * cfg.unroll_length,
+        )
+        return new_state, metrics
+
+    # ------------------------------------------------------------ evaluation
+    def evaluate(self, state: TrainState, key: jax.Array) -> dict[str, jax.Array]:
+        """Deterministic (mean-action) episodes, one per eval env."""
+        params, stats = state.params, state.obs_stats
+
+        def policy(obs):
+            return self.strategy.mean_action(params.policy, self._norm(stats, obs))
+
+        returns, lengths = evaluate_policy(self.eval_env, policy, key)
+        return {
+            "eval/episode_return": returns.mean(),
+            "eval/episode_return_std": returns.std(),
+            "eval/episode_length": lengths.astype(jnp.float32).mean(),
+        }

@@ -1,0 +1,183 @@
+"""Typed, validated run configuration with ``key=value`` overrides.
+
+The configuration is one dataclass; OmegaConf turns it into a structured config,
+so ``key=value`` overrides on the command line (Hydra's syntax) are type-checked
+on merge. Ranges and choices are checked here, and every problem becomes a
+`ConfigError` whose one-line message names the key and what is allowed.
+
+Shape-determining settings (``num_envs``, ``unroll_length``, network sizes, ...)
+are static Python values; the scalars listed in `SWEEPABLE` become arrays inside
+the train state so that `jax.vmap` can run a grid of them as one program.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+from typing import Any
+
+from omegaconf import OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from coherent_jax.envs.registry import TASKS
+
+ALGOS = ("ppo", "a2c")
+EXPLORES = ("action", "coherent")
+ACTIVATIONS = ("tanh", "relu", "elu", "swish")
+
+
+def _field(default: Any, help: str, **kw: Any) -> Any:
+    if isinstance(default, list):
+        return dataclasses.field(default_factory=lambda: list(default), metadata={"help": help}, **kw)
+    return dataclasses.field(default=default, metadata={"help": help}, **kw)
+
+
+@dataclasses.dataclass
+class Config:
+    """Everything that defines a training run (see ``--help``)."""
+
+    # --- what to run
+    env: str = _field("halfcheetah", "task name: " + ", ".join(TASKS))
+    algo: str = _field("ppo", "on-policy algorithm: " + ", ".join(ALGOS))
+    explore: str = _field("action", "exploration strategy: " + ", ".join(EXPLORES))
+    seed: int = _field(0, "PRNG seed; the same seed gives the same run")
+    total_steps: int = _field(1_000_000, "environment steps to train for")
+    # --- collection
+    num_envs: int = _field(64, "parallel environments")
+    unroll_length: int = _field(64, "steps per env per iteration (segment length T)")
+    episode_length: int = _field(1000, "time limit in env steps (truncation is bootstrapped)")
+    # --- optimisation
+    lr: float = _field(3e-4, "Adam learning rate (policy and value)")
+    gamma: float = _field(0.99, "discount factor")
+    gae_lambda: float = _field(0.95, "GAE lambda (eq. 2.30)")
+    num_epochs: int = _field(10, "PPO epochs per iteration (A2C: 1 gradient step)")
+    num_minibatches: int = _field(8, "minibatches per epoch; they split envs, never time")
+    clip_eps: float = _field(0.2, "PPO clipping epsilon (eq. 2.41)")
+    target_kl: float = _field(0.0, "stop the epochs once approx KL > 1.5 * target_kl; 0 = never")
+    vf_coef: float = _field(0.5, "weight of the value loss")
+    ent_coef: float = _field(0.0, "weight of the entropy bonus")
+    max_grad_norm: float = _field(0.5, "global gradient-norm clip")
+    normalize_advantages: bool = _field(True, "standardise advantages per minibatch")
+    normalize_obs: bool = _field(True, "running mean/std observation normalisation")
+    # --- networks
+    policy_hidden: list[int] = _field([64, 64], "policy trunk layer sizes")
+    value_hidden: list[int] = _field([64, 64], "value network layer sizes")
+    activation: str = _field("tanh", "hidden activation: " + ", ".join(ACTIVATIONS))
+    # --- exploration
+    init_std: float = _field(0.5, "action noise: initial std of the Gaussian policy")
+    beta: float = _field(0.01, "coherent: chain coefficient, 1 = step-based, 0 = trajectory-based")
+    w_std_init: float = _field(0.3, "coherent: initial std of the last-layer weights (Lambda^-1/2)")
+    action_std: float = _field(0.1, "coherent: std of the action given the weights (Lambda_a^-1/2)")
+    learn_action_std: bool = _field(False, "coherent: learn action_std (thesis: fixed)")
+    remat: bool = _field(False, "coherent: rematerialise the filter scan in the backward pass")
+    # --- evaluation and output
+    eval_every: int = _field(10, "iterations between deterministic evaluations; 0 = only at the end")
+    eval_episodes: int = _field(8, "episodes per evaluation (run in parallel)")
+    run_dir: str = _field("", "output directory; default runs/<env>-<algo>-<explore>-s<seed>-<time>")
+    progress: bool = _field(True, "show a progress bar")
+
+    # --- derived (not settable)
+    @property
+    def steps_per_iteration(self) -> int:
+        return self.num_envs * self.unroll_length
+
+    @property
+    def num_iterations(self) -> int:
+        return max(1, math.ceil(self.total_steps / self.steps_per_iteration))
+
+
+# Scalars that may differ across the points of one vmapped sweep.
+SWEEPABLE = ("lr", "gamma", "gae_lambda", "clip_eps", "target_kl", "vf_coef", "ent_coef", "beta")
+
+
+class ConfigError(ValueError):
+    """A bad override: unknown key, wrong type or value out of range."""
+
+
+def _check(cond: bool, key: str, value: Any, allowed: str) -> None:
+    if not cond:
+        raise ConfigError(f"invalid value for {key!r}: {value!r} (allowed: {allowed})")
+
+
+def validate(cfg: Config) -> Config:
+    """Checks ranges and choices; raises `ConfigError` naming the first bad key."""
+    _check(cfg.env in TASKS, "env", cfg.env, ", ".join(TASKS))
+    _check(cfg.algo in ALGOS, "algo", cfg.algo, ", ".join(ALGOS))
+    _check(cfg.explore in EXPLORES, "explore", cfg.explore, ", ".join(EXPLORES))
+    _check(cfg.activation in ACTIVATIONS, "activation", cfg.activation, ", ".join(ACTIVATIONS))
+    for key in ("total_steps", "num_envs", "unroll_length", "episode_length", "num_epochs"):
+        value = getattr(cfg, key)
+        _check(1 <= value < 2**31, key, value, "an integer >= 1")
+    _check(cfg.seed >= 0, "seed", cfg.seed, "an integer >= 0")
+    _check(cfg.num_minibatches >= 1, "num_minibatches", cfg.num_minibatches, "an integer >= 1")
+    _check(
+        cfg.num_envs % cfg.num_minibatches == 0,
+        "num_minibatches",
+        cfg.num_minibatches,
+        f"a divisor of num_envs={cfg.num_envs} (minibatches split envs)",
+    )
+    for key in ("lr", "clip_eps", "max_grad_norm", "init_std", "action_std", "w_std_init"):
+        value = getattr(cfg, key)
+        _check(math.isfinite(value) and value > 0, key, value, "a finite number > 0")
+    for key in ("gamma", "gae_lambda", "beta"):
+        value = getattr(cfg, key)
+        _check(math.isfinite(value) and 0.0 <= value <= 1.0, key, value, "a number in [0, 1]")
+    for key in ("target_kl", "vf_coef", "ent_coef"):
+        value = getattr(cfg, key)
+        _check(math.isfinite(value) and value >= 0, key, value, "a finite number >= 0")
+    for key in ("policy_hidden", "value_hidden"):
+        value = list(getattr(cfg, key))
+        _check(len(value) >= 1 and all(v >= 1 for v in value), key, value, "a list of ints >= 1")
+    _check(cfg.eval_every >= 0, "eval_every", cfg.eval_every, "an integer >= 0")
+    _check(cfg.eval_episodes >= 1, "eval_episodes", cfg.eval_episodes, "an integer >= 1")
+    return cfg
+
+
+def parse_overrides(overrides: Sequence[str], base: Config | None = None) -> Config:
+    """Builds a validated `Config` from ``key=value`` strings (Hydra/OmegaConf syntax).
+
+    Lists are written ``policy_hidden=[64,64]``. Raises `ConfigError` with a
+    one-line message for a malformed override, an unknown key, a value of the
+    wrong type or out of range.
+    """
+    schema = OmegaConf.structured(base if base is not None else Config())
+    known = {f.name for f in dataclasses.fields(Config)}
+    for item in overrides:
+        if "=" not in item or item.startswith("="):
+            raise ConfigError(f"malformed override {item!r}: expected key=value")
+        key = item.split("=", 1)[0].strip()
+        if key not in known:
+            raise ConfigError(f"unknown key {key!r}; valid keys: {', '.join(sorted(known))}")
+    try:
+        merged = OmegaConf.merge(schema, OmegaConf.from_dotlist(list(overrides)))
+        cfg = OmegaConf.to_object(merged)
+    except OmegaConfBaseException as exc:
+        key = getattr(exc, "full_key", None) or "?"
+        field = next((f for f in dataclasses.fields(Config) if f.name == key), None)
+        expected = _type_name(field.type) if field is not None else "a valid value"
+        msg = str(exc).splitlines()[0]
+        raise ConfigError(f"invalid value for {key!r}: {msg} (allowed: {expected})") from None
+    return validate(cfg)
+
+
+def _type_name(tp: Any) -> str:
+    return {"int": "an integer", "float": "a number", "bool": "true or false", "str": "a string"}.get(
+        str(tp), str(tp)
+    )
+
+
+def to_dict(cfg: Config) -> dict[str, Any]:
+    """Plain-dict view of the config (for the run directory)."""
+    return dataclasses.asdict(cfg)
+
+
+def help_text() -> str:
+    """Every option with its default and a one-line description."""
+    lines = ["usage: python -m coherent_jax.train [key=value ...]", "", "options (key=default):"]
+    for f in dataclasses.fields(Config):
+        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+        if isinstance(default, list):
+            default = "[" + ",".join(str(v) for v in default) + "]"
+        lines.append(f"  {f.name}={default}".ljust(34) + f"  {f.metadata.get('help', '')}")
+    return "\n".join(lines)

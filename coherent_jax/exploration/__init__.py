@@ -1,0 +1,17 @@
+"""Exploration strategies: one module per strategy, one interface (`base.Exploration`)."""
+
+from __future__ import annotations
+
+from coherent_jax.exploration.base import ActOutput, Exploration, SegmentLogProb
+
+
+def make_exploration(cfg, action_size: int) -> Exploration:
+    """The strategy named by ``cfg.explore``, built for ``action_size`` actions."""
+    if cfg.explore == "action":
+        from coherent_jax.exploration.action import ActionNoise
+
+        return ActionNoise(action_size, cfg.policy_hidden, cfg.activation, cfg.init_std)
+    raise ValueError(f"unknown explore {cfg.explore!r}")
+
+
+__all__ = ["ActOutput", "Exploration", "SegmentLogProb", "make_exploration"]

@@ -1,0 +1,102 @@
+"""The interface every exploration strategy implements.
+
+A strategy owns the stochastic part of the policy: given the policy trunk
+(`coherent_jax.networks.MLP`), it defines the last layer, how actions are drawn
+during collection (carrying any per-env noise or belief state explicitly, as
+rlax's Ornstein-Uhlenbeck noise does), the log-probability of a stored segment
+that on-policy losses differentiate, and the deterministic action used for
+evaluation. Algorithms only call these methods, so adding a strategy never
+touches an algorithm.
+
+Conventions: ``obs`` is already normalised; ``first`` marks the first step of an
+episode; collection methods work on a batch of envs ``[n, ...]``; `log_prob`
+works on ONE env's time segment ``[T, ...]`` (the caller vmaps over envs).
+"""
+
+from __future__ import annotations
+
+import abc
+from typing import Any, NamedTuple
+
+import jax
+
+Params = Any
+Carry = Any
+
+
+class ActOutput(NamedTuple):
+    """Result of one collection step for a batch of envs.
+
+    Attributes:
+      action: [n, p] the action taken, before clipping to the action bounds.
+      log_prob: [n] log-probability of ``action`` under the behaviour policy, as
+        the on-policy ratio needs it (for coherent: the filter's marginal).
+      carry: per-env strategy state after this step.
+    """
+
+    action: jax.Array
+    log_prob: jax.Array
+    carry: Carry
+
+
+class SegmentLogProb(NamedTuple):
+    """Per-step log-probabilities and entropies of a stored segment, each [T]."""
+
+    log_prob: jax.Array
+    entropy: jax.Array
+
+
+class Exploration(abc.ABC):
+    """A stochastic policy head with its exploration process."""
+
+    name: str = "base"
+
+    @abc.abstractmethod
+    def init(self, key: jax.Array, obs_size: int) -> Params:
+        """Trainable policy parameters (trunk and head)."""
+
+    def init_hparams(self) -> dict[str, jax.Array]:
+        """Non-trainable scalars (e.g. beta) that a vmapped sweep may vary."""
+        return {}
+
+    def init_carry(self, key: jax.Array, params: Params, hparams: Any, num_envs: int) -> Carry:
+        """Per-env state at the start of training (leading axis num_envs)."""
+        del key, params, hparams, num_envs
+        return ()
+
+    @abc.abstractmethod
+    def act(
+        self,
+        key: jax.Array,
+        params: Params,
+        hparams: Any,
+        carry: Carry,
+        obs: jax.Array,
+        first: jax.Array,
+    ) -> ActOutput:
+        """Draws actions for a batch of envs, obs [n, o], first [n]."""
+
+    @abc.abstractmethod
+    def log_prob(
+        self,
+        params: Params,
+        hparams: Any,
+        carry0: Carry,
+        obs: jax.Array,
+        actions: jax.Array,
+        first: jax.Array,
+    ) -> SegmentLogProb:
+        """Log-probabilities of one env's segment, obs [T, o], actions [T, p].
+
+        ``carry0`` is that env's carry as stored at the start of the segment; the
+        result is differentiable with respect to ``params``.
+        """
+
+    @abc.abstractmethod
+    def mean_action(self, params: Params, obs: jax.Array) -> jax.Array:
+        """The deterministic (evaluation) action, obs [..., o] -> [..., p]."""
+
+    def metrics(self, params: Params, hparams: Any) -> dict[str, jax.Array]:
+        """Scalars worth logging (e.g. the mean exploration std)."""
+        del params, hparams
+        return {}

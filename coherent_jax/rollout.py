@@ -1,0 +1,96 @@
+"""Collection: a `lax.scan` of one actor step over the vectorized environments."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from coherent_jax.envs.vec_env import EnvState, VecEnv
+from coherent_jax.exploration.base import ActOutput
+
+
+class Transition(NamedTuple):
+    """One step of every env; stacked by `unroll` into time-major [T, n, ...].
+
+    Attributes:
+      obs: s_t, raw (unnormalised).
+      first: s_t is the first state of an episode (the strategy resets there).
+      action: a_t before clipping to the action bounds.
+      log_prob: log pi_behaviour(a_t | history).
+      reward: r_t.
+      terminated: s'_t is terminal.
+      truncated: the time limit ended the episode at s'_t.
+      final_obs: s'_t, the state the step reached, before any auto-reset.
+      episode_return: return of the episode that ended here, else 0.
+    """
+
+    obs: jax.Array
+    first: jax.Array
+    action: jax.Array
+    log_prob: jax.Array
+    reward: jax.Array
+    terminated: jax.Array
+    truncated: jax.Array
+    final_obs: jax.Array
+    episode_return: jax.Array
+
+    @property
+    def done(self) -> jax.Array:
+        return jnp.logical_or(self.terminated, self.truncated)
+
+
+# act(key, carry, raw_obs, first) -> ActOutput
+ActFn = Callable[[jax.Array, Any, jax.Array, jax.Array], ActOutput]
+
+
+def unroll(
+    env: VecEnv, act: ActFn, env_state: EnvState, carry: Any, key: jax.Array, length: int
+) -> tuple[EnvState, Any, Transition]:
+    """Runs `length` steps of `num_envs` envs; returns final states and [T, n] data."""
+
+    def step(state, step_key):
+        env_state, carry = state
+        out = act(step_key, carry, env_state.obs, env_state.first)
+        next_env_state, outcome = env.step(env_state, out.action)
+        transition = Transition(
+            obs=env_state.obs,
+            first=env_state.first,
+            action=out.action,
+            log_prob=out.log_prob,
+            reward=outcome.reward,
+            terminated=outcome.terminated,
+            truncated=outcome.truncated,
+            final_obs=outcome.final_obs,
+            episode_return=outcome.episode_return,
+        )
+        return (next_env_state, out.carry), transition
+
+    (env_state, carry), data = jax.lax.scan(step, (env_state, carry), jax.random.split(key, length))
+    return env_state, carry, data
+
+
+def evaluate_policy(
+    env: VecEnv, policy: Callable[[jax.Array], jax.Array], key: jax.Array
+) -> tuple[jax.Array, jax.Array]:
+    """Runs one episode in each of ``env.num_envs`` envs with a deterministic policy.
+
+    Returns (episode returns [n], episode lengths [n]); an env that neither
+    terminates nor truncates within ``episode_length`` steps cannot exist, since
+    the time limit always ends it.
+    """
+    n = env.num_envs
+
+    def step(state, _):
+        env_state, returns, lengths, running = state
+        env_state, outcome = env.step(env_state, policy(env_state.obs))
+        returns = returns + jnp.where(running, outcome.reward, 0.0)
+        lengths = lengths + running.astype(jnp.int32)
+        running = jnp.logical_and(running, ~outcome.done)
+        return (env_state, returns, lengths, running), None
+
+    init = (env.reset(key), jnp.zeros((n,)), jnp.zeros((n,), jnp.int32), jnp.ones((n,), bool))
+    (_, returns, lengths, _), _ = jax.lax.scan(step, init, None, length=env.episode_length)
+    return returns, lengths

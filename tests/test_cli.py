@@ -1,0 +1,93 @@
+"""Command-line errors: one line naming the key and what is allowed, exit 2, nothing written."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from coherent_jax.config import Config, ConfigError, parse_overrides
+
+BAD = [
+    (["foo=1"], "'foo'"),
+    (["lr=abc"], "'lr'"),
+    (["lr=-1"], "'lr'"),
+    (["lr=nan"], "'lr'"),
+    (["num_envs=0"], "'num_envs'"),
+    (["num_envs=2.5"], "'num_envs'"),
+    (["env=cheetah"], "'env'"),
+    (["algo=trpo"], "'algo'"),
+    (["explore=boltzmann"], "'explore'"),
+    (["beta=1.5"], "'beta'"),
+    (["gamma=-0.1"], "'gamma'"),
+    (["normalize_obs=maybe"], "'normalize_obs'"),
+    (["num_minibatches=3"], "'num_minibatches'"),
+    (["policy_hidden=[0,64]"], "'policy_hidden'"),
+    (["lr"], "'lr'"),
+]
+
+
+@pytest.mark.parametrize("overrides,key", BAD)
+def test_bad_overrides_raise_naming_the_key(overrides, key):
+    with pytest.raises(ConfigError) as err:
+        parse_overrides(overrides)
+    msg = str(err.value)
+    assert key in msg
+    assert "\n" not in msg
+
+
+def test_error_names_allowed_values():
+    with pytest.raises(ConfigError, match="halfcheetah"):
+        parse_overrides(["env=cheetah"])
+    with pytest.raises(ConfigError, match=r"\[0, 1\]"):
+        parse_overrides(["beta=1.5"])
+
+
+def test_good_overrides_are_typed():
+    cfg = parse_overrides(["lr=1e-3", "num_envs=16", "policy_hidden=[32,32]", "normalize_obs=false"])
+    assert cfg.lr == pytest.approx(1e-3) and isinstance(cfg.lr, float)
+    assert cfg.num_envs == 16
+    assert cfg.policy_hidden == [32, 32]
+    assert cfg.normalize_obs is False
+    assert parse_overrides([]) == Config()
+
+
+def run_cli(args, cwd):
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[1]) + os.pathsep + env.get("PYTHONPATH", "")
+    return subprocess.run(
+        [sys.executable, "-m", "coherent_jax.train", *args],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
+
+
+@pytest.mark.parametrize("overrides,key", BAD[:8] + BAD[-1:])
+def test_cli_bad_input_exits_2_and_writes_nothing(tmp_path, overrides, key):
+    proc = run_cli([*overrides, f"run_dir={tmp_path / 'run'}"], cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error:") and key in lines[0], proc.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_cli_refuses_non_empty_run_dir(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "keep.txt").write_text("precious")
+    proc = run_cli(["env=inverted_pendulum", f"run_dir={run}"], cwd=tmp_path)
+    assert proc.returncode == 2
+    assert "'run_dir'" in proc.stderr
+    assert sorted(p.name for p in run.iterdir()) == ["keep.txt"]
+
+
+def test_cli_help_lists_every_option_with_default(tmp_path):
+    proc = run_cli(["--help"], cwd=tmp_path)
+    assert proc.returncode == 0
+    for name, value in vars(Config()).items():
+        shown = "[" + ",".join(map(str, value)) + "]" if isinstance(value, list) else str(value)
+        assert f"{name}={shown}" in proc.stdout
