@@ -25,6 +25,7 @@ from coherent_jax.envs.registry import TASKS
 ALGOS = ("ppo", "a2c")
 EXPLORES = ("action", "coherent")
 ACTIVATIONS = ("tanh", "relu", "elu", "swish")
+COHERENT_INFERENCE = ("joint", "filter")
 
 
 def _field(default: Any, help: str, **kw: Any) -> Any:
@@ -42,7 +43,7 @@ class Config:
     algo: str = _field("ppo", "on-policy algorithm: " + ", ".join(ALGOS))
     explore: str = _field("action", "exploration strategy: " + ", ".join(EXPLORES))
     seed: int = _field(0, "PRNG seed; the same seed gives the same run")
-    total_steps: int = _field(1_000_000, "environment steps to train for")
+    total_steps: int = _field(2_000_000, "environment steps to train for")
     # --- collection
     num_envs: int = _field(64, "parallel environments")
     unroll_length: int = _field(64, "steps per env per iteration (segment length T)")
@@ -67,9 +68,18 @@ class Config:
     # --- exploration
     init_std: float = _field(0.5, "action noise: initial std of the Gaussian policy")
     beta: float = _field(0.01, "coherent: chain coefficient, 1 = step-based, 0 = trajectory-based")
-    w_std_init: float = _field(0.3, "coherent: initial std of the last-layer weights (Lambda^-1/2)")
+    w_std_init: float = _field(
+        0.1,
+        "coherent: initial std of the last-layer weights (Lambda^-1/2); "
+        "0.1 gives an initial action std of about 0.45",
+    )
     action_std: float = _field(0.1, "coherent: std of the action given the weights (Lambda_a^-1/2)")
     learn_action_std: bool = _field(False, "coherent: learn action_std (thesis: fixed)")
+    coherent_inference: str = _field(
+        "joint",
+        "coherent: how w is integrated out: joint (Cholesky of each segment's joint "
+        "Gaussian, fast up to a few hundred steps per segment) or filter (sequential scan)",
+    )
     remat: bool = _field(False, "coherent: rematerialise the filter scan in the backward pass")
     # --- evaluation and output
     eval_every: int = _field(10, "iterations between deterministic evaluations; 0 = only at the end")
@@ -105,6 +115,12 @@ def validate(cfg: Config) -> Config:
     _check(cfg.env in TASKS, "env", cfg.env, ", ".join(TASKS))
     _check(cfg.algo in ALGOS, "algo", cfg.algo, ", ".join(ALGOS))
     _check(cfg.explore in EXPLORES, "explore", cfg.explore, ", ".join(EXPLORES))
+    _check(
+        cfg.coherent_inference in COHERENT_INFERENCE,
+        "coherent_inference",
+        cfg.coherent_inference,
+        ", ".join(COHERENT_INFERENCE),
+    )
     _check(cfg.activation in ACTIVATIONS, "activation", cfg.activation, ", ".join(ACTIVATIONS))
     for key in ("total_steps", "num_envs", "unroll_length", "episode_length", "num_epochs"):
         value = getattr(cfg, key)

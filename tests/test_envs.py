@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from coherent_jax.envs import TASKS, UnknownTaskError, VecEnv, check_task
+from coherent_jax.envs import TASKS, UnknownTaskError, VecEnv, check_task, env_sizes, make_brax_env
 
 EXPECTED = {
     "halfcheetah": (17, 6),
@@ -17,6 +17,7 @@ EXPECTED = {
     "inverted_double_pendulum": (8, 1),
     "reacher": (11, 2),
     "swimmer": (8, 2),
+    "pointmass": (6, 2),
 }
 
 
@@ -35,39 +36,45 @@ def test_unknown_task_lists_valid_names():
 
 @pytest.mark.parametrize("name", sorted(EXPECTED))
 def test_every_task_resets_and_steps_under_jit(name):
-    """Registry-wide smoke test: jitted reset and 3 steps, shapes and finite values."""
-    env = VecEnv(name, num_envs=2, episode_length=1000)
+    """Registry-wide smoke test: jitted reset and step of the task, shapes and finite values."""
+    env = make_brax_env(name)
     obs_size, act_size = EXPECTED[name]
-    assert (env.observation_size, env.action_size) == (obs_size, act_size)
+    assert env_sizes(env) == (obs_size, act_size)
 
-    def run(key):
+    @jax.jit
+    def reset_and_step(key):
         state = env.reset(key)
+        action = jax.random.uniform(key, (act_size,), minval=-1, maxval=1)
+        return state, env.step(env.step(state, action), action)
 
-        def body(s, k):
-            a = jax.random.uniform(k, (2, act_size), minval=-1, maxval=1)
-            s, out = env.step(s, a)
-            return s, out
+    first, state = reset_and_step(jax.random.PRNGKey(0))
+    assert first.obs.shape == state.obs.shape == (obs_size,)
+    assert state.reward.shape == ()
+    assert bool(jnp.all(jnp.isfinite(first.obs))) and bool(jnp.all(jnp.isfinite(state.obs)))
+    assert bool(jnp.isfinite(state.reward))
+    assert not bool(jnp.allclose(first.obs, state.obs)), "stepping changes the state"
 
-        return jax.lax.scan(body, state, jax.random.split(key, 3))
 
-    state, out = jax.jit(run)(jax.random.PRNGKey(0))
-    assert state.obs.shape == (2, obs_size)
-    assert out.reward.shape == (3, 2)
-    assert out.final_obs.shape == (3, 2, obs_size)
-    assert bool(jnp.all(jnp.isfinite(state.obs)))
-    assert bool(jnp.all(jnp.isfinite(out.reward)))
-    assert bool(jnp.all(jnp.isfinite(out.final_obs)))
+def test_vectorized_env_shapes_and_auto_reset_state():
+    env = VecEnv("pointmass", num_envs=3, episode_length=4)
+    state = env.reset(jax.random.PRNGKey(0))
+    assert state.obs.shape == (3, 6) and bool(state.first.all())
+    state, out = jax.jit(env.step)(state, jnp.zeros((3, 2)))
+    assert out.final_obs.shape == (3, 6) and out.reward.shape == (3,)
+    assert not bool(state.first.any())
+    with pytest.raises(AssertionError):
+        env.step(state, jnp.zeros((2, 2)))
 
 
 def test_time_limit_truncates_resets_and_keeps_final_obs():
     """At the limit: truncated (not terminated), final_obs is pre-reset, next obs is fresh."""
-    env = VecEnv("inverted_pendulum", num_envs=3, episode_length=5)
+    env = VecEnv("pointmass", num_envs=3, episode_length=5)
 
     def run(key):
         state = env.reset(key)
 
         def body(s, _):
-            s2, out = env.step(s, jnp.zeros((3, 1)))
+            s2, out = env.step(s, jnp.zeros((3, 2)))
             return s2, (out, s2.obs, s2.first, s2.step)
 
         return jax.lax.scan(body, state, None, length=7)
@@ -75,7 +82,7 @@ def test_time_limit_truncates_resets_and_keeps_final_obs():
     _, (out, next_obs, first, step) = jax.jit(run)(jax.random.PRNGKey(1))
     trunc = np.asarray(out.truncated)
     term = np.asarray(out.terminated)
-    assert not term.any(), "zero action keeps the pendulum up for 5 steps"
+    assert not term.any(), "the point mass never terminates"
     np.testing.assert_array_equal(trunc[:, 0], [0, 0, 0, 0, 1, 0, 0])
     np.testing.assert_array_equal(np.asarray(first)[:, 0], [0, 0, 0, 0, 1, 0, 0])
     np.testing.assert_array_equal(np.asarray(step)[:, 0], [1, 2, 3, 4, 0, 1, 2])

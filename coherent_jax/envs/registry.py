@@ -27,12 +27,14 @@ class TaskSpec:
         None keeps the model's own value.
       episode_length: default time limit in environment steps.
       description: one line for ``--help`` and the README.
+      backend: Brax physics pipeline; ``mjx`` except where Brax has no MJX model.
     """
 
     brax_name: str
     ls_iterations: int | None
     episode_length: int = 1000
     description: str = ""
+    backend: str = "mjx"
 
 
 TASKS: Mapping[str, TaskSpec] = {
@@ -46,7 +48,12 @@ TASKS: Mapping[str, TaskSpec] = {
         "inverted_double_pendulum", None, description="double cart-pole balance (8 obs, 1 act)"
     ),
     "reacher": TaskSpec("reacher", None, description="2-link arm reaching a target (11 obs, 2 act)"),
-    "swimmer": TaskSpec("swimmer", None, description="3-link swimmer (8 obs, 2 act)"),
+    # Brax's swimmer refuses the MJX backend; its generalized pipeline runs the same MJCF.
+    "swimmer": TaskSpec(
+        "swimmer", None, description="3-link swimmer (8 obs, 2 act); Brax generalized", backend="generalized"
+    ),
+    # Not MuJoCo: an analytic task in pure JAX for fast tests of the machinery.
+    "pointmass": TaskSpec("", None, description="analytic 2D point mass to a goal (6 obs, 2 act), pure JAX"),
 }
 
 
@@ -64,6 +71,10 @@ def check_task(name: str) -> TaskSpec:
 def make_brax_env(name: str, **kwargs: Any):
     """Builds the raw (unwrapped, unbatched) Brax MJX environment for task `name`."""
     spec = check_task(name)
+    if name == "pointmass":
+        from coherent_jax.envs.pointmass import PointMass
+
+        return PointMass(**kwargs)
     # Brax prints a warning for its optional Warp backend on import; it is noise here.
     with _quiet_stdio():
         from brax import envs as brax_envs
@@ -72,10 +83,22 @@ def make_brax_env(name: str, **kwargs: Any):
         # Brax warns that its own pipelines are unmaintained; we use the MJX one.
         warnings.filterwarnings("ignore", message="Brax System, piplines")
         with _quiet_stdio(force=True):  # MuJoCo's compiler prints deprecation notes
-            env = brax_envs.get_environment(spec.brax_name, backend="mjx", **kwargs)
+            env = brax_envs.get_environment(spec.brax_name, backend=spec.backend, **kwargs)
     if spec.ls_iterations is not None:
         env.sys = env.sys.tree_replace({"opt.ls_iterations": spec.ls_iterations})
     return env
+
+
+def env_sizes(env) -> tuple[int, int]:
+    """(observation size, action size) of a Brax env without running it.
+
+    Brax's ``observation_size`` property runs an eager reset, hundreds of small XLA
+    compilations (about 20 s on this CPU); ``jax.eval_shape`` only traces it.
+    """
+    import jax
+
+    state = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
+    return int(state.obs.shape[-1]), int(env.action_size)
 
 
 class _quiet_stdio:

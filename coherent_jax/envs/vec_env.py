@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from coherent_jax.envs.registry import check_task, make_brax_env
+from coherent_jax.envs.registry import check_task, env_sizes, make_brax_env
 
 
 @struct.dataclass
@@ -86,8 +86,7 @@ class VecEnv:
         self.num_envs = int(num_envs)
         self.episode_length = int(episode_length or spec.episode_length)
         self.env = make_brax_env(task)
-        self.observation_size = int(self.env.observation_size)
-        self.action_size = int(self.env.action_size)
+        self.observation_size, self.action_size = env_sizes(self.env)
         self.dt = float(self.env.dt)
 
     def _reset_physics(self, key: jax.Array):

@@ -11,6 +11,20 @@ def make_exploration(cfg, action_size: int) -> Exploration:
         from coherent_jax.exploration.action import ActionNoise
 
         return ActionNoise(action_size, cfg.policy_hidden, cfg.activation, cfg.init_std)
+    if cfg.explore == "coherent":
+        from coherent_jax.exploration.coherent import CoherentExploration
+
+        return CoherentExploration(
+            action_size,
+            cfg.policy_hidden,
+            cfg.activation,
+            beta=cfg.beta,
+            w_std_init=cfg.w_std_init,
+            action_std=cfg.action_std,
+            learn_action_std=cfg.learn_action_std,
+            remat=cfg.remat,
+            inference=cfg.coherent_inference,
+        )
     raise ValueError(f"unknown explore {cfg.explore!r}")
 
 

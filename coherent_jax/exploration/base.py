@@ -92,6 +92,26 @@ class Exploration(abc.ABC):
         result is differentiable with respect to ``params``.
         """
 
+    def end_segment(
+        self,
+        params: Params,
+        hparams: Any,
+        carry0: Carry,
+        carry: Carry,
+        data_obs: jax.Array,
+        data_actions: jax.Array,
+        data_first: jax.Array,
+        data_log_prob: jax.Array,
+    ) -> tuple[jax.Array, Carry]:
+        """Called once per collected segment (time-major [T, n, ...], obs normalised).
+
+        May compute the behaviour log-probabilities of the whole segment at once
+        instead of step by step in `act`, and finish the carry that the next segment
+        starts from. Returns (log_prob [T, n], carry). Default: both unchanged.
+        """
+        del params, hparams, carry0, data_obs, data_actions, data_first
+        return data_log_prob, carry
+
     @abc.abstractmethod
     def mean_action(self, params: Params, obs: jax.Array) -> jax.Array:
         """The deterministic (evaluation) action, obs [..., o] -> [..., p]."""

@@ -34,6 +34,9 @@ import chex
 import jax
 import jax.numpy as jnp
 
+from coherent_jax.exploration.base import ActOutput, Exploration, SegmentLogProb
+from coherent_jax.networks import MLP
+
 _LOG_2PI = math.log(2.0 * math.pi)
 
 
@@ -112,6 +115,21 @@ def filter_step(
     action_std: chex.Array,
     beta: chex.Array,
 ) -> tuple[Belief, chex.Array]:
+    """One step of the exact filter (see `filter_step_with_variance`); returns (belief, logp)."""
+    new_belief, logp, _ = filter_step_with_variance(belief, x, a, first, mu, w_std, action_std, beta)
+    return new_belief, logp
+
+
+def filter_step_with_variance(
+    belief: Belief,
+    x: chex.Array,
+    a: chex.Array,
+    first: chex.Array,
+    mu: chex.Array,
+    w_std: chex.Array,
+    action_std: chex.Array,
+    beta: chex.Array,
+) -> tuple[Belief, chex.Array, chex.Array]:
     """One step of the exact filter: score a_t, condition on it, propagate to t+1.
 
     With (m_i, P_i) the belief over w_t,i (the prior if ``first``):
@@ -143,7 +161,8 @@ def filter_step(
       beta: scalar in [0, 1], the chain's mixing rate.
 
     Returns:
-      (belief over w_{t+1} before a_{t+1}, log p(a_t | a_<t, s_<=t) as a scalar).
+      (belief over w_{t+1} before a_{t+1}, log p(a_t | a_<t, s_<=t) as a scalar,
+      the predictive variances s [p]).
     """
     p, n = _check_params(mu, w_std, action_std)
     chex.assert_shape([belief.mean], (p, n))
@@ -180,7 +199,7 @@ def filter_step(
     decay = 1.0 - beta
     new_mean = decay * post_mean + beta * mu
     new_cov = jnp.square(decay) * post_cov + _innovation_var(beta) * prior.cov
-    return Belief(mean=new_mean, cov=new_cov), logp
+    return Belief(mean=new_mean, cov=new_cov), logp, pred_var
 
 
 def log_marginals_from(
@@ -194,6 +213,30 @@ def log_marginals_from(
     beta: chex.Array,
     remat: bool = False,
 ) -> tuple[chex.Array, Belief]:
+    """log p(a_t | a_<t, s_<=t) over a segment that starts from ``belief0``.
+
+    See `segment_marginals`; returns (logp [T], final belief).
+    """
+    logp, final_belief, _ = segment_marginals(belief0, x, a, first, mu, w_std, action_std, beta, remat)
+    return logp, final_belief
+
+
+def predictive_entropy(pred_var: chex.Array) -> chex.Array:
+    """Entropy of the predictive Gaussian of each step, 0.5 sum_i log(2 pi e s_i); [T, p] -> [T]."""
+    return 0.5 * jnp.sum(_LOG_2PI + 1.0 + jnp.log(pred_var), axis=-1)
+
+
+def segment_marginals(
+    belief0: Belief,
+    x: chex.Array,
+    a: chex.Array,
+    first: chex.Array,
+    mu: chex.Array,
+    w_std: chex.Array,
+    action_std: chex.Array,
+    beta: chex.Array,
+    remat: bool = False,
+) -> tuple[chex.Array, Belief, chex.Array]:
     """log p(a_t | a_<t, s_<=t) over a segment that starts from a given belief.
 
     ``lax.scan`` of `filter_step`. This is what a trainer uses across rollout
@@ -218,7 +261,8 @@ def log_marginals_from(
         several [p, q+1, q+1] arrays per step.
 
     Returns:
-      (logp [T], the belief over w_T before a_T, to start the next segment).
+      (logp [T], the belief over w_T before a_T to start the next segment, the
+      predictive variances s [T, p] of every step).
     """
     p, n = _check_params(mu, w_std, action_std)
     chex.assert_rank([x, a, first], [2, 2, 1])
@@ -238,12 +282,15 @@ def log_marginals_from(
 
     def body(belief, step):
         x_t, a_t, first_t = step
-        return filter_step(belief, x_t, a_t, first_t, mu, w_std, action_std, beta)
+        new_belief, logp, pred_var = filter_step_with_variance(
+            belief, x_t, a_t, first_t, mu, w_std, action_std, beta
+        )
+        return new_belief, (logp, pred_var)
 
     if remat:
         body = jax.checkpoint(body)
-    final_belief, logp = jax.lax.scan(body, belief0, (x, a, first))
-    return logp, final_belief
+    final_belief, (logp, pred_var) = jax.lax.scan(body, belief0, (x, a, first))
+    return logp, final_belief, pred_var
 
 
 def log_marginals(
@@ -377,3 +424,298 @@ def sample_action(key: chex.PRNGKey, w: chex.Array, x: chex.Array, action_std: c
     mean = w @ _augment(x)
     eps = jax.random.normal(key, (p,), dtype=jnp.result_type(mean, action_std))
     return mean + action_std * eps
+
+
+# --------------------------------------------------------------------------------------
+# The same marginals in parallel form: the joint Gaussian of a segment's actions.
+
+
+def segment_marginals_joint(
+    belief0: Belief,
+    x: chex.Array,
+    a: chex.Array,
+    first: chex.Array,
+    mu: chex.Array,
+    w_std: chex.Array,
+    action_std: chex.Array,
+    beta: chex.Array,
+) -> tuple[chex.Array, Belief, chex.Array]:
+    """`segment_marginals` computed from the joint Gaussian of the segment's actions.
+
+    Within a segment, action dimension i is jointly Gaussian. With c_s = (1-beta)^s for
+    steps s of the episode that continues from the stored belief (m0, P0) (none if
+    ``first[0]``) and 0 otherwise, D_i = diag(w_std_i^2) and M the same-episode mask:
+
+        E[a_s,i]       = mu_i . xh_s + c_s (m0_i - mu_i) . xh_s
+        K_i[s, t]      = M_st (1-beta)^|s-t| xh_s' D_i xh_t
+                         + c_s c_t xh_s' (P0_i - D_i) xh_t + delta_st action_std_i^2
+
+    which follows from w_s = (1-beta) w_{s-1} + ... (4.1-4.4) started at N(m0, P0) or
+    at the prior N(mu, D) on a reset (4.5). The Cholesky factor K_i = L_i L_i' in time
+    order yields exactly the filter's per-step marginals (4.37)/(4.49): the
+    whitened residual z = L^-1 (a - E[a]) has z_t = (a_t - E[a_t | a_<t]) / L_tt, so
+
+        log p(a_t,i | a_<t,i) = log N(z_t; 0, 1) - log L_tt,   s_t,i = L_tt^2.
+
+    The belief over w_T that starts the next segment is the Gaussian conditional of
+    w_T on the actions, Cov(w_T, a_s) = (c_T c_s (P0 - D) + g_s D) xh_s with
+    g_s = (1-beta)^(T-s) on the last episode of the segment. Cost O(p T^2 (q+1) + p T^3)
+    with no sequential loop: on CPU the forward and backward passes are about an order
+    of magnitude faster than the scan for segments of tens of steps, but memory grows
+    as T^2, so the filter remains the form for long segments.
+
+    Args and returns: as `segment_marginals`.
+    """
+    p, n = _check_params(mu, w_std, action_std)
+    num_steps = x.shape[0]
+    chex.assert_shape(x, (num_steps, n - 1))
+    chex.assert_shape(a, (num_steps, p))
+    chex.assert_shape(first, (num_steps,))
+    chex.assert_shape([belief0.mean], (p, n))
+    chex.assert_shape([belief0.cov], (p, n, n))
+    dtype = jnp.result_type(x, a, mu, w_std, action_std, belief0.mean, belief0.cov)
+    cast = lambda v: jnp.asarray(v).astype(dtype)  # noqa: E731
+    x, a, mu, w_std, action_std, beta = map(cast, (x, a, mu, w_std, action_std, beta))
+    m0, p0 = cast(belief0.mean), cast(belief0.cov)
+    first = jnp.asarray(first, dtype=bool)
+
+    xh = _augment(x)  # [T, n]
+    var_w = jnp.square(w_std)  # [p, n]
+    decay = 1.0 - beta
+    # (1-beta)^k for k = 0..T, gathered below: a power per element of the [T, T]
+    # matrices would be recomputed inside XLA's fusions (it cost 50x in the backward).
+    steps = jnp.arange(num_steps)
+    powers = jnp.power(decay, jnp.arange(num_steps + 1, dtype=dtype))
+    episode = jnp.cumsum(first.astype(jnp.int32))  # 0 on the continuing episode
+    same_episode = episode[:, None] == episode[None, :]
+    c = jnp.where(episode == 0, powers[steps], 0.0)  # [T]
+    lag = jnp.abs(steps[:, None] - steps[None, :])
+    chain = jnp.where(same_episode, powers[lag], 0.0)  # [T, T]
+
+    xd = xh[None, :, :] * var_w[:, None, :]  # [p, T, n]  D_i xh_s
+    xp0 = jnp.einsum("ikl,sl->isk", p0, xh)  # [p, T, n]  P0_i xh_s
+    gram_d = jnp.einsum("isk,tk->ist", xd, xh)  # xh_s' D_i xh_t
+    gram_p = jnp.einsum("isk,tk->ist", xp0, xh) - gram_d  # xh_s' (P0_i - D_i) xh_t
+    eye = jnp.eye(num_steps, dtype=dtype)
+    cov_a = (
+        chain[None] * gram_d
+        + (c[:, None] * c[None, :])[None] * gram_p
+        + jnp.square(action_std)[:, None, None] * eye[None]
+    )
+    cov_a = 0.5 * (cov_a + jnp.swapaxes(cov_a, -1, -2))
+    chol = jnp.linalg.cholesky(cov_a)  # [p, T, T]
+
+    mean_a = xh @ mu.T + c[:, None] * (xh @ (m0 - mu).T)  # [T, p]
+    resid = (a - mean_a).T  # [p, T]
+    white = jax.scipy.linalg.solve_triangular(chol, resid[..., None], lower=True)[..., 0]
+    diag = jnp.diagonal(chol, axis1=-2, axis2=-1)  # [p, T]
+    logp = jnp.sum(-0.5 * jnp.square(white) - jnp.log(diag) - 0.5 * _LOG_2PI, axis=0)
+    pred_var = jnp.square(diag).T  # [T, p]
+
+    # Belief over w_T (before a_T): condition the prior of w_T on the segment.
+    last = episode == episode[-1]
+    c_end = jnp.where(episode[-1] == 0, powers[num_steps], 0.0)
+    g = jnp.where(last, powers[num_steps - steps], 0.0)  # [T]
+    cross = c_end * c[None, :, None] * (xp0 - xd) + g[None, :, None] * xd  # [p, T, n]
+    proj = jax.scipy.linalg.solve_triangular(chol, cross, lower=True)  # [p, T, n]
+    mean_end = mu + c_end * (m0 - mu) + jnp.einsum("itk,it->ik", proj, white)
+    prior_cov_end = c_end**2 * p0 + (1.0 - c_end**2) * jax.vmap(jnp.diag)(var_w)
+    cov_end = prior_cov_end - jnp.einsum("itk,itl->ikl", proj, proj)
+    cov_end = 0.5 * (cov_end + jnp.swapaxes(cov_end, -1, -2))
+    return logp, Belief(mean=mean_end, cov=cov_end), pred_var
+
+
+# --------------------------------------------------------------------------------------
+# The strategy: Coherent-A2C / Coherent-PPO (Algorithms 4 and 5).
+
+
+class CoherentCarry(NamedTuple):
+    """Per-env state of the coherent strategy, in standardised coordinates.
+
+    The chain and the belief are stored for ``z = (w - mu) / w_std`` rather than for
+    w itself. Under fixed parameters this is the same chain (w_t = mu + w_std z_t and
+    z_t = (1 - beta) z_{t-1} + sqrt(2 beta - beta^2) eps, eqs. 4.1-4.4) and the same
+    belief. When an update changes mu or w_std mid-episode, the exploring policy
+    follows the new mean instead of keeping weights drawn around the old one (at
+    beta = 0 it would otherwise never see the update until the episode ends), and
+    the stored belief maps onto the new parameters, so the loss's segment start is a
+    differentiable function of mu and w_std.
+
+    Attributes:
+      z: [p, q+1] standardised weights z_{t-1} used at the previous step.
+      mean: [p, q+1] mean of alpha(z_t), the belief before a_t.
+      cov: [p, q+1, q+1] covariance of alpha(z_t).
+    """
+
+    z: chex.Array
+    mean: chex.Array
+    cov: chex.Array
+
+
+def _to_weights(carry: CoherentCarry, mu: chex.Array, w_std: chex.Array) -> Belief:
+    """alpha(w) from alpha(z): mean mu + w_std m_z, cov diag(w_std_i) P_z diag(w_std_i)."""
+    return Belief(
+        mean=mu + w_std * carry.mean,
+        cov=w_std[:, :, None] * carry.cov * w_std[:, None, :],
+    )
+
+
+def _to_standard(belief: Belief, mu: chex.Array, w_std: chex.Array) -> tuple[chex.Array, chex.Array]:
+    return (belief.mean - mu) / w_std, belief.cov / (w_std[:, :, None] * w_std[:, None, :])
+
+
+class CoherentExploration(Exploration):
+    """Deep Coherent Exploration of the policy's last layer (thesis §4.1-4.2).
+
+    Parameters: the trunk f_theta, the last-layer mean ``mu`` [p, q+1] and per-weight
+    ``log_w_std`` [p, q+1] (Lambda^-1/2), and ``log_action_std`` [p] when learned
+    (otherwise ``action_std`` is a fixed, sweepable hyperparameter, as in the
+    thesis). ``beta`` is a hyperparameter (an array, so it can be swept).
+
+    Collection samples w_t from the chain and a_t ~ N(w_t xh_t, action_std^2)
+    (Algorithm 5, steps 4-8) and runs the filter alongside (steps 12-14) so the
+    behaviour log-probability is the analytic marginal. `log_prob` reruns the filter
+    over a stored segment under the current parameters, differentiable through
+    ``lax.scan``, from the belief stored at the segment's start.
+    """
+
+    name = "coherent"
+
+    def __init__(
+        self,
+        action_size: int,
+        hidden,
+        activation: str,
+        beta: float,
+        w_std_init: float,
+        action_std: float,
+        learn_action_std: bool = False,
+        remat: bool = False,
+        inference: str = "joint",
+    ):
+        if inference not in ("joint", "filter"):
+            raise ValueError(f"inference must be 'joint' or 'filter', got {inference!r}")
+        self.action_size = int(action_size)
+        self.feature_size = int(hidden[-1])
+        self.trunk = MLP(tuple(hidden), activation)
+        self.beta = float(beta)
+        self.w_std_init = float(w_std_init)
+        self.action_std = float(action_std)
+        self.learn_action_std = bool(learn_action_std)
+        self.remat = bool(remat)
+        self.inference = inference
+
+    # ---------------------------------------------------------------- params
+    def init(self, key, obs_size):
+        k_trunk, k_mu = jax.random.split(key)
+        p, n = self.action_size, self.feature_size + 1
+        # Small initial mean weights (as for a Gaussian policy's last layer), zero bias.
+        w = jax.nn.initializers.orthogonal(0.01)(k_mu, (self.feature_size, p), jnp.float32).T
+        params = {
+            "trunk": self.trunk.init(k_trunk, jnp.zeros((1, obs_size))),
+            "mu": jnp.concatenate([w, jnp.zeros((p, 1), jnp.float32)], axis=1),
+            "log_w_std": jnp.full((p, n), math.log(self.w_std_init), jnp.float32),
+        }
+        if self.learn_action_std:
+            params["log_action_std"] = jnp.full((p,), math.log(self.action_std), jnp.float32)
+        return params
+
+    def init_hparams(self):
+        hp = {"beta": jnp.asarray(self.beta, jnp.float32)}
+        if not self.learn_action_std:
+            hp["action_std"] = jnp.full((self.action_size,), self.action_std, jnp.float32)
+        return hp
+
+    def _head(self, params, hparams):
+        w_std = jnp.exp(params["log_w_std"])
+        if self.learn_action_std:
+            action_std = jnp.exp(params["log_action_std"])
+        else:
+            action_std = hparams["action_std"]
+        return params["mu"], w_std, action_std
+
+    def init_carry(self, key, params, hparams, num_envs):
+        p, n = self.action_size, self.feature_size + 1
+        return CoherentCarry(
+            z=jnp.zeros((num_envs, p, n), jnp.float32),
+            mean=jnp.zeros((num_envs, p, n), jnp.float32),
+            cov=jnp.broadcast_to(jnp.eye(n, dtype=jnp.float32), (num_envs, p, n, n)),
+        )
+
+    # ------------------------------------------------------------ collection
+    def act(self, key, params, hparams, carry, obs, first):
+        chex.assert_rank([obs, first], [2, 1])
+        mu, w_std, action_std = self._head(params, hparams)
+        beta = hparams["beta"]
+        x = self.trunk.apply(params["trunk"], obs)  # [n, q]
+        num_envs = x.shape[0]
+        k_w, k_a = jax.random.split(key)
+        # z chain (4.1-4.4) in standard coordinates; a fresh draw at episode start (4.5).
+        eps = jax.random.normal(k_w, carry.z.shape, carry.z.dtype)
+        z_next = (1.0 - beta) * carry.z + _innovation_std(beta) * eps
+        z = jnp.where(first[:, None, None], eps, z_next)
+        w = mu + w_std * z  # [n, p, q+1]
+        xh = _augment(x)
+        mean_action = jnp.einsum("npk,nk->np", w, xh)
+        action = mean_action + action_std * jax.random.normal(k_a, mean_action.shape, mean_action.dtype)
+
+        if self.inference == "joint":
+            # The segment is scored at once in `end_segment`; only the chain moves here.
+            logp = jnp.full((num_envs,), jnp.nan, action.dtype)
+            return ActOutput(action, logp, carry._replace(z=z))
+
+        def filt(c, x_e, a_e, f_e):
+            belief, logp = filter_step(_to_weights(c, mu, w_std), x_e, a_e, f_e, mu, w_std, action_std, beta)
+            return _to_standard(belief, mu, w_std), logp
+
+        (mean, cov), logp = jax.vmap(filt)(carry, x, action, first)
+        chex.assert_shape(logp, (num_envs,))
+        return ActOutput(action, logp, CoherentCarry(z=z, mean=mean, cov=cov))
+
+    def end_segment(self, params, hparams, carry0, carry, data_obs, data_actions, data_first, data_log_prob):
+        if self.inference == "filter":
+            return data_log_prob, carry
+        mu, w_std, action_std = self._head(params, hparams)
+        x = self.trunk.apply(params["trunk"], data_obs)  # [T, n, q]
+
+        def score(c0, x_e, a_e, f_e):
+            logp, belief, _ = segment_marginals_joint(
+                _to_weights(c0, mu, w_std), x_e, a_e, f_e, mu, w_std, action_std, hparams["beta"]
+            )
+            return logp, _to_standard(belief, mu, w_std)
+
+        logp, (mean, cov) = jax.vmap(score, in_axes=(0, 1, 1, 1), out_axes=(1, 0))(
+            carry0, x, data_actions, data_first
+        )
+        return logp, carry._replace(mean=mean, cov=cov)
+
+    # ------------------------------------------------------------------ loss
+    def log_prob(self, params, hparams, carry0, obs, actions, first):
+        chex.assert_rank([obs, actions, first], [2, 2, 1])
+        mu, w_std, action_std = self._head(params, hparams)
+        x = self.trunk.apply(params["trunk"], obs)
+        # The stored belief is a constant of the data (like a stored RNN state); its
+        # mapping onto the current mu and w_std is not.
+        carry0 = jax.tree.map(jax.lax.stop_gradient, carry0)
+        belief0 = _to_weights(carry0, mu, w_std)
+        if self.inference == "joint":
+            logp, _, pred_var = segment_marginals_joint(
+                belief0, x, actions, first, mu, w_std, action_std, hparams["beta"]
+            )
+        else:
+            logp, _, pred_var = segment_marginals(
+                belief0, x, actions, first, mu, w_std, action_std, hparams["beta"], remat=self.remat
+            )
+        return SegmentLogProb(logp, predictive_entropy(pred_var))
+
+    def mean_action(self, params, obs):
+        x = self.trunk.apply(params["trunk"], obs)
+        return jnp.einsum("pk,...k->...p", params["mu"], _augment(x))
+
+    def metrics(self, params, hparams):
+        _, w_std, action_std = self._head(params, hparams)
+        return {
+            "w_std": jnp.mean(w_std),
+            "action_std": jnp.mean(action_std),
+            "beta": jnp.asarray(hparams["beta"]),
+        }

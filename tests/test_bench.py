@@ -1,0 +1,128 @@
+"""The benchmark command: a tiny end-to-end run of the coherent suite, and its input errors."""
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from coherent_jax.bench import _sample_segments, dense_log_marginals, format_table, run_coherent_bench
+
+TINY = [
+    "env=inverted_pendulum",
+    "num_envs=4",
+    "unroll_length=8",
+    "num_minibatches=2",
+    "iterations=1",
+    "filter_q=[8]",
+    "filter_T=16",
+    "filter_repeats=2",
+    "seg_repeats=2",
+]
+
+
+def _positive(value) -> bool:
+    return isinstance(value, int | float) and math.isfinite(value) and value > 0
+
+
+def test_coherent_suite_writes_every_figure(tmp_path):
+    """Every figure of the suite is a positive finite number, and block and dense filters agree."""
+    out = tmp_path / "results" / "coherent.json"
+    result = run_coherent_bench([*TINY, f"out={out}"], log=lambda msg: None)
+    assert json.loads(out.read_text()) == json.loads(json.dumps(result))
+    assert sorted(p.name for p in out.parent.iterdir()) == ["coherent.json"]  # no temp file left
+    data = json.loads(out.read_text())
+
+    for key in ("suite", "timestamp", "jax_version", "device", "settings", "training", "filter"):
+        assert data[key], key
+    assert data["settings"]["config"]["env"] == "inverted_pendulum"
+    assert data["settings"]["iterations"] == 1
+
+    training = data["training"]
+    for name in ("action", "coherent"):
+        run = training[name]
+        for key in ("compile_s", "iteration_s_median", "env_steps_per_s", "env_steps_per_s_total"):
+            assert _positive(run[key]), (name, key)
+        assert len(run["iteration_s"]) == 1
+    for name in ("action", "coherent", "coherent_remat"):
+        assert _positive(training[name]["compile_s"])
+        assert _positive(training[name]["memory"]["peak_bytes"]), name
+    assert _positive(training["ratio_coherent_over_action"])
+    assert training["env_steps_per_iteration"] == 4 * 8
+
+    segment = data["segment_log_prob"]
+    for name in ("action", "coherent"):
+        assert _positive(segment[name]["forward_ms"]) and _positive(segment[name]["grad_ms"])
+    assert _positive(segment["ratio_grad_coherent_over_action"])
+
+    (case,) = data["filter"]["cases"]
+    assert case["q"] == 8 and data["filter"]["T"] == 16
+    for method in ("block", "dense"):
+        for key in ("forward_ms", "grad_ms", "compile_forward_s", "compile_grad_s"):
+            assert _positive(case[method][key]), (method, key)
+        assert _positive(case[method]["memory_grad"]["peak_bytes"])
+    assert _positive(case["speedup_forward"]) and _positive(case["speedup_grad"])
+    assert case["max_abs_logp_diff"] < 1e-3
+    assert case["max_rel_grad_diff"] < 1e-3
+
+    table = format_table(data)
+    assert "coherent/action" in table and "dense" in table
+
+
+def test_dense_reference_checkpointed_equals_plain_and_block():
+    """The chunk-checkpointed dense scan (used when its gradient would not fit) is the same function."""
+    import jax
+    import jax.numpy as jnp
+
+    from coherent_jax.exploration.coherent import log_marginals
+
+    x, a, first, mu, w_std, action_std, beta = _sample_segments(
+        jax.random.PRNGKey(1), 1, 12, 5, 3, 0.3, 0.1, 0.2
+    )
+    x, a, first = x[0], a[0], first[0]
+
+    def value_and_grad(fn, **kw):
+        total = lambda m, s: jnp.sum(fn(x, a, first, m, s, action_std, beta, **kw))
+        return jax.jit(jax.value_and_grad(total, argnums=(0, 1)))(mu, w_std)
+
+    plain = value_and_grad(dense_log_marginals)
+    for other in (value_and_grad(dense_log_marginals, checkpoint_chunk=4), value_and_grad(log_marginals)):
+        for u, v in zip(jax.tree.leaves(plain), jax.tree.leaves(other), strict=True):
+            assert jnp.allclose(u, v, rtol=1e-4, atol=1e-4)
+
+
+def run_cli(args, cwd):
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[1]) + os.pathsep + env.get("PYTHONPATH", "")
+    return subprocess.run(
+        [sys.executable, "-m", "coherent_jax.bench", *args],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
+
+
+@pytest.mark.parametrize(
+    "args,named",
+    [
+        ([], "''"),
+        (["speed"], "'speed'"),
+        (["coherent", "foo=1"], "'foo'"),
+        (["coherent", "iterations=0"], "'iterations'"),
+        (["coherent", "filter_q=[8,x]"], "'filter_q'"),
+        (["coherent", "env=cheetah"], "'env'"),
+        (["coherent", "explore=action"], "'explore'"),
+    ],
+)
+def test_cli_bad_input_exits_2_and_writes_nothing(tmp_path, args, named):
+    proc = run_cli([*args, f"out={tmp_path / 'r.json'}"] if args else [], cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error:") and named in lines[0], proc.stderr
+    assert "allowed" in lines[0] or "valid" in lines[0]
+    assert list(tmp_path.iterdir()) == []

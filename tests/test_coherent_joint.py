@@ -1,0 +1,91 @@
+"""The parallel (joint-Gaussian / Cholesky) form of the coherent marginals.
+
+Checked against the sequential filter, which tests/test_coherent_filter.py holds to
+the thesis's dense recursion: same per-step log-probabilities, predictive variances
+and end-of-segment belief, from an arbitrary stored belief, across episode resets.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from coherent_jax.exploration import coherent as C
+
+
+@pytest.fixture
+def x64():
+    prev = jax.config.jax_enable_x64
+    jax.config.update("jax_enable_x64", True)
+    yield
+    jax.config.update("jax_enable_x64", prev)
+
+
+def random_problem(rng, T, p, q, resets):
+    x = rng.normal(size=(T, q))
+    a = rng.normal(size=(T, p))
+    first = np.zeros(T, bool)
+    first[list(resets)] = True
+    mu = rng.normal(size=(p, q + 1))
+    w_std = rng.uniform(0.2, 1.0, (p, q + 1))
+    action_std = rng.uniform(0.1, 0.5, p)
+    root = rng.normal(size=(p, q + 1, q + 1))
+    cov0 = root @ root.transpose(0, 2, 1) / (q + 1) + 0.05 * np.eye(q + 1)
+    belief0 = C.Belief(jnp.asarray(rng.normal(size=(p, q + 1))), jnp.asarray(cov0))
+    return belief0, x, a, first, mu, w_std, action_std
+
+
+@pytest.mark.parametrize("beta", [0.0, 0.01, 0.5, 1.0])
+@pytest.mark.parametrize("resets", [(), (0,), (5,), (0, 7), (11,)])
+def test_joint_equals_filter_float64(x64, beta, resets):
+    rng = np.random.default_rng(hash((beta, resets)) % 2**32)
+    args = random_problem(rng, T=12, p=3, q=4, resets=resets)
+    logp_f, belief_f, var_f = C.segment_marginals(*args, beta)
+    logp_j, belief_j, var_j = C.segment_marginals_joint(*args, beta)
+    assert logp_j.dtype == jnp.float64
+    np.testing.assert_allclose(logp_j, logp_f, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(var_j, var_f, rtol=1e-10)
+    np.testing.assert_allclose(belief_j.mean, belief_f.mean, rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(belief_j.cov, belief_f.cov, rtol=1e-9, atol=1e-10)
+
+
+@pytest.mark.parametrize("beta", [0.0, 0.3, 1.0])
+def test_joint_gradients_equal_filter_gradients(x64, beta):
+    rng = np.random.default_rng(1)
+    belief0, x, a, first, mu, w_std, action_std = random_problem(rng, T=9, p=2, q=3, resets=(4,))
+    weights = jnp.asarray(rng.normal(size=9))
+
+    def loss(fn, x, mu, w_std, action_std):
+        logp, _, _ = fn(belief0, x, a, first, mu, w_std, action_std, beta)
+        return jnp.sum(weights * logp)
+
+    args = (jnp.asarray(x), jnp.asarray(mu), jnp.asarray(w_std), jnp.asarray(action_std))
+    g_f = jax.grad(lambda *v: loss(C.segment_marginals, *v), argnums=(0, 1, 2, 3))(*args)
+    g_j = jax.grad(lambda *v: loss(C.segment_marginals_joint, *v), argnums=(0, 1, 2, 3))(*args)
+    for gf, gj in zip(g_f, g_j, strict=True):
+        np.testing.assert_allclose(gj, gf, rtol=1e-8, atol=1e-10)
+
+
+@pytest.mark.parametrize("beta", [0.0, 0.01, 1.0])
+def test_joint_float32_consecutive_segments_match_float64(beta):
+    """Realistic sizes in float32: 4 chained 64-step segments of one 256-step episode."""
+    rng = np.random.default_rng(2)
+    p, q, T = 6, 64, 64
+    mu = jnp.asarray(0.1 * rng.normal(size=(p, q + 1)), jnp.float32)
+    w_std = jnp.full((p, q + 1), 0.3, jnp.float32)
+    action_std = jnp.full((p,), 0.1, jnp.float32)
+    x = jnp.asarray(np.tanh(np.cumsum(rng.normal(size=(4 * T, q)), 0) * 0.1), jnp.float32)
+    a = jnp.asarray(rng.normal(size=(4 * T, p)) * 0.5, jnp.float32)
+    first = jnp.zeros((4 * T,), bool).at[0].set(True)
+    ref = C.log_marginals(x, a, first, mu, w_std, action_std, beta)
+    belief = C.prior_belief(mu, w_std)
+    logps = []
+    for k in range(4):
+        sl = slice(k * T, (k + 1) * T)
+        logp, belief, _ = C.segment_marginals_joint(
+            belief, x[sl], a[sl], first[sl], mu, w_std, action_std, beta
+        )
+        logps.append(logp)
+    logp = jnp.concatenate(logps)
+    assert logp.dtype == jnp.float32 and bool(jnp.all(jnp.isfinite(logp)))
+    np.testing.assert_allclose(logp, ref, rtol=2e-3, atol=2e-2)
