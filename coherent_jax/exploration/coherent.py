@@ -202,6 +202,27 @@ def filter_step_with_variance(
     return Belief(mean=new_mean, cov=new_cov), logp, pred_var
 
 
+def _segment_inputs(belief0, x, a, first, mu, w_std, action_std, beta):
+    """Checks the shapes of a segment's inputs and casts them to one dtype.
+
+    One dtype for the whole computation (and a scan's carry): float64 under x64 if
+    any input is, else float32. Returns the inputs in the order given.
+    """
+    p, n = _check_params(mu, w_std, action_std)
+    chex.assert_rank([x, a, first], [2, 2, 1])
+    num_steps = x.shape[0]
+    chex.assert_shape(x, (num_steps, n - 1))
+    chex.assert_shape(a, (num_steps, p))
+    chex.assert_shape(first, (num_steps,))
+    chex.assert_shape([belief0.mean], (p, n))
+    chex.assert_shape([belief0.cov], (p, n, n))
+    dtype = jnp.result_type(x, a, mu, w_std, action_std, belief0.mean, belief0.cov)
+    cast = lambda v: jnp.asarray(v).astype(dtype)  # noqa: E731
+    x, a, mu, w_std, action_std, beta = map(cast, (x, a, mu, w_std, action_std, beta))
+    belief0 = Belief(mean=cast(belief0.mean), cov=cast(belief0.cov))
+    return belief0, x, a, jnp.asarray(first, dtype=bool), mu, w_std, action_std, beta
+
+
 def log_marginals_from(
     belief0: Belief,
     x: chex.Array,
@@ -264,21 +285,9 @@ def segment_marginals(
       (logp [T], the belief over w_T before a_T to start the next segment, the
       predictive variances s [T, p] of every step).
     """
-    p, n = _check_params(mu, w_std, action_std)
-    chex.assert_rank([x, a, first], [2, 2, 1])
-    num_steps = x.shape[0]
-    chex.assert_shape(x, (num_steps, n - 1))
-    chex.assert_shape(a, (num_steps, p))
-    chex.assert_shape(first, (num_steps,))
-    chex.assert_shape([belief0.mean], (p, n))
-    chex.assert_shape([belief0.cov], (p, n, n))
-
-    # One dtype for the scan carry: float64 under x64 if any input is, else float32.
-    dtype = jnp.result_type(x, a, mu, w_std, action_std, belief0.mean, belief0.cov)
-    cast = lambda v: jnp.asarray(v).astype(dtype)
-    x, a, mu, w_std, action_std, beta = map(cast, (x, a, mu, w_std, action_std, beta))
-    belief0 = Belief(mean=cast(belief0.mean), cov=cast(belief0.cov))
-    first = jnp.asarray(first, dtype=bool)
+    belief0, x, a, first, mu, w_std, action_std, beta = _segment_inputs(
+        belief0, x, a, first, mu, w_std, action_std, beta
+    )
 
     def body(belief, step):
         x_t, a_t, first_t = step
@@ -466,18 +475,12 @@ def segment_marginals_joint(
 
     Args and returns: as `segment_marginals`.
     """
-    p, n = _check_params(mu, w_std, action_std)
+    belief0, x, a, first, mu, w_std, action_std, beta = _segment_inputs(
+        belief0, x, a, first, mu, w_std, action_std, beta
+    )
     num_steps = x.shape[0]
-    chex.assert_shape(x, (num_steps, n - 1))
-    chex.assert_shape(a, (num_steps, p))
-    chex.assert_shape(first, (num_steps,))
-    chex.assert_shape([belief0.mean], (p, n))
-    chex.assert_shape([belief0.cov], (p, n, n))
-    dtype = jnp.result_type(x, a, mu, w_std, action_std, belief0.mean, belief0.cov)
-    cast = lambda v: jnp.asarray(v).astype(dtype)  # noqa: E731
-    x, a, mu, w_std, action_std, beta = map(cast, (x, a, mu, w_std, action_std, beta))
-    m0, p0 = cast(belief0.mean), cast(belief0.cov)
-    first = jnp.asarray(first, dtype=bool)
+    m0, p0 = belief0.mean, belief0.cov
+    dtype = x.dtype
 
     xh = _augment(x)  # [T, n]
     var_w = jnp.square(w_std)  # [p, n]
@@ -573,10 +576,12 @@ class CoherentExploration(Exploration):
     thesis). ``beta`` is a hyperparameter (an array, so it can be swept).
 
     Collection samples w_t from the chain and a_t ~ N(w_t xh_t, action_std^2)
-    (Algorithm 5, steps 4-8) and runs the filter alongside (steps 12-14) so the
-    behaviour log-probability is the analytic marginal. `log_prob` reruns the filter
-    over a stored segment under the current parameters, differentiable through
-    ``lax.scan``, from the belief stored at the segment's start.
+    (Algorithm 5, steps 4-8). The behaviour log-probabilities are the analytic
+    marginals (steps 12-14): with ``inference="joint"`` (default) `end_segment`
+    scores the whole segment at once from its joint Gaussian and stores the belief
+    that starts the next one; with ``"filter"`` `act` runs the filter step by step.
+    `log_prob` recomputes the marginals of a stored segment under the current
+    parameters, from the belief stored at its start, in the same form.
     """
 
     name = "coherent"
