@@ -174,19 +174,20 @@ class OnPolicyTrainer:
 
         carry0 = state.carry
         env_state, carry, data = unroll(self.env, act, state.env_state, carry0, k_roll, cfg.unroll_length)
+        obs = self._norm(stats, data.obs)
         # Strategies may score the whole segment at once (coherent: joint Gaussian).
         behaviour_log_prob, carry = strategy.end_segment(
             params.policy,
             hp.explore,
             carry0,
             carry,
-            self._norm(stats, data.obs),
+            obs,
             data.action,
             data.first,
             data.log_prob,
         )
         data = data._replace(log_prob=behaviour_log_prob)
-        values = self.value_net.apply(params.value, self._norm(stats, data.obs))
+        values = self.value_net.apply(params.value, obs)
         next_values = self.value_net.apply(params.value, self._norm(stats, data.final_obs))
         advantages, targets = losses.gae(
             data.reward, values, next_values, data.terminated, data.done, hp.gamma, hp.gae_lambda

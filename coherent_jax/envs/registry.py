@@ -22,12 +22,14 @@ class TaskSpec:
     """How to build one task.
 
     Attributes:
-      brax_name: name of the environment in ``brax.envs``.
+      brax_name: name of the environment in ``brax.envs`` (or, for backend ``jax``,
+        of this package's own pure-JAX task).
       ls_iterations: MuJoCo solver line-search iterations (``opt.ls_iterations``);
         None keeps the model's own value.
       episode_length: default time limit in environment steps.
       description: one line for ``--help`` and the README.
-      backend: Brax physics pipeline; ``mjx`` except where Brax has no MJX model.
+      backend: Brax physics pipeline; ``mjx`` except where Brax has no MJX model;
+        ``jax`` for an analytic task with no physics engine.
     """
 
     brax_name: str
@@ -53,7 +55,9 @@ TASKS: Mapping[str, TaskSpec] = {
         "swimmer", None, description="3-link swimmer (8 obs, 2 act); Brax generalized", backend="generalized"
     ),
     # Not MuJoCo: an analytic task in pure JAX for fast tests of the machinery.
-    "pointmass": TaskSpec("", None, description="analytic 2D point mass to a goal (6 obs, 2 act), pure JAX"),
+    "pointmass": TaskSpec(
+        "pointmass", None, description="analytic 2D point mass to a goal (6 obs, 2 act)", backend="jax"
+    ),
 }
 
 
@@ -71,10 +75,10 @@ def check_task(name: str) -> TaskSpec:
 def make_brax_env(name: str, **kwargs: Any):
     """Builds the raw (unwrapped, unbatched) Brax MJX environment for task `name`."""
     spec = check_task(name)
-    if name == "pointmass":
+    if spec.backend == "jax":  # this package's own pure-JAX tasks
         from coherent_jax.envs.pointmass import PointMass
 
-        return PointMass(**kwargs)
+        return {"pointmass": PointMass}[spec.brax_name](**kwargs)
     # Brax prints a warning for its optional Warp backend on import; it is noise here.
     with _quiet_stdio():
         from brax import envs as brax_envs
