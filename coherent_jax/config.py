@@ -22,8 +22,29 @@ from omegaconf.errors import OmegaConfBaseException
 
 from coherent_jax.envs.registry import TASKS
 
-ALGOS = ("ppo", "a2c")
+ALGOS = ("ppo", "a2c", "sac")
+ON_POLICY = ("ppo", "a2c")
 EXPLORES = ("action", "coherent")
+# Which algorithms each strategy runs with; any other pair is refused at start-up.
+SUPPORTED_ALGOS: dict[str, tuple[str, ...]] = {
+    "action": ALGOS,
+    "coherent": ALGOS,
+}
+# Defaults that differ by algorithm (applied before the user's overrides): SAC's
+# networks, batch and env count follow Haarnoja et al. 2018 / CleanRL rather than PPO.
+ALGO_DEFAULTS: dict[str, dict[str, Any]] = {
+    "sac": {
+        "total_steps": 300_000,
+        "num_envs": 8,
+        "unroll_length": 16,
+        "lr": 3e-4,
+        "policy_hidden": [256, 256],
+        "value_hidden": [256, 256],
+        "activation": "relu",
+        "normalize_obs": False,
+        "eval_every": 20,
+    },
+}
 ACTIVATIONS = ("tanh", "relu", "elu", "swish")
 COHERENT_INFERENCE = ("joint", "filter")
 
@@ -40,7 +61,9 @@ class Config:
 
     # --- what to run
     env: str = _field("halfcheetah", "task name: " + ", ".join(TASKS))
-    algo: str = _field("ppo", "on-policy algorithm: " + ", ".join(ALGOS))
+    algo: str = _field(
+        "ppo", "algorithm: " + ", ".join(ALGOS) + " (sac changes some defaults: see ALGO_DEFAULTS)"
+    )
     explore: str = _field("action", "exploration strategy: " + ", ".join(EXPLORES))
     seed: int = _field(0, "PRNG seed; the same seed gives the same run")
     total_steps: int = _field(2_000_000, "environment steps to train for")
@@ -81,6 +104,20 @@ class Config:
         "Gaussian, fast up to a few hundred steps per segment) or filter (sequential scan)",
     )
     remat: bool = _field(False, "coherent: rematerialise the filter scan in the backward pass")
+    # --- off-policy (SAC, thesis Algorithm 3 and §4.3)
+    buffer_size: int = _field(1_000_000, "sac: replay capacity in transitions (a ring buffer in the state)")
+    batch_size: int = _field(256, "sac: transitions per gradient update")
+    utd_ratio: float = _field(
+        1.0, "sac: gradient updates per env step (per iteration: utd_ratio * num_envs * unroll_length)"
+    )
+    warmup_steps: int = _field(5000, "sac: env steps of uniform random actions before updates start")
+    tau: float = _field(0.005, "sac: Polyak step, target <- (1 - tau) target + tau online (rho = 1 - tau)")
+    temperature: float = _field(0.2, "sac: entropy temperature alpha (initial value if auto_temperature)")
+    auto_temperature: bool = _field(False, "sac: adapt alpha towards target_entropy (thesis: fixed)")
+    target_entropy: float | None = _field(None, "sac: auto_temperature's entropy target; null = -action_size")
+    sigma_init: float = _field(0.1, "coherent-sac: initial parameter-noise scale sigma (w_std = sigma)")
+    sigma_delta: float = _field(0.1, "coherent-sac: distance threshold delta of the sigma rule (4.51)")
+    sigma_alpha: float = _field(1.01, "coherent-sac: scaling factor alpha > 1 of the sigma rule (4.51)")
     # --- evaluation and output
     eval_every: int = _field(10, "iterations between deterministic evaluations; 0 = only at the end")
     eval_episodes: int = _field(8, "episodes per evaluation (run in parallel)")
@@ -91,6 +128,11 @@ class Config:
     @property
     def steps_per_iteration(self) -> int:
         return self.num_envs * self.unroll_length
+
+    @property
+    def updates_per_iteration(self) -> int:
+        """SAC: gradient updates per iteration, round(utd_ratio * steps_per_iteration)."""
+        return int(round(self.utd_ratio * self.steps_per_iteration))
 
     @property
     def num_iterations(self) -> int:
@@ -115,6 +157,13 @@ def validate(cfg: Config) -> Config:
     _check(cfg.env in TASKS, "env", cfg.env, ", ".join(TASKS))
     _check(cfg.algo in ALGOS, "algo", cfg.algo, ", ".join(ALGOS))
     _check(cfg.explore in EXPLORES, "explore", cfg.explore, ", ".join(EXPLORES))
+    supported = SUPPORTED_ALGOS[cfg.explore]
+    _check(
+        cfg.algo in supported,
+        "algo",
+        cfg.algo,
+        f"{', '.join(supported)} with explore={cfg.explore}",
+    )
     _check(
         cfg.coherent_inference in COHERENT_INFERENCE,
         "coherent_inference",
@@ -128,12 +177,22 @@ def validate(cfg: Config) -> Config:
     _check(cfg.seed >= 0, "seed", cfg.seed, "an integer >= 0")
     _check(cfg.num_minibatches >= 1, "num_minibatches", cfg.num_minibatches, "an integer >= 1")
     _check(
-        cfg.num_envs % cfg.num_minibatches == 0,
+        cfg.algo not in ON_POLICY or cfg.num_envs % cfg.num_minibatches == 0,
         "num_minibatches",
         cfg.num_minibatches,
         f"a divisor of num_envs={cfg.num_envs} (minibatches split envs)",
     )
-    for key in ("lr", "clip_eps", "max_grad_norm", "init_std", "action_std", "w_std_init"):
+    for key in (
+        "lr",
+        "clip_eps",
+        "max_grad_norm",
+        "init_std",
+        "action_std",
+        "w_std_init",
+        "temperature",
+        "utd_ratio",
+        "sigma_delta",
+    ):
         value = getattr(cfg, key)
         _check(math.isfinite(value) and value > 0, key, value, "a finite number > 0")
     for key in ("gamma", "gae_lambda", "beta"):
@@ -145,6 +204,36 @@ def validate(cfg: Config) -> Config:
     for key in ("policy_hidden", "value_hidden"):
         value = list(getattr(cfg, key))
         _check(len(value) >= 1 and all(v >= 1 for v in value), key, value, "a list of ints >= 1")
+    _check(cfg.buffer_size >= 1, "buffer_size", cfg.buffer_size, "an integer >= 1")
+    _check(cfg.batch_size >= 1, "batch_size", cfg.batch_size, "an integer >= 1")
+    _check(cfg.warmup_steps >= 0, "warmup_steps", cfg.warmup_steps, "an integer >= 0")
+    _check(math.isfinite(cfg.tau) and 0 < cfg.tau <= 1, "tau", cfg.tau, "a number in (0, 1]")
+    _check(
+        math.isfinite(cfg.sigma_init) and cfg.sigma_init >= 0,
+        "sigma_init",
+        cfg.sigma_init,
+        "a finite number >= 0",
+    )
+    _check(
+        math.isfinite(cfg.sigma_alpha) and cfg.sigma_alpha > 1, "sigma_alpha", cfg.sigma_alpha, "a number > 1"
+    )
+    if cfg.target_entropy is not None:
+        _check(
+            math.isfinite(cfg.target_entropy), "target_entropy", cfg.target_entropy, "a finite number or null"
+        )
+    if cfg.algo == "sac":
+        _check(
+            cfg.buffer_size >= cfg.steps_per_iteration,
+            "buffer_size",
+            cfg.buffer_size,
+            f"at least num_envs * unroll_length = {cfg.steps_per_iteration} (one iteration's data)",
+        )
+        _check(
+            cfg.updates_per_iteration >= 1,
+            "utd_ratio",
+            cfg.utd_ratio,
+            f"at least 1 / (num_envs * unroll_length) = {1 / cfg.steps_per_iteration:.3g}",
+        )
     _check(cfg.eval_every >= 0, "eval_every", cfg.eval_every, "an integer >= 0")
     _check(cfg.eval_episodes >= 1, "eval_episodes", cfg.eval_episodes, "an integer >= 1")
     return cfg
@@ -155,16 +244,24 @@ def parse_overrides(overrides: Sequence[str], base: Config | None = None) -> Con
 
     Lists are written ``policy_hidden=[64,64]``. Raises `ConfigError` with a
     one-line message for a malformed override, an unknown key, a value of the
-    wrong type or out of range.
+    wrong type or out of range. The defaults of the chosen algorithm
+    (`ALGO_DEFAULTS`) apply first, so ``algo=sac num_envs=4`` keeps SAC's network
+    sizes and takes the user's env count.
     """
-    schema = OmegaConf.structured(base if base is not None else Config())
     known = {f.name for f in dataclasses.fields(Config)}
+    algo = None
     for item in overrides:
         if "=" not in item or item.startswith("="):
             raise ConfigError(f"malformed override {item!r}: expected key=value")
         key = item.split("=", 1)[0].strip()
         if key not in known:
             raise ConfigError(f"unknown key {key!r}; valid keys: {', '.join(sorted(known))}")
+        if key == "algo":
+            algo = item.split("=", 1)[1].strip()
+    base = base if base is not None else Config()
+    if algo is not None and algo != base.algo and algo in ALGO_DEFAULTS:
+        base = dataclasses.replace(base, **ALGO_DEFAULTS[algo])
+    schema = OmegaConf.structured(base)
     try:
         merged = OmegaConf.merge(schema, OmegaConf.from_dotlist(list(overrides)))
         cfg = OmegaConf.to_object(merged)
@@ -191,6 +288,9 @@ def to_dict(cfg: Config) -> dict[str, Any]:
 def help_text() -> str:
     """Every option with its default and a one-line description."""
     lines = ["usage: python -m coherent_jax.train [key=value ...]", "", "options (key=default):"]
+    for algo, defaults in ALGO_DEFAULTS.items():
+        changed = " ".join(f"{k}={v}".replace(" ", "") for k, v in defaults.items())
+        lines.insert(2, f"algo={algo} changes these defaults: {changed}")
     for f in dataclasses.fields(Config):
         default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
         if isinstance(default, list):

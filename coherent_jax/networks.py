@@ -9,6 +9,7 @@ perturbs, samples or integrates out.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from typing import NamedTuple
 
 import chex
 import flax.linen as nn
@@ -90,3 +91,97 @@ def normalize(stats: RunningStats, obs: jax.Array, enabled: bool = True, clip: f
     if not enabled:
         return obs
     return jnp.clip((obs - stats.mean) / jnp.sqrt(stats.var + 1e-8), -clip, clip)
+
+
+LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
+_HALF_LOG_2PI = 0.5 * float(jnp.log(2.0 * jnp.pi))
+
+
+class ActorDist(NamedTuple):
+    """The pre-squash Gaussian of SAC's actor for a batch of states.
+
+    Attributes:
+      mean: [..., p] mean of u before tanh.
+      log_std: [..., p] log standard deviation of u, in [LOG_STD_MIN, LOG_STD_MAX].
+    """
+
+    mean: jax.Array
+    log_std: jax.Array
+
+
+def squash(key: jax.Array, dist: ActorDist, noise: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
+    """a = tanh(mean + std xi), xi ~ N(0, I) (eq. 2.50), and log pi(a|s).
+
+    log pi(a|s) = sum_i [log N(u_i; mean_i, std_i^2) - log(1 - tanh(u_i)^2)], with
+    log(1 - tanh(u)^2) = 2 (log 2 - u - softplus(-2u)) for stability. ``noise``, if
+    given, is used as xi (coloured noise, or a test's fixed draw) instead of a draw
+    from ``key``.
+    """
+    xi = jax.random.normal(key, dist.mean.shape, dist.mean.dtype) if noise is None else noise
+    u = dist.mean + jnp.exp(dist.log_std) * xi
+    log_det = 2.0 * (jnp.log(2.0) - u - jax.nn.softplus(-2.0 * u))
+    log_prob = jnp.sum(-0.5 * xi**2 - dist.log_std - _HALF_LOG_2PI - log_det, axis=-1)
+    return jnp.tanh(u), log_prob
+
+
+class SquashedGaussianActor:
+    """SAC's actor pi(a|s) = tanh(N(W xh + b, std(s)^2)) (thesis eq. 2.50).
+
+    Split as the thesis splits every policy (§4.1): a trunk x = f_theta(s), then a
+    linear *mean head* ``mu`` [p, q+1] (weights, bias last, acting on xh = [x; 1])
+    that exploration strategies may perturb, and a state-dependent log-std head.
+    Parameters: ``{"trunk", "mu", "log_std"}``; ``layer_norm`` puts LayerNorm
+    between the trunk's layers (parameter-space noise wants it).
+    """
+
+    def __init__(self, action_size: int, hidden: Sequence[int], activation: str, layer_norm: bool = False):
+        self.action_size = int(action_size)
+        self.feature_size = int(hidden[-1])
+        self.trunk = MLP(tuple(hidden), activation, layer_norm)
+        self.log_std_head = nn.Dense(self.action_size, kernel_init=nn.initializers.orthogonal(0.01))
+
+    def init(self, key: jax.Array, obs_size: int) -> dict:
+        k_trunk, k_mu, k_std = jax.random.split(key, 3)
+        q, p = self.feature_size, self.action_size
+        w = nn.initializers.orthogonal(0.01)(k_mu, (q, p), jnp.float32).T
+        return {
+            "trunk": self.trunk.init(k_trunk, jnp.zeros((1, obs_size))),
+            "mu": jnp.concatenate([w, jnp.zeros((p, 1), jnp.float32)], axis=1),
+            "log_std": self.log_std_head.init(k_std, jnp.zeros((1, q))),
+        }
+
+    def features(self, params: dict, obs: jax.Array) -> jax.Array:
+        """x = f_theta(s), [..., q]."""
+        return self.trunk.apply(params["trunk"], obs)
+
+    def dist_from_features(self, params: dict, x: jax.Array, mu: jax.Array | None = None) -> ActorDist:
+        """The Gaussian of u given features x [..., q] and a mean head ``mu``.
+
+        ``mu`` defaults to the learned head [p, q+1]; a perturbed head may carry
+        the batch dims of x in front ([..., p, q+1], one head per env).
+        """
+        mu = params["mu"] if mu is None else mu
+        xh = jnp.concatenate([x, jnp.ones(x.shape[:-1] + (1,), x.dtype)], axis=-1)
+        mean = jnp.einsum("...pk,...k->...p", mu, xh)
+        raw = jnp.tanh(self.log_std_head.apply(params["log_std"], x))
+        log_std = LOG_STD_MIN + 0.5 * (LOG_STD_MAX - LOG_STD_MIN) * (raw + 1.0)
+        return ActorDist(mean, log_std)
+
+    def dist(self, params: dict, obs: jax.Array) -> ActorDist:
+        return self.dist_from_features(params, self.features(params, obs))
+
+    def mode(self, params: dict, obs: jax.Array) -> jax.Array:
+        """The deterministic action tanh(mean) used for evaluation and (4.50)."""
+        return jnp.tanh(self.dist(params, obs).mean)
+
+
+class QNetwork(nn.Module):
+    """Q_phi(s, a): an MLP on [s; a] and a scalar head."""
+
+    hidden: Sequence[int]
+    activation: str = "relu"
+
+    @nn.compact
+    def __call__(self, obs: jax.Array, action: jax.Array) -> jax.Array:
+        x = MLP(self.hidden, self.activation)(jnp.concatenate([obs, action], axis=-1))
+        return nn.Dense(1, kernel_init=nn.initializers.orthogonal(1.0))(x)[..., 0]

@@ -60,10 +60,10 @@ def train(
     from flax import serialization
     from tqdm.auto import tqdm
 
-    from coherent_jax.agents.onpolicy import OnPolicyTrainer
+    from coherent_jax.agents import make_trainer
 
     t_start = time.perf_counter()
-    trainer = OnPolicyTrainer(cfg)
+    trainer = make_trainer(cfg)
     key = jax.random.PRNGKey(cfg.seed)
     key, init_key = jax.random.split(key)
     state = jax.jit(trainer.init)(init_key)
@@ -143,7 +143,7 @@ def train(
         "backend": jax.default_backend(),
     }
     if run_dir:
-        payload = {"policy": state.params.policy, "value": state.params.value, "obs_stats": state.obs_stats}
+        payload = trainer.export_params(state)
         _atomic_write(run_dir / "params.msgpack", serialization.to_bytes(jax.device_get(payload)))
         _atomic_write(run_dir / "summary.json", json.dumps(summary, indent=2).encode())
     print(

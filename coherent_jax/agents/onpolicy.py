@@ -259,6 +259,10 @@ class OnPolicyTrainer:
         )
         return new_state, metrics
 
+    def export_params(self, state: TrainState) -> dict[str, Any]:
+        """What evaluation needs: policy, value and observation statistics."""
+        return {"policy": state.params.policy, "value": state.params.value, "obs_stats": state.obs_stats}
+
     # ------------------------------------------------------------ evaluation
     def evaluate(self, state: TrainState, key: jax.Array) -> dict[str, jax.Array]:
         """Deterministic (mean-action) episodes, one per eval env."""

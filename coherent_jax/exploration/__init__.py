@@ -24,6 +24,9 @@ def make_exploration(cfg, action_size: int) -> Exploration:
             learn_action_std=cfg.learn_action_std,
             remat=cfg.remat,
             inference=cfg.coherent_inference,
+            sigma_init=cfg.sigma_init,
+            sigma_delta=cfg.sigma_delta,
+            sigma_alpha=cfg.sigma_alpha,
         )
     raise ValueError(f"unknown explore {cfg.explore!r}")
 

@@ -11,6 +11,12 @@ touches an algorithm.
 Conventions: ``obs`` is already normalised; ``first`` marks the first step of an
 episode; collection methods work on a batch of envs ``[n, ...]``; `log_prob`
 works on ONE env's time segment ``[T, ...]`` (the caller vmaps over envs).
+
+Off-policy algorithms (SAC) own their actor (`coherent_jax.networks.SquashedGaussianActor`)
+and train it as usual; a strategy only shapes *behaviour* there, through the
+``offpolicy_*`` hooks: how a collection step perturbs the actor (carrying per-env
+state), and how a noise scale adapts after each iteration (thesis §4.3). The
+defaults are plain SAC: sample a = tanh(mean + std xi) and adapt nothing.
 """
 
 from __future__ import annotations
@@ -19,6 +25,8 @@ import abc
 from typing import Any, NamedTuple
 
 import jax
+
+from coherent_jax.networks import SquashedGaussianActor, squash
 
 Params = Any
 Carry = Any
@@ -120,3 +128,54 @@ class Exploration(abc.ABC):
         """Scalars worth logging (e.g. the mean exploration std)."""
         del params, hparams
         return {}
+
+    # ------------------------------------------------------ off-policy (SAC)
+    #: the off-policy actor should put LayerNorm between its layers (PSNE).
+    actor_layer_norm: bool = False
+
+    def offpolicy_init_hparams(self) -> dict[str, jax.Array]:
+        """Sweepable scalars of the off-policy behaviour (e.g. beta and sigma)."""
+        return {}
+
+    def offpolicy_init_carry(
+        self,
+        key: jax.Array,
+        actor: SquashedGaussianActor,
+        actor_params: Params,
+        hparams: Any,
+        num_envs: int,
+    ) -> Carry:
+        """Per-env behaviour state at the start of training (leading axis num_envs)."""
+        del key, actor, actor_params, hparams, num_envs
+        return ()
+
+    def offpolicy_act(
+        self,
+        key: jax.Array,
+        actor: SquashedGaussianActor,
+        actor_params: Params,
+        hparams: Any,
+        carry: Carry,
+        obs: jax.Array,
+        first: jax.Array,
+    ) -> tuple[jax.Array, Carry]:
+        """Behaviour actions in [-1, 1] for a batch of envs, obs [n, o], first [n].
+
+        Default: SAC's own sample a = tanh(mean(s) + std(s) xi) (eq. 2.50).
+        """
+        del first
+        action, _ = squash(key, actor.dist(actor_params, obs))
+        return action, carry
+
+    def offpolicy_adapt(
+        self,
+        key: jax.Array,
+        actor: SquashedGaussianActor,
+        actor_params: Params,
+        hparams: Any,
+        obs: jax.Array,
+    ) -> tuple[Any, dict[str, jax.Array]]:
+        """Called after each iteration's updates with a replay batch of states
+        ``obs`` [B, o]; returns new hparams (e.g. sigma by eq. 4.51) and metrics."""
+        del key, actor, actor_params, obs
+        return hparams, {}

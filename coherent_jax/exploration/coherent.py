@@ -34,8 +34,9 @@ import chex
 import jax
 import jax.numpy as jnp
 
+from coherent_jax.exploration.adaptive import adapt_sigma, policy_distance
 from coherent_jax.exploration.base import ActOutput, Exploration, SegmentLogProb
-from coherent_jax.networks import MLP
+from coherent_jax.networks import MLP, squash
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -597,6 +598,9 @@ class CoherentExploration(Exploration):
         learn_action_std: bool = False,
         remat: bool = False,
         inference: str = "joint",
+        sigma_init: float = 0.1,
+        sigma_delta: float = 0.1,
+        sigma_alpha: float = 1.01,
     ):
         if inference not in ("joint", "filter"):
             raise ValueError(f"inference must be 'joint' or 'filter', got {inference!r}")
@@ -609,6 +613,9 @@ class CoherentExploration(Exploration):
         self.learn_action_std = bool(learn_action_std)
         self.remat = bool(remat)
         self.inference = inference
+        self.sigma_init = float(sigma_init)
+        self.sigma_delta = float(sigma_delta)
+        self.sigma_alpha = float(sigma_alpha)
 
     # ---------------------------------------------------------------- params
     def init(self, key, obs_size):
@@ -724,3 +731,44 @@ class CoherentExploration(Exploration):
             "action_std": jnp.mean(action_std),
             "beta": jnp.asarray(hparams["beta"]),
         }
+
+    # ------------------------------------------------ off-policy: Coherent-SAC
+    # Thesis §4.3 and §4.4.3: the actor's mean head [p, q+1] follows the beta-chain
+    # around its learned value with one scale, w_t = mu + sigma z_t (w_std = sigma),
+    # and sigma adapts by (4.50)-(4.51). The actor itself trains as plain SAC.
+    def offpolicy_init_hparams(self):
+        return {
+            "beta": jnp.asarray(self.beta, jnp.float32),
+            "sigma": jnp.asarray(self.sigma_init, jnp.float32),
+            "sigma_delta": jnp.asarray(self.sigma_delta, jnp.float32),
+            "sigma_alpha": jnp.asarray(self.sigma_alpha, jnp.float32),
+        }
+
+    def offpolicy_init_carry(self, key, actor, actor_params, hparams, num_envs):
+        # z_0 ~ N(0, I) for every env; `first` at the first step redraws it anyway.
+        return jax.random.normal(key, (num_envs,) + actor_params["mu"].shape, jnp.float32)
+
+    def offpolicy_act(self, key, actor, actor_params, hparams, carry, obs, first):
+        chex.assert_rank([obs, first], [2, 1])
+        chex.assert_shape(carry, (obs.shape[0],) + actor_params["mu"].shape)
+        k_z, k_a = jax.random.split(key)
+        beta = hparams["beta"]
+        eps = jax.random.normal(k_z, carry.shape, carry.dtype)
+        z = jnp.where(first[:, None, None], eps, (1.0 - beta) * carry + _innovation_std(beta) * eps)
+        head = actor_params["mu"] + hparams["sigma"] * z  # [n, p, q+1]
+        dist = actor.dist_from_features(actor_params, actor.features(actor_params, obs), head)
+        action, _ = squash(k_a, dist)
+        return action, z
+
+    def offpolicy_adapt(self, key, actor, actor_params, hparams, obs):
+        chex.assert_rank(obs, 2)
+        x = actor.features(actor_params, obs)
+        # One perturbed actor: a draw from the chain's stationary law N(mu, sigma^2 I).
+        z = jax.random.normal(key, actor_params["mu"].shape, actor_params["mu"].dtype)
+        head = actor_params["mu"] + hparams["sigma"] * z
+        mean = jnp.tanh(actor.dist_from_features(actor_params, x).mean)
+        perturbed = jnp.tanh(actor.dist_from_features(actor_params, x, head).mean)
+        distance = policy_distance(mean, perturbed)
+        sigma = adapt_sigma(hparams["sigma"], distance, hparams["sigma_delta"], hparams["sigma_alpha"])
+        metrics = {"sigma": hparams["sigma"], "policy_distance": distance, "beta": hparams["beta"]}
+        return {**hparams, "sigma": sigma}, metrics

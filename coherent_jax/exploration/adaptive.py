@@ -1,0 +1,31 @@
+"""Adaptive parameter-noise scale (Plappert et al. 2018; thesis §4.3, eqs. 4.50-4.51).
+
+Off-policy training cannot learn the size of the noise injected in parameter
+space, so it is adapted by how much of it shows in action space: the distance
+between the (mean) actions of the unperturbed and a perturbed policy on a batch B
+of replay states,
+
+    d(pi, pi~) = sqrt( 1/(N |B|) sum_{i=1}^N sum_{s in B} (pi(s)_i - pi~(s)_i)^2 )      (4.50)
+
+and sigma grows by alpha while d < delta, shrinks by alpha otherwise:
+
+    sigma_{k+1} = alpha sigma_k   if d(pi, pi~) < delta,   sigma_k / alpha   otherwise  (4.51)
+"""
+
+from __future__ import annotations
+
+import chex
+import jax
+import jax.numpy as jnp
+
+
+def policy_distance(actions: jax.Array, perturbed_actions: jax.Array) -> jax.Array:
+    """Eq. (4.50): root mean square difference over batch and action dims, [B, N] -> scalar."""
+    chex.assert_rank(actions, 2)
+    chex.assert_equal_shape([actions, perturbed_actions])
+    return jnp.sqrt(jnp.mean(jnp.square(actions - perturbed_actions)))
+
+
+def adapt_sigma(sigma: jax.Array, distance: jax.Array, delta: jax.Array, alpha: jax.Array) -> jax.Array:
+    """Eq. (4.51): alpha * sigma if distance < delta, else sigma / alpha."""
+    return jnp.where(distance < delta, sigma * alpha, sigma / alpha)
