@@ -7,7 +7,7 @@ It is a msgpack map (flax serialisation, never pickle) of
 
 * ``meta``: JSON text: format tag, the config fingerprint, the iteration, the env
   steps and the run loop's own state (evaluation PRNG key, timers, last metrics);
-* ``state``: the trainer's whole state pytree, ``flax.serialization.to_bytes``;
+* ``state``: the leaves of the trainer's whole state pytree (`state_to_bytes`);
 * ``sha256``: digest of ``meta`` and ``state``, so truncation or corruption is
   detected before anything is restored.
 
@@ -220,30 +220,48 @@ def decode_checkpoint(path: Path, cfg: Config) -> Checkpoint:
     )
 
 
+def state_to_bytes(state: Any) -> bytes:
+    """The leaves of the state pytree, in tree order, as flax msgpack.
+
+    Leaves rather than the tree itself: the physics state of an MJX environment is a
+    pytree that flax's serialisation does not know, and the tree structure is
+    rebuilt from the trainer's own template on restore.
+    """
+    import jax
+    import numpy as np
+    from flax import serialization
+
+    leaves = jax.tree_util.tree_leaves(jax.device_get(state))
+    return serialization.msgpack_serialize({str(i): np.asarray(x) for i, x in enumerate(leaves)})
+
+
 def restore_state(template: Any, state_bytes: bytes, path: Path) -> Any:
-    """The state pytree of a checkpoint, shaped like `template` (checked leaf by leaf)."""
+    """The state pytree of a checkpoint, shaped like `template` (checked leaf by leaf).
+
+    `template` may hold arrays or ``jax.ShapeDtypeStruct``s (``jax.eval_shape`` of
+    the trainer's ``init``).
+    """
     import jax
     import numpy as np
     from flax import serialization
 
     try:
-        state = serialization.from_bytes(template, state_bytes)
+        stored = serialization.msgpack_restore(state_bytes)
+        leaves = [np.asarray(stored[str(i)]) for i in range(len(stored))]
     except Exception as exc:  # noqa: BLE001
-        raise CheckpointError(f"checkpoint {str(path)!r} does not fit this trainer's state: {exc}") from None
-    flat_t, _ = jax.tree_util.tree_flatten_with_path(template)
-    flat_s = jax.tree_util.tree_leaves(state)
-    if len(flat_t) != len(flat_s):
+        raise CheckpointError(f"checkpoint {str(path)!r}: unreadable state ({exc})") from None
+    flat_t, treedef = jax.tree_util.tree_flatten_with_path(template)
+    if len(flat_t) != len(leaves):
         raise CheckpointError(
-            f"checkpoint {str(path)!r} has {len(flat_s)} arrays, this trainer {len(flat_t)}"
+            f"checkpoint {str(path)!r} has {len(leaves)} arrays, this trainer {len(flat_t)}"
         )
-    for (where, t), s in zip(flat_t, flat_s, strict=True):
-        s = np.asarray(s)
-        if s.shape != t.shape or s.dtype != t.dtype:
+    for (where, t), s in zip(flat_t, leaves, strict=True):
+        if s.shape != tuple(t.shape) or s.dtype != t.dtype:
             raise CheckpointError(
                 f"checkpoint {str(path)!r}: {jax.tree_util.keystr(where)} is {s.dtype}{list(s.shape)}, "
                 f"this trainer expects {t.dtype}{list(t.shape)}"
             )
-    return jax.device_put(state)
+    return jax.device_put(jax.tree_util.tree_unflatten(treedef, leaves))
 
 
 def read_metrics(path: Path) -> list[dict[str, Any]]:

@@ -51,6 +51,7 @@ from coherent_jax.runs import (
     load_config,
     package_versions,
     restore_state,
+    state_to_bytes,
     truncate_metrics,
 )
 
@@ -181,7 +182,7 @@ def train(
     def save_checkpoint(done: int) -> None:
         loop.eval_key = [int(w) for w in jax.device_get(key)]
         loop.elapsed_s = elapsed_before + time.perf_counter() - t_start
-        state_bytes = serialization.to_bytes(jax.device_get(state))
+        state_bytes = state_to_bytes(state)
         blob = encode_checkpoint(cfg, done, done * cfg.steps_per_iteration, loop, state_bytes)
         atomic_write(run_dir / CHECKPOINT, blob)
         if writer is not None:
