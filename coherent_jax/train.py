@@ -208,7 +208,7 @@ def train(
         dynamic_ncols=True,
         mininterval=1.0,
     )
-    done = start
+    done = saved = start
     stopper = _StopRequest()
     try:
         with stopper:
@@ -218,7 +218,7 @@ def train(
                 metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
                 finite = bool(check_params(state))
                 loop.train_s += time.perf_counter() - t0
-                _check_finite(i + 1, metrics, finite, state, trainer, run_dir, done)
+                _check_finite(i + 1, metrics, finite, state, trainer, run_dir, saved)
                 last = i == cfg.num_iterations - 1
                 if last or (cfg.eval_every > 0 and (i + 1) % cfg.eval_every == 0):
                     t0 = time.perf_counter()
@@ -250,6 +250,7 @@ def train(
                 every = cfg.checkpoint_every > 0 and done % cfg.checkpoint_every == 0
                 if run_dir and (last or every or stopper.signum is not None):
                     save_checkpoint(done)
+                    saved = done
                 bar.update(cfg.steps_per_iteration)
                 bar.set_postfix(
                     sps=f"{env_steps / max(loop.train_s, 1e-9):.0f}",
@@ -315,9 +316,12 @@ def _check_finite(
     state: Any,
     trainer: Any,
     run_dir: Path | None,
-    good: int,
+    saved: int,
 ) -> None:
-    """Raises `DivergenceError` if a loss metric or a parameter is non-finite."""
+    """Raises `DivergenceError` if a loss metric or a parameter is non-finite.
+
+    `saved` is the iteration of the last checkpoint written (the one a resume starts from).
+    """
     bad = [k for k, v in metrics.items() if "loss" in k and not math.isfinite(v)]
     if not bad and params_ok:
         return
@@ -326,7 +330,7 @@ def _check_finite(
     else:
         quantity = f"parameter {_first_non_finite(trainer.export_params(state))} is not finite"
     kept = (
-        f"; last good checkpoint: iteration {good} in {run_dir / CHECKPOINT}"
+        f"; last good checkpoint: iteration {saved} in {run_dir / CHECKPOINT}"
         if run_dir and (run_dir / CHECKPOINT).exists()
         else "; no checkpoint was written before it"
     )

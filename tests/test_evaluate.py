@@ -34,6 +34,20 @@ def make_run(path: Path, overrides: list[str]) -> Path:
     return path
 
 
+def make_fake_run(path: Path, overrides: list[str]) -> Path:
+    """A run directory whose checkpoint verifies but holds no restorable state (no compile).
+
+    Enough for every refusal that happens before the state is restored.
+    """
+    from omegaconf import OmegaConf
+
+    cfg = parse_overrides(overrides)
+    path.mkdir()
+    atomic_write(path / "config.yaml", OmegaConf.to_yaml(to_dict(cfg)).encode())
+    atomic_write(path / CHECKPOINT, encode_checkpoint(cfg, 0, 0, LoopState(eval_key=[0, 0]), b"\x80" * 300))
+    return path
+
+
 def run_cli(args, cwd):
     env = dict(os.environ)
     env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
@@ -89,7 +103,7 @@ def test_video_of_inverted_pendulum_has_moving_frames(tmp_path):
 
 
 def test_video_for_pointmass_is_refused(tmp_path, capsys):
-    run = make_run(tmp_path / "run", POINTMASS)
+    run = make_fake_run(tmp_path / "run", POINTMASS)
     before = sorted(p.name for p in run.rglob("*"))
     assert main([str(run), "video=true"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -122,7 +136,7 @@ def test_missing_or_foreign_run_dir_or_broken_checkpoint_is_refused(tmp_path, ca
     stranger.mkdir()
     assert main([str(stranger)]) == 2
     assert "config.yaml" in capsys.readouterr().err
-    run = make_run(tmp_path / "run", POINTMASS)
+    run = make_fake_run(tmp_path / "run", POINTMASS)
     path = run / CHECKPOINT
     path.write_bytes(path.read_bytes()[:100])
     assert main([str(run)]) == 2

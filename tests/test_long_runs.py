@@ -72,6 +72,25 @@ def wait_for_rows(proc, metrics, n, timeout=300.0):
     raise AssertionError("no progress")
 
 
+def tensorboard_scalars(tb_dir: Path) -> dict[str, dict[int, float]]:
+    """tag -> {step: value} from every event file in `tb_dir` (TFRecord framing, parsed by hand)."""
+    import struct
+
+    from tensorboardX.proto import event_pb2
+
+    scalars: dict[str, dict[int, float]] = {}
+    for path in sorted(tb_dir.glob("events.out.tfevents.*")):
+        data = path.read_bytes()
+        pos = 0
+        while pos + 12 <= len(data):
+            (length,) = struct.unpack("<Q", data[pos : pos + 8])
+            event = event_pb2.Event.FromString(data[pos + 12 : pos + 12 + length])
+            pos += 12 + length + 4
+            for value in event.summary.value:
+                scalars.setdefault(value.tag, {})[event.step] = value.simple_value
+    return scalars
+
+
 def snapshot(path: Path) -> dict[str, str]:
     return {
         str(p.relative_to(path)): hashlib.sha256(p.read_bytes()).hexdigest()
@@ -104,7 +123,9 @@ def test_sigkill_then_resume_equals_an_uninterrupted_run(tmp_path):
     assert len(reference) == 150 and any("eval/episode_return" in r for r in reference)
     assert strip_times(resumed) == strip_times(reference)
     assert (run / "params.msgpack").read_bytes() == (ref / "params.msgpack").read_bytes()
-    assert list((run / "tb").glob("events.out.tfevents.*")), "no TensorBoard event file"
+    losses = tensorboard_scalars(run / "tb")["train/value_loss"]
+    assert sorted(losses) == [r["env_steps"] for r in reference]
+    assert losses[reference[-1]["env_steps"]] == pytest.approx(reference[-1]["train/value_loss"], rel=1e-6)
     assert json.loads((run / "versions.json").read_text())["jax"] == "0.9.2"
 
     # A finished run resumed again is left alone.
@@ -137,6 +158,7 @@ def test_divergence_stops_naming_iteration_and_quantity(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: diverged at iteration 2: "), err
     assert "loss" in err[0] or "parameter" in err[0]
+    assert "last good checkpoint: iteration 1" in err[0]
     assert decode_checkpoint(run / CHECKPOINT, parse_overrides(args)).iteration == 1
     assert len(read_metrics(run / "metrics.jsonl")) == 1
     assert not (run / "params.msgpack").exists()
