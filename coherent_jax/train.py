@@ -153,11 +153,13 @@ def train(
     trainer = make_trainer(cfg)
     key = jax.random.PRNGKey(cfg.seed)
     key, init_key = jax.random.split(key)
-    state = jax.jit(trainer.init)(init_key)
     loop = LoopState(eval_key=[int(w) for w in jax.device_get(key)])
     start = 0
-    if resume is not None:
-        state = restore_state(state, resume.state_bytes, run_dir / CHECKPOINT)
+    if resume is None:
+        state = jax.jit(trainer.init)(init_key)
+    else:  # the state's structure from tracing init, its values from the checkpoint
+        template = jax.eval_shape(trainer.init, init_key)
+        state = restore_state(template, resume.state_bytes, run_dir / CHECKPOINT)
         loop, start = resume.loop, resume.iteration
         key = jnp.asarray(loop.eval_key, dtype=jnp.uint32)
 
