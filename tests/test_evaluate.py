@@ -34,6 +34,30 @@ def make_run(path: Path, overrides: list[str]) -> Path:
     return path
 
 
+def make_zero_run(path: Path, overrides: list[str]) -> Path:
+    """A run directory whose checkpoint holds a zero-filled state of the trainer's shape.
+
+    Zero policy weights give zero actions, so a MuJoCo task still moves under its own
+    dynamics; building the state by tracing ``init`` (no compile of an MJX reset)
+    keeps the video test cheap.
+    """
+    import jax
+    import numpy as np
+    from omegaconf import OmegaConf
+
+    from coherent_jax.agents import make_trainer
+
+    cfg = parse_overrides(overrides)
+    shapes = jax.eval_shape(make_trainer(cfg).init, jax.random.PRNGKey(0))
+    state = jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), shapes)
+    path.mkdir()
+    atomic_write(path / "config.yaml", OmegaConf.to_yaml(to_dict(cfg)).encode())
+    atomic_write(
+        path / CHECKPOINT, encode_checkpoint(cfg, 0, 0, LoopState(eval_key=[0, 0]), state_to_bytes(state))
+    )
+    return path
+
+
 def make_fake_run(path: Path, overrides: list[str]) -> Path:
     """A run directory whose checkpoint verifies but holds no restorable state (no compile).
 
@@ -82,7 +106,7 @@ def test_video_of_inverted_pendulum_has_moving_frames(tmp_path):
     """The GIF exists, its frames are not blank, and the pendulum moves between them."""
     from PIL import Image, ImageSequence
 
-    run = make_run(
+    run = make_zero_run(
         tmp_path / "run",
         ["env=inverted_pendulum", "num_envs=1", "num_minibatches=1", "episode_length=30", "progress=false"],
     )
