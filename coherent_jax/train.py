@@ -322,9 +322,13 @@ def _check_finite(
 ) -> None:
     """Raises `DivergenceError` if a loss metric or a parameter is non-finite.
 
-    `saved` is the iteration of the last checkpoint written (the one a resume starts from).
+    Losses are checked only when the iteration applied an update
+    (``train/updates_applied`` > 0, or absent): SAC reports NaN losses by design while
+    its replay buffer warms up. Parameters are always checked. `saved` is the
+    iteration of the last checkpoint written (the one a resume starts from).
     """
-    bad = [k for k, v in metrics.items() if "loss" in k and not math.isfinite(v)]
+    updated = metrics.get("train/updates_applied", 1.0) > 0
+    bad = [k for k, v in metrics.items() if updated and "loss" in k and not math.isfinite(v)]
     if not bad and params_ok:
         return
     if bad:

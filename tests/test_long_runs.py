@@ -123,9 +123,9 @@ def test_sigkill_then_resume_equals_an_uninterrupted_run(tmp_path):
     assert len(reference) == 150 and any("eval/episode_return" in r for r in reference)
     assert strip_times(resumed) == strip_times(reference)
     assert (run / "params.msgpack").read_bytes() == (ref / "params.msgpack").read_bytes()
-    losses = tensorboard_scalars(run / "tb")["train/value_loss"]
-    assert sorted(losses) == [r["env_steps"] for r in reference]
-    assert losses[reference[-1]["env_steps"]] == pytest.approx(reference[-1]["train/value_loss"], rel=1e-6)
+    rewards = tensorboard_scalars(run / "tb")["train/reward_mean"]
+    assert sorted(rewards) == [r["env_steps"] for r in reference]
+    assert rewards[reference[-1]["env_steps"]] == pytest.approx(reference[-1]["train/reward_mean"], rel=1e-6)
     assert json.loads((run / "versions.json").read_text())["jax"] == "0.9.2"
 
     # A finished run resumed again is left alone.
@@ -162,6 +162,29 @@ def test_divergence_stops_naming_iteration_and_quantity(tmp_path, capsys):
     assert decode_checkpoint(run / CHECKPOINT, parse_overrides(args)).iteration == 1
     assert len(read_metrics(run / "metrics.jsonl")) == 1
     assert not (run / "params.msgpack").exists()
+
+
+def test_guard_skips_losses_of_an_iteration_without_update_but_never_parameters():
+    """SAC logs NaN losses while its buffer warms up (no update applied): not a divergence."""
+    import jax.numpy as jnp
+
+    from coherent_jax.train import DivergenceError, _check_finite
+
+    class Trainer:
+        def export_params(self, state):
+            return state
+
+    params = {"actor": {"w": jnp.array([1.0, jnp.inf])}, "obs_stats": jnp.zeros(2)}
+    warmup = {"train/actor_loss": float("nan"), "train/updates_applied": 0.0}
+    _check_finite(3, warmup, True, params, Trainer(), None, 0)
+    with pytest.raises(DivergenceError, match=r"iteration 3: train/actor_loss = nan"):
+        _check_finite(3, {**warmup, "train/updates_applied": 4.0}, True, params, Trainer(), None, 0)
+    with pytest.raises(DivergenceError, match=r"iteration 7: parameter \['actor'\]\['w'\] is not finite"):
+        _check_finite(7, warmup, False, params, Trainer(), None, 0)
+    # NaN in a metric that is not a loss (no episode ended) is not a divergence.
+    _check_finite(
+        8, {"train/episode_return": float("nan"), "train/policy_loss": 0.1}, True, params, Trainer(), None, 0
+    )
 
 
 def test_truncate_metrics_drops_rows_past_the_checkpoint_and_a_partial_line(tmp_path):
