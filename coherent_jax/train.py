@@ -77,10 +77,6 @@ def prepare_run_dir(cfg: Config) -> Path:
     return path
 
 
-# Kept for callers of the previous module layout.
-_atomic_write = atomic_write
-
-
 def _to_float(x: Any) -> float | None:
     value = float(x)
     return value if math.isfinite(value) else None
