@@ -20,6 +20,7 @@ from typing import Any
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from coherent_jax.envs.native import NATIVE_TASKS, PHYSICS
 from coherent_jax.envs.registry import TASKS
 
 ALGOS = ("ppo", "a2c", "sac")
@@ -123,6 +124,12 @@ class Config:
     eval_episodes: int = _field(8, "episodes per evaluation (run in parallel)")
     run_dir: str = _field("", "output directory; default runs/<env>-<algo>-<explore>-s<seed>-<time>")
     progress: bool = _field(True, "show a progress bar")
+    # --- physics backend (issue 6, part 4: fast physics on CPU)
+    physics: str = _field(
+        "auto",
+        "physics engine: " + ", ".join(PHYSICS) + " (auto = native MuJoCo on CPU for the envs that have it, "
+        "else MJX; native envs: " + ", ".join(NATIVE_TASKS) + ")",
+    )
 
     # --- derived (not settable)
     @property
@@ -234,6 +241,13 @@ def validate(cfg: Config) -> Config:
             cfg.utd_ratio,
             f"at least 1 / (num_envs * unroll_length) = {1 / cfg.steps_per_iteration:.3g}",
         )
+    _check(cfg.physics in PHYSICS, "physics", cfg.physics, ", ".join(PHYSICS))
+    _check(
+        cfg.physics != "native" or cfg.env in NATIVE_TASKS,
+        "env",
+        cfg.env,
+        "with physics=native: " + ", ".join(NATIVE_TASKS),
+    )
     _check(cfg.eval_every >= 0, "eval_every", cfg.eval_every, "an integer >= 0")
     _check(cfg.eval_episodes >= 1, "eval_episodes", cfg.eval_episodes, "an integer >= 1")
     return cfg

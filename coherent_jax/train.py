@@ -67,13 +67,16 @@ def train(
     key = jax.random.PRNGKey(cfg.seed)
     key, init_key = jax.random.split(key)
     state = jax.jit(trainer.init)(init_key)
+    # The engine `physics=auto` resolved to (trainers keep their training env in `.env`).
+    physics = getattr(getattr(trainer, "env", None), "physics", cfg.physics)
 
     t0 = time.perf_counter()
     iteration = jax.jit(trainer.iteration, donate_argnums=0).lower(state).compile()
     evaluate = jax.jit(trainer.evaluate).lower(state, key).compile()
     compile_s = time.perf_counter() - t0
     print(
-        f"[coherent_jax] {cfg.env} {cfg.algo} explore={cfg.explore}: compiled in {compile_s:.1f} s; "
+        f"[coherent_jax] {cfg.env} {cfg.algo} explore={cfg.explore} physics={physics}: "
+        f"compiled in {compile_s:.1f} s; "
         f"{cfg.num_iterations} iterations of {cfg.steps_per_iteration} env steps",
         flush=True,
     )
@@ -141,6 +144,7 @@ def train(
         "train_env_steps_per_s": round(total_steps / max(train_s, 1e-9), 1),
         "jax_version": jax.__version__,
         "backend": jax.default_backend(),
+        "physics": physics,
     }
     if run_dir:
         payload = trainer.export_params(state)
