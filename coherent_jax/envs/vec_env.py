@@ -78,6 +78,11 @@ class VecEnv:
     Pure: `reset` and `step` take and return `EnvState`; the object only holds
     static configuration (the task and the sizes), so it is safe to close over in
     jitted functions.
+
+    ``physics`` chooses the engine (`coherent_jax.envs.native.resolve_physics`):
+    ``mjx`` (Brax's MJX env, vmapped), ``native`` (MuJoCo's C engine on a thread
+    pool through a callback, `NativePhysics`; the same model, reward and termination)
+    or ``auto`` (native on CPU where the task has it, else MJX).
     """
 
     def __init__(self, task: str, num_envs: int, episode_length: int | None = None, physics: str = "auto"):
