@@ -18,10 +18,10 @@ Variants (`VARIANTS`):
 * ``mjx_eigen1``: as ``mjx`` with ``--xla_cpu_multi_thread_eigen=false``;
 * ``mjx_2dev``: as ``mjx`` with the envs split over two host devices
   (``--xla_force_host_platform_device_count=2``, ``jax.pmap``), to use the second core;
-* ``native_1t`` / ``native``: native MuJoCo through ``jax.pure_callback`` on one thread /
-  on every core (``physics=native``);
-* ``native_raw``: ``mujoco.batch.Batch`` stepped from a Python loop with no JAX at all,
-  the ceiling the callback path can approach.
+* ``native``: native MuJoCo through ``jax.pure_callback`` (``physics=native``, with its
+  default `DEFAULT_THREADS` MuJoCo threads); ``native_all``: the same on every core;
+* ``native_raw``: ``mujoco.batch.Batch`` with the default thread count stepped from a
+  Python loop with no JAX at all, the ceiling the callback path can approach.
 
 A bad key or value is one line on stderr and exit status 2, before anything runs.
 The JSON is written atomically once every row is measured.
@@ -45,8 +45,8 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "mjx": {"physics": "mjx"},
     "mjx_eigen1": {"physics": "mjx", "xla_flags": "--xla_cpu_multi_thread_eigen=false"},
     "mjx_2dev": {"physics": "mjx", "devices": 2, "xla_flags": "--xla_force_host_platform_device_count=2"},
-    "native_1t": {"physics": "native", "nthread": 1},
     "native": {"physics": "native"},
+    "native_all": {"physics": "native", "nthread": os.cpu_count() or 1},
     "native_raw": {"physics": "raw"},
 }
 DEFAULTS: dict[str, Any] = {
@@ -131,10 +131,10 @@ def _measure_raw(task: str, n: int, steps: int, repeats: int) -> dict[str, Any]:
     import numpy as np
     from mujoco import batch
 
-    from coherent_jax.envs.native import mujoco_model
+    from coherent_jax.envs.native import DEFAULT_THREADS, mujoco_model
 
     model, n_frames, _, init_q = mujoco_model(task)
-    b = batch.Batch(model, n, nthread=min(os.cpu_count() or 1, n))
+    b = batch.Batch(model, n, nthread=min(DEFAULT_THREADS, n))
     xpos, ctrl = b.bind("xpos"), b.bind("ctrl")
     b.reset()
     b.bind("qpos")[:] = init_q

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import os
 import threading
 from collections.abc import Callable
 from typing import Any, NamedTuple
@@ -44,6 +43,11 @@ from flax import struct
 from coherent_jax.envs.registry import check_task, make_brax_env
 
 PHYSICS = ("auto", "mjx", "native")
+# MuJoCo threads per call. One thread beat two on this shared 2-core machine at 16, 64
+# and 256 halfcheetah envs (5.3x vs 3.1x MJX's speed at 64; `python -m coherent_jax.bench_physics`,
+# variants native and native_all): the second core is busy with other work, and a
+# two-thread call waits for the slower one.
+DEFAULT_THREADS = 1
 
 
 class Kinematics(NamedTuple):
@@ -351,13 +355,13 @@ class NativePhysics:
     whole batch: the callback hands all envs to MuJoCo's thread pool at once.
     """
 
-    def __init__(self, task: str, nthread: int | None = None):
+    def __init__(self, task: str, nthread: int = DEFAULT_THREADS):
         if task not in NATIVE_TASKS:
             resolve_physics(task, "native")  # raises naming the supported tasks
         self.task = task
         self.spec = NATIVE_TASKS[task]
         model, self.n_frames, self.dt, init_q = mujoco_model(task)
-        self.host = _Host(model, self.n_frames, nthread or os.cpu_count() or 1)
+        self.host = _Host(model, self.n_frames, max(1, int(nthread)))
         self.nq, self.nv, self.nbody = model.nq, model.nv, model.nbody
         self.action_size = int(model.nu)
         self.init_q = jnp.asarray(init_q)
