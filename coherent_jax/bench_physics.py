@@ -46,7 +46,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "mjx_eigen1": {"physics": "mjx", "xla_flags": "--xla_cpu_multi_thread_eigen=false"},
     "mjx_2dev": {"physics": "mjx", "devices": 2, "xla_flags": "--xla_force_host_platform_device_count=2"},
     "native": {"physics": "native"},
-    "native_all": {"physics": "native", "nthread": os.cpu_count() or 1},
+    "native_all": {"physics": "native", "nthread": 0},
     "native_raw": {"physics": "raw"},
 }
 DEFAULTS: dict[str, Any] = {
@@ -134,7 +134,7 @@ def _measure_raw(task: str, n: int, steps: int, repeats: int) -> dict[str, Any]:
     from coherent_jax.envs.native import DEFAULT_THREADS, mujoco_model
 
     model, n_frames, _, init_q = mujoco_model(task)
-    b = batch.Batch(model, n, nthread=min(DEFAULT_THREADS, n))
+    b = batch.Batch(model, n, nthread=min(DEFAULT_THREADS or os.cpu_count() or 1, n))
     xpos, ctrl = b.bind("xpos"), b.bind("ctrl")
     b.reset()
     b.bind("qpos")[:] = init_q
@@ -166,7 +166,7 @@ def _measure_jax(task: str, n: int, steps: int, repeats: int, variant: dict[str,
     if "ls_iterations" in variant:
         env.env.sys = env.env.sys.tree_replace({"opt.ls_iterations": variant["ls_iterations"]})
     if "nthread" in variant:
-        env.env.host.nthread = int(variant["nthread"])
+        env.env.host.nthread = int(variant["nthread"]) or os.cpu_count() or 1
 
     def run(state, key):
         def body(s, k):

@@ -20,7 +20,7 @@ from typing import Any
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from coherent_jax.envs.native import NATIVE_TASKS, PHYSICS
+from coherent_jax.envs.native import DEFAULT_THREADS, NATIVE_TASKS, PHYSICS
 from coherent_jax.envs.registry import TASKS
 
 ALGOS = ("ppo", "a2c", "sac")
@@ -129,6 +129,9 @@ class Config:
         "auto",
         "physics engine: " + ", ".join(PHYSICS) + " (auto = native MuJoCo on CPU for the envs that have it, "
         "else MJX; native envs: " + ", ".join(NATIVE_TASKS) + ")",
+    )
+    physics_threads: int = _field(
+        DEFAULT_THREADS, "native physics: MuJoCo threads per step call, 0 = every core (see bench_physics)"
     )
 
     # --- derived (not settable)
@@ -242,6 +245,9 @@ def validate(cfg: Config) -> Config:
             f"at least 1 / (num_envs * unroll_length) = {1 / cfg.steps_per_iteration:.3g}",
         )
     _check(cfg.physics in PHYSICS, "physics", cfg.physics, ", ".join(PHYSICS))
+    _check(
+        cfg.physics_threads >= 0, "physics_threads", cfg.physics_threads, "an integer >= 0 (0 = every core)"
+    )
     _check(
         cfg.physics != "native" or cfg.env in NATIVE_TASKS,
         "env",

@@ -71,14 +71,19 @@ def test_native_env_is_pure_and_vmaps_over_seeds():
     env = VecEnv("inverted_pendulum", num_envs=3, episode_length=50, physics="native")
     assert env.physics == "native" and (env.observation_size, env.action_size) == (4, 1)
 
-    def run(key):
-        state = env.reset(key)
+    def make_run(env):
+        def run(key):
+            state = env.reset(key)
 
-        def body(s, k):
-            s, out = env.step(s, jax.random.uniform(k, (3, 1), minval=-1, maxval=1))
-            return s, (out.reward, out.final_obs, out.terminated)
+            def body(s, k):
+                s, out = env.step(s, jax.random.uniform(k, (3, 1), minval=-1, maxval=1))
+                return s, (out.reward, out.final_obs, out.terminated)
 
-        return jax.lax.scan(body, state, jax.random.split(key, 40))
+            return jax.lax.scan(body, state, jax.random.split(key, 40))
+
+        return run
+
+    run = make_run(env)
 
     keys = jax.random.split(jax.random.PRNGKey(5), 2)
     state, outs = jax.jit(jax.vmap(run))(keys)
@@ -92,6 +97,13 @@ def test_native_env_is_pure_and_vmaps_over_seeds():
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert isinstance(state.physics, NativeState)
     assert np.asarray(outs[2]).any(), "pendulums fall under random actions, so auto-reset ran"
+    # MuJoCo's thread pool gives bit-identical results at any thread count (0 = every core).
+    env_all = VecEnv("inverted_pendulum", num_envs=3, episode_length=50, physics="native", physics_threads=0)
+    assert env_all.env.host.nthread >= 1
+    for a, b in zip(
+        jax.tree.leaves(jax.jit(make_run(env_all))(keys[0])), jax.tree.leaves(again), strict=True
+    ):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert not np.array_equal(np.asarray(outs[1][0]), np.asarray(outs[1][1])), "seeds differ"
 
 
@@ -149,6 +161,8 @@ def test_physics_choice_and_refusals():
         resolve_physics("halfcheetah", "warp")
     with pytest.raises(ConfigError, match="'physics'.*auto, mjx, native"):
         parse_overrides(["physics=warp"])
+    with pytest.raises(ConfigError, match="'physics_threads'.*>= 0"):
+        parse_overrides(["physics_threads=-1"])
     with pytest.raises(ConfigError) as err:
         parse_overrides(["env=swimmer", "physics=native"])
     assert "'swimmer'" in str(err.value) and "halfcheetah" in str(err.value)

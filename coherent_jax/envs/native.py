@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import os
 import threading
 from collections.abc import Callable
 from typing import Any, NamedTuple
@@ -43,10 +44,10 @@ from flax import struct
 from coherent_jax.envs.registry import check_task, make_brax_env
 
 PHYSICS = ("auto", "mjx", "native")
-# MuJoCo threads per call. One thread beat two on this shared 2-core machine at 16, 64
-# and 256 halfcheetah envs (5.3x vs 3.1x MJX's speed at 64; `python -m coherent_jax.bench_physics`,
-# variants native and native_all): the second core is busy with other work, and a
-# two-thread call waits for the slower one.
+# MuJoCo threads per call (0 = every core). On the shared 2-core machine one thread
+# was as fast as two or faster in 2 of 3 runs of `python -m coherent_jax.bench_physics`
+# (loaded machine: 25k vs 15k env steps/s at 64 halfcheetah envs); on a quiet moment
+# two threads gave 41k vs 21k at 64 envs. A dedicated machine should try 0.
 DEFAULT_THREADS = 1
 
 
@@ -361,7 +362,7 @@ class NativePhysics:
         self.task = task
         self.spec = NATIVE_TASKS[task]
         model, self.n_frames, self.dt, init_q = mujoco_model(task)
-        self.host = _Host(model, self.n_frames, max(1, int(nthread)))
+        self.host = _Host(model, self.n_frames, int(nthread) or os.cpu_count() or 1)
         self.nq, self.nv, self.nbody = model.nq, model.nv, model.nbody
         self.action_size = int(model.nu)
         self.init_q = jnp.asarray(init_q)

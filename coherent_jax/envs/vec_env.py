@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from coherent_jax.envs.native import NativePhysics, resolve_physics
+from coherent_jax.envs.native import DEFAULT_THREADS, NativePhysics, resolve_physics
 from coherent_jax.envs.registry import check_task, env_sizes, make_brax_env
 
 
@@ -82,10 +82,18 @@ class VecEnv:
     ``physics`` chooses the engine (`coherent_jax.envs.native.resolve_physics`):
     ``mjx`` (Brax's MJX env, vmapped), ``native`` (MuJoCo's C engine on a thread
     pool through a callback, `NativePhysics`; the same model, reward and termination)
-    or ``auto`` (native on CPU where the task has it, else MJX).
+    or ``auto`` (native on CPU where the task has it, else MJX); ``physics_threads``
+    is native MuJoCo's thread count (0 = every core).
     """
 
-    def __init__(self, task: str, num_envs: int, episode_length: int | None = None, physics: str = "auto"):
+    def __init__(
+        self,
+        task: str,
+        num_envs: int,
+        episode_length: int | None = None,
+        physics: str = "auto",
+        physics_threads: int = DEFAULT_THREADS,
+    ):
         spec = check_task(task)
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
@@ -95,7 +103,7 @@ class VecEnv:
         # "mjx", "native" (MuJoCo's C engine through a callback) or the task's own pipeline.
         self.physics = resolve_physics(task, physics)
         if self.physics == "native":
-            self.env = NativePhysics(task)
+            self.env = NativePhysics(task, physics_threads)
             self.observation_size, self.action_size = self.env.observation_size, self.env.action_size
             # Native physics takes the whole batch in one call; Brax envs are vmapped.
             self._batch_reset, self._batch_step = self.env.reset, self.env.step
