@@ -328,7 +328,7 @@ def _bench_training(cfg: Config, iterations: int, log) -> tuple[dict, dict]:
     shape = f"{cfg.env}, {cfg.num_envs} envs x {cfg.unroll_length} steps"
     # One env object for all trainers (building an MJX model takes seconds); no
     # evaluation runs here, so it also stands in for the evaluation env.
-    env = VecEnv(cfg.env, cfg.num_envs, cfg.episode_length)
+    env = VecEnv(cfg.env, cfg.num_envs, cfg.episode_length, cfg.physics, cfg.physics_threads)
     runs: dict[str, dict] = {}
     for name, explore, remat in (
         ("action", "action", False),

@@ -90,7 +90,7 @@ def _bench(cfg: Config, iterations: int, log) -> dict:
     from coherent_jax.agents.sac import SACTrainer
     from coherent_jax.envs.vec_env import VecEnv
 
-    env = VecEnv(cfg.env, cfg.num_envs, cfg.episode_length)
+    env = VecEnv(cfg.env, cfg.num_envs, cfg.episode_length, cfg.physics, cfg.physics_threads)
     runs: dict[str, dict] = {}
     for explore in ("action", "coherent"):
         for mode, warmup in (("iteration", 0), ("collect_only", 2**31 - 1)):

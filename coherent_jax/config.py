@@ -20,6 +20,7 @@ from typing import Any
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from coherent_jax.envs.native import DEFAULT_THREADS, NATIVE_TASKS, PHYSICS
 from coherent_jax.envs.registry import TASKS
 
 ALGOS = ("ppo", "a2c", "sac")
@@ -129,6 +130,15 @@ class Config:
     )
     resume: str = _field("", "continue the run in this directory from its checkpoint, with its config")
     tensorboard: bool = _field(True, "write TensorBoard event files to <run_dir>/tb")
+    # --- physics backend (issue 6, part 4: fast physics on CPU)
+    physics: str = _field(
+        "auto",
+        "physics engine: " + ", ".join(PHYSICS) + " (auto = native MuJoCo on CPU for the envs that have it, "
+        "else MJX; native envs: " + ", ".join(NATIVE_TASKS) + ")",
+    )
+    physics_threads: int = _field(
+        DEFAULT_THREADS, "native physics: MuJoCo threads per step call, 0 = every core (see bench_physics)"
+    )
 
     # --- derived (not settable)
     @property
@@ -240,6 +250,16 @@ def validate(cfg: Config) -> Config:
             cfg.utd_ratio,
             f"at least 1 / (num_envs * unroll_length) = {1 / cfg.steps_per_iteration:.3g}",
         )
+    _check(cfg.physics in PHYSICS, "physics", cfg.physics, ", ".join(PHYSICS))
+    _check(
+        cfg.physics_threads >= 0, "physics_threads", cfg.physics_threads, "an integer >= 0 (0 = every core)"
+    )
+    _check(
+        cfg.physics != "native" or cfg.env in NATIVE_TASKS,
+        "env",
+        cfg.env,
+        "with physics=native: " + ", ".join(NATIVE_TASKS),
+    )
     _check(cfg.eval_every >= 0, "eval_every", cfg.eval_every, "an integer >= 0")
     _check(cfg.eval_episodes >= 1, "eval_episodes", cfg.eval_episodes, "an integer >= 1")
     _check(cfg.checkpoint_every >= 0, "checkpoint_every", cfg.checkpoint_every, "an integer >= 0")

@@ -105,7 +105,14 @@ class _Recorder:
         self.ended = self.ended or bool(done)
 
 
-def recording_env(task: str, num_envs: int, episode_length: int, recorder: _Recorder):
+def recording_env(
+    task: str,
+    num_envs: int,
+    episode_length: int,
+    recorder: _Recorder,
+    physics: str = "auto",
+    threads: int = 1,
+):
     """A `VecEnv` whose ``step`` also sends env 0's generalized positions to `recorder`."""
     import jax
 
@@ -113,13 +120,16 @@ def recording_env(task: str, num_envs: int, episode_length: int, recorder: _Reco
 
     class RecordingVecEnv(VecEnv):
         def step(self, state, action):
-            physics = state.physics.pipeline_state
-            qpos = physics.qpos if hasattr(physics, "qpos") else physics.q
+            if hasattr(state.physics, "kin"):  # native MuJoCo physics
+                qpos = state.physics.kin.qpos
+            else:
+                physics = state.physics.pipeline_state
+                qpos = physics.qpos if hasattr(physics, "qpos") else physics.q
             new_state, outcome = super().step(state, action)
             jax.debug.callback(recorder, qpos[0], outcome.done[0], ordered=True)
             return new_state, outcome
 
-    return RecordingVecEnv(task, num_envs, episode_length)
+    return RecordingVecEnv(task, num_envs, episode_length, physics, threads)
 
 
 def render_frames(mj_model: Any, qpos: Sequence[Any], width: int, height: int) -> list[Any]:
@@ -176,9 +186,11 @@ def evaluate_run(run_dir: Path, opts: EvalConfig) -> dict[str, Any]:
     cfg = dataclasses.replace(cfg, eval_episodes=opts.episodes)
     recorder = _Recorder(opts.max_frames)
     if opts.video:
-        eval_env = recording_env(cfg.env, opts.episodes, cfg.episode_length, recorder)
+        eval_env = recording_env(
+            cfg.env, opts.episodes, cfg.episode_length, recorder, cfg.physics, cfg.physics_threads
+        )
     else:
-        eval_env = VecEnv(cfg.env, opts.episodes, cfg.episode_length)
+        eval_env = VecEnv(cfg.env, opts.episodes, cfg.episode_length, cfg.physics, cfg.physics_threads)
     trainer = make_trainer(cfg, eval_env=eval_env)
     template = jax.eval_shape(trainer.init, jax.random.PRNGKey(0))
     state = restore_state(template, ckpt.state_bytes, run_dir / CHECKPOINT)
@@ -195,7 +207,13 @@ def evaluate_run(run_dir: Path, opts: EvalConfig) -> dict[str, Any]:
     }
     if opts.video:
         jax.effects_barrier()
-        frames = render_frames(eval_env.env.sys.mj_model, recorder.qpos, opts.width, opts.height)
+        if hasattr(eval_env.env, "sys"):
+            mj_model = eval_env.env.sys.mj_model
+        else:  # native physics: the same MJCF, with the task's solver options
+            from coherent_jax.envs.native import mujoco_model
+
+            mj_model = mujoco_model(cfg.env)[0]
+        frames = render_frames(mj_model, recorder.qpos, opts.width, opts.height)
         default = run_dir / "videos" / f"eval-it{ckpt.iteration}-s{opts.seed}.gif"
         path = Path(opts.video_path) if opts.video_path else default
         write_gif(path, frames, fps=1.0 / eval_env.dt)

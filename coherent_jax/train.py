@@ -165,13 +165,17 @@ def train(
             jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves if jnp.issubdtype(x.dtype, jnp.inexact)])
         )
 
+    # The engine `physics=auto` resolved to (trainers keep their training env in `.env`).
+    physics = getattr(getattr(trainer, "env", None), "physics", cfg.physics)
+
     t0 = time.perf_counter()
     iteration = jax.jit(trainer.iteration, donate_argnums=0).lower(state).compile()
     evaluate = jax.jit(trainer.evaluate).lower(state, key).compile()
     check_params = jax.jit(params_finite).lower(state).compile()
     compile_s = time.perf_counter() - t0
     print(
-        f"[coherent_jax] {cfg.env} {cfg.algo} explore={cfg.explore}: compiled in {compile_s:.1f} s; "
+        f"[coherent_jax] {cfg.env} {cfg.algo} explore={cfg.explore} physics={physics}: "
+        f"compiled in {compile_s:.1f} s; "
         f"{cfg.num_iterations} iterations of {cfg.steps_per_iteration} env steps"
         + (f"; resuming after iteration {start}" if resume is not None else ""),
         flush=True,
@@ -285,6 +289,7 @@ def train(
         "backend": jax.default_backend(),
         "resumed_from": start if resume is not None else None,
         "stopped_by": signal.Signals(stopper.signum).name if stopper.signum is not None else None,
+        "physics": physics,
     }
     if stopper.signum is not None:
         print(

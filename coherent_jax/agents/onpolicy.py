@@ -85,8 +85,10 @@ class OnPolicyTrainer:
 
     def __init__(self, cfg: Config, env: VecEnv | None = None, eval_env: VecEnv | None = None):
         self.cfg = cfg
-        self.env = env or VecEnv(cfg.env, cfg.num_envs, cfg.episode_length)
-        self.eval_env = eval_env or VecEnv(cfg.env, cfg.eval_episodes, cfg.episode_length)
+        self.env = env or VecEnv(cfg.env, cfg.num_envs, cfg.episode_length, cfg.physics, cfg.physics_threads)
+        self.eval_env = eval_env or VecEnv(
+            cfg.env, cfg.eval_episodes, cfg.episode_length, cfg.physics, cfg.physics_threads
+        )
         self.strategy: Exploration = make_exploration(cfg, self.env.action_size)
         self.value_net = ValueNetwork(tuple(cfg.value_hidden), cfg.activation)
         self.optimizer = optax.chain(

@@ -137,8 +137,10 @@ class SACTrainer:
         if cfg.algo != "sac":
             raise ValueError(f"SACTrainer needs algo='sac', got {cfg.algo!r}")
         self.cfg = cfg
-        self.env = env or VecEnv(cfg.env, cfg.num_envs, cfg.episode_length)
-        self.eval_env = eval_env or VecEnv(cfg.env, cfg.eval_episodes, cfg.episode_length)
+        self.env = env or VecEnv(cfg.env, cfg.num_envs, cfg.episode_length, cfg.physics, cfg.physics_threads)
+        self.eval_env = eval_env or VecEnv(
+            cfg.env, cfg.eval_episodes, cfg.episode_length, cfg.physics, cfg.physics_threads
+        )
         self.action_size = self.env.action_size
         self.strategy: Exploration = make_exploration(cfg, self.action_size)
         self.actor = SquashedGaussianActor(

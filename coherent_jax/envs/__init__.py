@@ -1,5 +1,6 @@
-"""MuJoCo tasks through MJX: a registry by short name and a vectorized wrapper."""
+"""MuJoCo tasks: a registry by short name and a vectorized wrapper, on MJX or native MuJoCo."""
 
+from coherent_jax.envs.native import NATIVE_TASKS, PHYSICS, NativePhysics, PhysicsError, resolve_physics
 from coherent_jax.envs.registry import (
     TASKS,
     TaskSpec,
@@ -11,6 +12,11 @@ from coherent_jax.envs.registry import (
 from coherent_jax.envs.vec_env import EnvState, StepOutcome, VecEnv
 
 __all__ = [
+    "NATIVE_TASKS",
+    "PHYSICS",
+    "NativePhysics",
+    "PhysicsError",
+    "resolve_physics",
     "TASKS",
     "EnvState",
     "StepOutcome",

@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from coherent_jax.envs.native import DEFAULT_THREADS, NativePhysics, resolve_physics
 from coherent_jax.envs.registry import check_task, env_sizes, make_brax_env
 
 
@@ -29,7 +30,8 @@ class EnvState:
     """State of `num_envs` environments.
 
     Attributes:
-      physics: batched Brax ``State`` (pipeline state, obs, reward, done, ...).
+      physics: batched Brax ``State`` (pipeline state, obs, reward, done, ...), or a
+        `NativeState` with native MuJoCo physics.
       obs: [n, obs_size] observation the agent acts on now.
       first: [n] True where ``obs`` is the first observation of an episode.
       step: [n] steps taken in the current episode.
@@ -76,21 +78,43 @@ class VecEnv:
     Pure: `reset` and `step` take and return `EnvState`; the object only holds
     static configuration (the task and the sizes), so it is safe to close over in
     jitted functions.
+
+    ``physics`` chooses the engine (`coherent_jax.envs.native.resolve_physics`):
+    ``mjx`` (Brax's MJX env, vmapped), ``native`` (MuJoCo's C engine on a thread
+    pool through a callback, `NativePhysics`; the same model, reward and termination)
+    or ``auto`` (native on CPU where the task has it, else MJX); ``physics_threads``
+    is native MuJoCo's thread count (0 = every core).
     """
 
-    def __init__(self, task: str, num_envs: int, episode_length: int | None = None):
+    def __init__(
+        self,
+        task: str,
+        num_envs: int,
+        episode_length: int | None = None,
+        physics: str = "auto",
+        physics_threads: int = DEFAULT_THREADS,
+    ):
         spec = check_task(task)
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         self.task = task
         self.num_envs = int(num_envs)
         self.episode_length = int(episode_length or spec.episode_length)
-        self.env = make_brax_env(task)
-        self.observation_size, self.action_size = env_sizes(self.env)
+        # "mjx", "native" (MuJoCo's C engine through a callback) or the task's own pipeline.
+        self.physics = resolve_physics(task, physics)
+        if self.physics == "native":
+            self.env = NativePhysics(task, physics_threads)
+            self.observation_size, self.action_size = self.env.observation_size, self.env.action_size
+            # Native physics takes the whole batch in one call; Brax envs are vmapped.
+            self._batch_reset, self._batch_step = self.env.reset, self.env.step
+        else:
+            self.env = make_brax_env(task)
+            self.observation_size, self.action_size = env_sizes(self.env)
+            self._batch_reset, self._batch_step = jax.vmap(self.env.reset), jax.vmap(self.env.step)
         self.dt = float(self.env.dt)
 
     def _reset_physics(self, key: jax.Array):
-        return jax.vmap(self.env.reset)(jax.random.split(key, self.num_envs))
+        return self._batch_reset(jax.random.split(key, self.num_envs))
 
     def reset(self, key: jax.Array) -> EnvState:
         """Starts `num_envs` fresh episodes."""
@@ -110,7 +134,7 @@ class VecEnv:
         """Steps every env with `action` [n, action_size] (clipped to [-1, 1])."""
         chex.assert_shape(action, (self.num_envs, self.action_size))
         action = jnp.clip(action, -1.0, 1.0)
-        physics = jax.vmap(self.env.step)(state.physics, action)
+        physics = self._batch_step(state.physics, action)
         reward = physics.reward.astype(jnp.float32)
         terminated = physics.done > 0.5
         step = state.step + 1
