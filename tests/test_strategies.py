@@ -18,6 +18,7 @@ from coherent_jax.exploration import make_exploration
 from coherent_jax.exploration.noisynet import factorised, noisy_dense
 from coherent_jax.exploration.pink import autocorrelation, coloured_noise
 from coherent_jax.exploration.psne import perturb
+from coherent_jax.networks import SquashedGaussianActor
 from coherent_jax.rollout import unroll
 
 OBS_SIZE = 6
@@ -294,3 +295,63 @@ def test_behaviour_log_prob_equals_segment_recompute(overrides):
     _, _, again, _ = collect_and_score(state.env_state, state.carry, jax.random.PRNGKey(5))
     _, _, same, _ = collect_and_score(state.env_state, state.carry, jax.random.PRNGKey(5))
     np.testing.assert_array_equal(again.action, same.action)
+
+
+# ------------------------------------------------------------- off-policy (SAC) hooks
+
+
+def offpolicy_run(strategy, steps, first_every, num_envs=8, seed=0):
+    """Behaviour actions of the SAC hooks at one fixed state; returns actions [T, n, p], carries, actor."""
+    actor = SquashedGaussianActor(2, (16, 16), "relu", layer_norm=strategy.actor_layer_norm)
+    key = jax.random.PRNGKey(seed)
+    k_p, k_c, k_o, k_run = jax.random.split(key, 4)
+    actor_params = actor.init(k_p, OBS_SIZE)
+    hp = strategy.offpolicy_init_hparams()
+    carry = strategy.offpolicy_init_carry(k_c, actor, actor_params, hp, num_envs)
+    obs = jnp.broadcast_to(jax.random.normal(k_o, (OBS_SIZE,)), (num_envs, OBS_SIZE))
+    firsts = jnp.arange(steps) % first_every == 0
+
+    @jax.jit
+    def go(carry):
+        def step(c, inp):
+            k, f = inp
+            action, c = strategy.offpolicy_act(k, actor, actor_params, hp, c, obs, jnp.full((num_envs,), f))
+            return c, (action, c)
+
+        return jax.lax.scan(step, carry, (jax.random.split(k_run, steps), firsts))[1]
+
+    actions, carries = go(carry)
+    return np.asarray(actions), carries, actor, actor_params, hp, obs
+
+
+def test_sac_pink_uses_the_coloured_sequence():
+    """a = tanh(mean + std xi) with xi the episode's sequence at the step index."""
+    strategy, _ = build("explore=pink", "episode_length=20", "pink_exponent=1")
+    actions, carries, actor, actor_params, _, obs = offpolicy_run(strategy, 30, first_every=20)
+    dist = actor.dist(actor_params, obs)
+    noise, step = np.asarray(carries.noise), np.asarray(carries.step)
+    for t in (0, 7, 19, 20, 29):
+        xi = noise[t][np.arange(8), step[t] - 1]
+        expected = np.tanh(np.asarray(dist.mean) + np.exp(np.asarray(dist.log_std)) * xi)
+        np.testing.assert_allclose(actions[t], expected, rtol=1e-5, atol=1e-6)
+    assert not np.allclose(noise[19], noise[20])  # a new sequence for the new episode
+
+
+def test_sac_gsde_noise_held_for_n_steps():
+    strategy, _ = build("explore=gsde", "gsde_resample_every=4")
+    actions, *_ = offpolicy_run(strategy, 12, first_every=100)
+    change = np.abs(np.diff(actions, axis=0)).max(axis=(1, 2)) > 1e-7
+    assert [t for t in range(1, 12) if change[t - 1]] == [4, 8]
+
+
+def test_sac_psne_fixed_per_episode_and_sigma_rule():
+    strategy, _ = build("explore=psne", "sigma_init=0.3", "sigma_alpha=1.5", "sigma_delta=1000")
+    assert strategy.actor_layer_norm
+    _, keys, actor, actor_params, hp, obs = offpolicy_run(strategy, 12, first_every=5)
+    keys = np.asarray(keys)
+    assert [t for t in range(1, 12) if not np.array_equal(keys[t], keys[t - 1])] == [5, 10]
+    new_hp, metrics = strategy.offpolicy_adapt(jax.random.PRNGKey(3), actor, actor_params, hp, obs)
+    assert float(new_hp["sigma"]) == pytest.approx(0.45) and float(metrics["policy_distance"]) > 0
+    hp_small = {**hp, "sigma_delta": jnp.asarray(1e-9)}
+    new_hp, _ = strategy.offpolicy_adapt(jax.random.PRNGKey(3), actor, actor_params, hp_small, obs)
+    assert float(new_hp["sigma"]) == pytest.approx(0.2)
