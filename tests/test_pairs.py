@@ -14,37 +14,37 @@ import pytest
 from coherent_jax.agents import make_trainer
 from coherent_jax.config import ALGOS, EXPLORES, SUPPORTED_ALGOS, ConfigError, parse_overrides
 
-# pointmass, 50-step episodes; 16 envs x 25 steps per iteration: an episode ends
-# every other iteration. Returns start near -45 (random walk) and rise towards -10.
+# pointmass, 50-step episodes, 16 envs x 32 steps per iteration, PPO's default 10
+# epochs x 4 minibatches. Returns start near -45..-60 (an untrained policy) and rise
+# towards -20. A2C takes one gradient step per iteration, hence its larger lr.
 BASE = [
     "env=pointmass",
     "episode_length=50",
     "num_envs=16",
-    "unroll_length=25",
-    "num_minibatches=2",
-    "num_epochs=4",
-    "policy_hidden=[32,32]",
-    "value_hidden=[32,32]",
+    "unroll_length=32",
+    "num_minibatches=4",
     "eval_episodes=2",
     "progress=false",
-    "lr=3e-3",
 ]
-ITERATIONS = 40
+ALGO_EXTRA = {"ppo": [], "a2c": ["lr=3e-3"]}
+ITERATIONS = 100
 MARGIN = 5.0
-
-MC = ["beta=0.1", "action_std=0.3", "w_std_init=0.05"]
+# Single-sample gradients credit only the action noise (thesis eq. 4.8): at the
+# defaults (action_std = w_std_init = 0.1) these ablations did not learn within
+# this budget, and layers=last not even at w_std_init = 0.03 (seed 0: -52 -> -53);
+# with the weight noise well below the action noise they do (seeds 0 and 1).
+MC_ALL = ["beta=0.1", "action_std=0.3", "w_std_init=0.03"]
+MC = ["beta=0.1", "action_std=0.3", "w_std_init=0.01"]
 # (algo, explore overrides, extra settings for this pair)
 PAIRS = [
     ("ppo", ["explore=action"], []),
     ("a2c", ["explore=action"], []),
     ("ppo", ["explore=coherent"], ["beta=0.1"]),
     ("a2c", ["explore=coherent"], ["beta=0.1"]),
-    # Single-sample gradients credit only the action noise (thesis eq. 4.8): with the
-    # default action_std = 0.1 these ablations did not learn within this budget.
     ("ppo", ["explore=coherent", "coherent.integration=mc"], MC),
     ("a2c", ["explore=coherent", "coherent.integration=mc"], MC),
-    ("ppo", ["explore=coherent", "coherent.integration=mc", "coherent.layers=all"], MC),
-    ("a2c", ["explore=coherent", "coherent.integration=mc", "coherent.layers=all"], MC),
+    ("ppo", ["explore=coherent", "coherent.integration=mc", "coherent.layers=all"], MC_ALL),
+    ("a2c", ["explore=coherent", "coherent.integration=mc", "coherent.layers=all"], MC_ALL),
     ("ppo", ["explore=noisynet"], []),
     ("a2c", ["explore=noisynet"], []),
     ("ppo", ["explore=psne"], []),
@@ -90,7 +90,7 @@ def quarter_means(rows):
 @pytest.mark.parametrize("pair", PAIRS, ids=[pair_id(p) for p in PAIRS])
 def test_pair_trains_on_pointmass(pair):
     algo, explore, extra = pair
-    cfg = parse_overrides([*BASE, f"algo={algo}", *explore, *extra])
+    cfg = parse_overrides([*BASE, f"algo={algo}", *explore, *extra, *ALGO_EXTRA[algo]])
     go = run(cfg)
     rows = go(ITERATIONS)
     for key in ("train/policy_loss", "train/value_loss", "train/entropy", "train/grad_norm"):
