@@ -1,4 +1,6 @@
-"""Benchmarks: ``python -m coherent_jax.bench coherent [key=value ...]``.
+"""Benchmarks: ``python -m coherent_jax.bench coherent|sac [key=value ...]``.
+
+(The ``sac`` suite lives in `coherent_jax.bench_sac`.)
 
 The ``coherent`` suite measures, in one process and on one set of settings, what
 coherent exploration costs next to Gaussian action noise:
@@ -40,7 +42,7 @@ from typing import Any
 
 from coherent_jax.config import Config, ConfigError, parse_overrides, to_dict
 
-SUITES = ("coherent",)
+SUITES = ("coherent", "sac")  # sac: coherent_jax/bench_sac.py
 # Config keys the suite sets itself: it runs both strategies, and remat on and off.
 _SET_BY_SUITE = ("explore", "remat")
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -757,6 +759,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         suite = argv[0] if argv else ""
         print(f"error: unknown suite {suite!r}; valid suites: {', '.join(SUITES)}", file=sys.stderr)
         return 2
+    if argv[0] == "sac":
+        from coherent_jax import bench_sac
+
+        return bench_sac.main(argv[1:])
     try:
         parse_bench_overrides(argv[1:])
     except ConfigError as exc:
