@@ -70,14 +70,17 @@ def run(cfg):
     def go(n, lr_scale=1.0, seed=None):
         key = jax.random.PRNGKey(cfg.seed if seed is None else seed)
         hp = trainer.init_hparams()
-        hp = hp.replace(lr=hp.lr * lr_scale)
+        if lr_scale != 1.0:
+            hp = hp.replace(lr=hp.lr * lr_scale)
         state = init(key, hp)
         rows = []
         for _ in range(n):
             state, metrics = iteration(state)
             rows.append({k: float(v) for k, v in jax.device_get(metrics).items()})
+        go.final_state = state
         return rows
 
+    go.evaluate = jax.jit(trainer.evaluate)
     return go
 
 
@@ -102,6 +105,46 @@ def test_pair_trains_on_pointmass(pair):
     np.testing.assert_equal(go(2), rows[:2])
 
 
+# SAC on pointmass as in tests/test_sac.py (100-step episodes, 10,240 steps, about -100
+# for an untrained policy); action and coherent (Coherent-SAC) are tested there.
+SAC_BASE = [
+    "env=pointmass",
+    "algo=sac",
+    "num_envs=8",
+    "unroll_length=16",
+    "episode_length=100",
+    "policy_hidden=[64,64]",
+    "value_hidden=[64,64]",
+    "warmup_steps=1024",
+    "utd_ratio=0.5",
+    "eval_episodes=16",
+    "progress=false",
+]
+SAC_ITERATIONS = 80
+SAC_PAIRS = [["explore=psne"], ["explore=gsde"], ["explore=pink"]]
+
+
+@pytest.mark.parametrize("explore", SAC_PAIRS, ids=lambda e: "sac-" + e[0].split("=")[1])
+def test_sac_pair_trains_on_pointmass(explore):
+    cfg = parse_overrides([*SAC_BASE, *explore])
+    go = run(cfg)
+    rows = go(SAC_ITERATIONS)
+    updated = [r for r in rows if r["train/updates_applied"] > 0]
+    assert len(updated) > SAC_ITERATIONS // 2
+    for key in ("train/critic_loss", "train/actor_loss"):
+        assert all(np.isfinite(r[key]) for r in updated), key
+    early, late = quarter_means(rows)
+    final = float(go.evaluate(go.final_state, jax.random.PRNGKey(1))["eval/episode_return"])
+    print(
+        f"sac-{explore[0]}: train return first quarter {early:.1f}, last quarter {late:.1f}, eval {final:.1f}"
+    )
+    assert late > early + MARGIN, (early, late)
+    assert final >= -40.0
+    if explore == ["explore=psne"]:
+        assert len({r["train/sigma"] for r in updated}) > 1  # sigma adapts (4.51)
+    np.testing.assert_equal(go(2), rows[:2])
+
+
 def test_frozen_policy_does_not_meet_the_margin():
     """Control for the assertion above: lr = 0 in the same program, the return does not rise."""
     cfg = parse_overrides([*BASE, "algo=ppo", "explore=action"])
@@ -114,12 +157,13 @@ def test_every_pair_is_listed_or_refused_with_a_reason():
     """The table above covers every on-policy pair that SUPPORTED_ALGOS allows; the others
     are refused at start-up in one line that names the pair and why."""
     covered = {(a, e[0].split("=")[1]) for a, e, _ in PAIRS}
+    covered |= {("sac", e[0].split("=")[1]) for e in SAC_PAIRS}
     for explore in EXPLORES:
         for algo in ALGOS:
             overrides = [f"algo={algo}", f"explore={explore}"]
             if algo in SUPPORTED_ALGOS[explore]:
                 parse_overrides(overrides)
-                assert algo == "sac" or (algo, explore) in covered
+                assert (algo, explore) in covered or algo == "sac" and explore in ("action", "coherent")
             else:
                 with pytest.raises(ConfigError) as err:
                     parse_overrides(overrides)
