@@ -36,7 +36,22 @@ BASE = [
     "eval_every=0",
     "progress=false",
 ]
-ALGO_EXTRA = {"ppo": [], "a2c": ["lr=3e-3"], "sac": ["warmup_steps=1000", "buffer_size=100000"]}
+# SAC runs the settings of tests/test_sac.py (100-step episodes, 10,240 env steps,
+# UTD 0.5) whatever STEPS says: SAC's updates cost far more per env step.
+ALGO_EXTRA = {
+    "ppo": [],
+    "a2c": ["lr=3e-3"],
+    "sac": [
+        "episode_length=100",
+        "num_envs=8",
+        "unroll_length=16",
+        "policy_hidden=[64,64]",
+        "value_hidden=[64,64]",
+        "warmup_steps=1024",
+        "utd_ratio=0.5",
+        "total_steps=10240",
+    ],
+}
 MC = ["beta=0.1", "action_std=0.3", "w_std_init=0.01"]
 MC_ALL = ["beta=0.1", "action_std=0.3", "w_std_init=0.03"]
 STRATEGIES = [
@@ -57,8 +72,8 @@ def overrides_for(algo: str, explore: list[str], extra: list[str], steps: int, s
         f"algo={algo}",
         *explore,
         *extra,
-        *ALGO_EXTRA[algo],
         f"total_steps={steps}",
+        *ALGO_EXTRA[algo],
         f"seed={seed}",
     ]
 
