@@ -240,7 +240,8 @@ def test_psne_sigma_adapts_by_rule_451(delta, factor):
     carry = strategy.init_carry(jax.random.PRNGKey(1), params, hp, 4)
     obs = jax.random.normal(jax.random.PRNGKey(2), (8, 4, OBS_SIZE))
     logp = jnp.zeros((8, 4))
-    out_logp, new = strategy.end_segment(params, hp, carry, carry, obs, None, None, logp)
+    end = jax.jit(lambda c, o, lp: strategy.end_segment(params, hp, c, c, o, None, None, lp))
+    out_logp, new = end(carry, obs, logp)
     np.testing.assert_allclose(new.sigma, 0.2 * factor, rtol=1e-6)
     np.testing.assert_array_equal(out_logp, logp)
 
