@@ -90,6 +90,7 @@ def quarter_means(rows):
     return float(np.nanmean(returns[:k])), float(np.nanmean(returns[-k:]))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("pair", PAIRS, ids=[pair_id(p) for p in PAIRS])
 def test_pair_trains_on_pointmass(pair):
     algo, explore, extra = pair
@@ -124,6 +125,7 @@ SAC_ITERATIONS = 80
 SAC_PAIRS = [["explore=psne"], ["explore=gsde"], ["explore=pink"]]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("explore", SAC_PAIRS, ids=lambda e: "sac-" + e[0].split("=")[1])
 def test_sac_pair_trains_on_pointmass(explore):
     cfg = parse_overrides([*SAC_BASE, *explore])
@@ -145,6 +147,7 @@ def test_sac_pair_trains_on_pointmass(explore):
     np.testing.assert_equal(go(2), rows[:2])
 
 
+@pytest.mark.slow
 def test_frozen_policy_does_not_meet_the_margin():
     """Control for the assertion above: lr = 0 in the same program, the return does not rise."""
     cfg = parse_overrides([*BASE, "algo=ppo", "explore=action"])
