@@ -25,12 +25,25 @@ from coherent_jax.envs.registry import TASKS
 
 ALGOS = ("ppo", "a2c", "sac")
 ON_POLICY = ("ppo", "a2c")
-EXPLORES = ("action", "coherent")
-# Which algorithms each strategy runs with; any other pair is refused at start-up.
+EXPLORES = ("action", "coherent", "noisynet", "psne", "gsde", "pink")
+# Which algorithms each strategy runs with; any other pair is refused at start-up,
+# with the reason in REFUSED (issue 5).
 SUPPORTED_ALGOS: dict[str, tuple[str, ...]] = {
     "action": ALGOS,
     "coherent": ALGOS,
+    "noisynet": ON_POLICY,
+    "psne": ALGOS,
+    "gsde": ALGOS,
+    "pink": ALGOS,
 }
+# Why a (explore, algo) pair outside SUPPORTED_ALGOS is refused (one line each).
+REFUSED: dict[tuple[str, str], str] = {
+    ("noisynet", "sac"): (
+        "noisynet's learned noise scales need an on-policy algorithm's score-function gradient"
+    ),
+}
+COHERENT_INTEGRATION = ("analytic", "mc")
+COHERENT_LAYERS = ("last", "all")
 # Defaults that differ by algorithm (applied before the user's overrides): SAC's
 # networks, batch and env count follow Haarnoja et al. 2018 / CleanRL rather than PPO.
 ALGO_DEFAULTS: dict[str, dict[str, Any]] = {
@@ -44,10 +57,35 @@ ALGO_DEFAULTS: dict[str, dict[str, Any]] = {
         "activation": "relu",
         "normalize_obs": False,
         "eval_every": 20,
+        # Coherent-SAC uses the sampled w_t (thesis §4.3): there is no log-prob to integrate.
+        "coherent": {"integration": "mc"},
     },
 }
 ACTIVATIONS = ("tanh", "relu", "elu", "swish")
 COHERENT_INFERENCE = ("joint", "filter")
+
+
+@dataclasses.dataclass
+class CoherentOptions:
+    """The coherent strategy's ablations (thesis §5), set as ``coherent.<key>=value``."""
+
+    integration: str = dataclasses.field(
+        default="analytic",
+        metadata={
+            "help": "coherent: analytic (integrate w out: the filter, A2C/PPO only) or mc "
+            "(single-sample Monte Carlo: log-prob of the sampled w_t)"
+        },
+    )
+    layers: str = dataclasses.field(
+        default="last",
+        metadata={
+            "help": "coherent: last (the beta-chain on the last layer) or all (on every layer's "
+            "weights; needs integration=mc, on-policy)"
+        },
+    )
+
+    def __str__(self) -> str:
+        return "{" + ",".join(f"{f.name}={getattr(self, f.name)}" for f in dataclasses.fields(self)) + "}"
 
 
 def _field(default: Any, help: str, **kw: Any) -> Any:
@@ -139,6 +177,18 @@ class Config:
     physics_threads: int = _field(
         DEFAULT_THREADS, "native physics: MuJoCo threads per step call, 0 = every core (see bench_physics)"
     )
+    # --- exploration strategies and ablations (issue 5)
+    coherent: CoherentOptions = dataclasses.field(
+        default_factory=CoherentOptions,
+        metadata={"help": "coherent ablations: coherent.integration=analytic|mc coherent.layers=last|all"},
+    )
+    noisynet_sigma0: float = _field(
+        0.5, "noisynet: initial noise scale sigma_0; each layer's sigma starts at sigma_0 / sqrt(fan_in)"
+    )
+    gsde_resample_every: int = _field(
+        4, "gsde: steps between redraws of the noise matrix (also redrawn at each episode start)"
+    )
+    pink_exponent: float = _field(1.0, "pink: noise spectrum ~ 1/f^exponent (0 white, 1 pink, 2 red)")
 
     # --- derived (not settable)
     @property
@@ -174,12 +224,14 @@ def validate(cfg: Config) -> Config:
     _check(cfg.algo in ALGOS, "algo", cfg.algo, ", ".join(ALGOS))
     _check(cfg.explore in EXPLORES, "explore", cfg.explore, ", ".join(EXPLORES))
     supported = SUPPORTED_ALGOS[cfg.explore]
+    reason = REFUSED.get((cfg.explore, cfg.algo))
     _check(
         cfg.algo in supported,
         "algo",
         cfg.algo,
-        f"{', '.join(supported)} with explore={cfg.explore}",
+        f"{', '.join(supported)} with explore={cfg.explore}" + (f": {reason}" if reason else ""),
     )
+    _validate_strategies(cfg)
     _check(
         cfg.coherent_inference in COHERENT_INFERENCE,
         "coherent_inference",
@@ -266,6 +318,73 @@ def validate(cfg: Config) -> Config:
     return cfg
 
 
+def _validate_strategies(cfg: Config) -> None:
+    """Checks the settings of issue 5's strategies and ablations, and the pairs they refuse."""
+    co = cfg.coherent
+    _check(
+        co.integration in COHERENT_INTEGRATION,
+        "coherent.integration",
+        co.integration,
+        ", ".join(COHERENT_INTEGRATION),
+    )
+    _check(co.layers in COHERENT_LAYERS, "coherent.layers", co.layers, ", ".join(COHERENT_LAYERS))
+    if cfg.explore == "coherent":
+        _check(
+            cfg.algo in ON_POLICY or co.integration == "mc",
+            "coherent.integration",
+            co.integration,
+            "mc with algo=sac: analytic integration needs an on-policy algorithm "
+            "(SAC never scores its behaviour actions)",
+        )
+        _check(
+            co.layers == "last" or co.integration == "mc",
+            "coherent.integration",
+            co.integration,
+            "mc with coherent.layers=all: only the last layer integrates analytically",
+        )
+        _check(
+            co.layers == "last" or cfg.algo in ON_POLICY,
+            "coherent.layers",
+            co.layers,
+            "last with algo=sac: Coherent-SAC perturbs the actor's mean head (thesis §4.3); "
+            "every-layer noise for SAC is explore=psne",
+        )
+    _check(
+        math.isfinite(cfg.noisynet_sigma0) and cfg.noisynet_sigma0 > 0,
+        "noisynet_sigma0",
+        cfg.noisynet_sigma0,
+        "a finite number > 0",
+    )
+    _check(
+        1 <= cfg.gsde_resample_every < 2**31,
+        "gsde_resample_every",
+        cfg.gsde_resample_every,
+        "an integer >= 1",
+    )
+    _check(
+        math.isfinite(cfg.pink_exponent) and 0 <= cfg.pink_exponent <= 4,
+        "pink_exponent",
+        cfg.pink_exponent,
+        "a number in [0, 4] (0 white, 1 pink, 2 red)",
+    )
+    if cfg.explore == "pink":
+        _check(
+            cfg.episode_length >= 2,
+            "episode_length",
+            cfg.episode_length,
+            "an integer >= 2 with explore=pink (one noise sequence per episode)",
+        )
+
+
+def _group_fields() -> dict[str, set[str]]:
+    """Config fields that are dataclass groups (``coherent``) -> their sub-keys."""
+    return {
+        f.name: {g.name for g in dataclasses.fields(f.default_factory)}
+        for f in dataclasses.fields(Config)
+        if f.default_factory is not dataclasses.MISSING and dataclasses.is_dataclass(f.default_factory)
+    }
+
+
 def parse_overrides(overrides: Sequence[str], base: Config | None = None) -> Config:
     """Builds a validated `Config` from ``key=value`` strings (Hydra/OmegaConf syntax).
 
@@ -275,7 +394,9 @@ def parse_overrides(overrides: Sequence[str], base: Config | None = None) -> Con
     (`ALGO_DEFAULTS`) apply first, so ``algo=sac num_envs=4`` keeps SAC's network
     sizes and takes the user's env count.
     """
-    known = {f.name for f in dataclasses.fields(Config)}
+    groups = _group_fields()
+    known = {f.name for f in dataclasses.fields(Config)} - set(groups)
+    known |= {f"{g}.{k}" for g, keys in groups.items() for k in keys}
     algo = None
     for item in overrides:
         if "=" not in item or item.startswith("="):
@@ -287,14 +408,20 @@ def parse_overrides(overrides: Sequence[str], base: Config | None = None) -> Con
             algo = item.split("=", 1)[1].strip()
     base = base if base is not None else Config()
     if algo is not None and algo != base.algo and algo in ALGO_DEFAULTS:
-        base = dataclasses.replace(base, **ALGO_DEFAULTS[algo])
+        changes = dict(ALGO_DEFAULTS[algo])
+        for group in groups:
+            if group in changes:
+                changes[group] = dataclasses.replace(getattr(base, group), **changes[group])
+        base = dataclasses.replace(base, **changes)
     schema = OmegaConf.structured(base)
     try:
         merged = OmegaConf.merge(schema, OmegaConf.from_dotlist(list(overrides)))
         cfg = OmegaConf.to_object(merged)
     except OmegaConfBaseException as exc:
         key = getattr(exc, "full_key", None) or "?"
-        field = next((f for f in dataclasses.fields(Config) if f.name == key), None)
+        owner, name = (Config, key) if "." not in key else (getattr(Config(), key.split(".")[0]), key)
+        name = name.rsplit(".", 1)[-1]
+        field = next((f for f in dataclasses.fields(owner) if f.name == name), None)
         expected = _type_name(field.type) if field is not None else "a valid value"
         msg = str(exc).splitlines()[0]
         raise ConfigError(f"invalid value for {key!r}: {msg} (allowed: {expected})") from None
@@ -316,11 +443,18 @@ def help_text() -> str:
     """Every option with its default and a one-line description."""
     lines = ["usage: python -m coherent_jax.train [key=value ...]", "", "options (key=default):"]
     for algo, defaults in ALGO_DEFAULTS.items():
-        changed = " ".join(f"{k}={v}".replace(" ", "") for k, v in defaults.items())
+        flat = {}
+        for k, v in defaults.items():
+            flat.update({f"{k}.{g}": w for g, w in v.items()} if isinstance(v, dict) else {k: v})
+        changed = " ".join(f"{k}={v}".replace(" ", "") for k, v in flat.items())
         lines.insert(2, f"algo={algo} changes these defaults: {changed}")
     for f in dataclasses.fields(Config):
         default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
         if isinstance(default, list):
             default = "[" + ",".join(str(v) for v in default) + "]"
         lines.append(f"  {f.name}={default}".ljust(34) + f"  {f.metadata.get('help', '')}")
+        if dataclasses.is_dataclass(default):
+            for g in dataclasses.fields(default):
+                value = getattr(default, g.name)
+                lines.append(f"  {f.name}.{g.name}={value}".ljust(34) + f"  {g.metadata.get('help', '')}")
     return "\n".join(lines)

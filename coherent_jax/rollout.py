@@ -25,6 +25,7 @@ class Transition(NamedTuple):
       truncated: the time limit ended the episode at s'_t.
       final_obs: s'_t, the state the step reached, before any auto-reset.
       episode_return: return of the episode that ended here, else 0.
+      extras: the strategy's per-step noise (`ActOutput.extras`), for its `log_prob`.
     """
 
     obs: jax.Array
@@ -36,6 +37,7 @@ class Transition(NamedTuple):
     truncated: jax.Array
     final_obs: jax.Array
     episode_return: jax.Array
+    extras: Any = ()
 
     @property
     def done(self) -> jax.Array:
@@ -65,6 +67,7 @@ def unroll(
             truncated=outcome.truncated,
             final_obs=outcome.final_obs,
             episode_return=outcome.episode_return,
+            extras=out.extras,
         )
         return (next_env_state, out.carry), transition
 

@@ -24,6 +24,17 @@ BAD = [
     (["normalize_obs=maybe"], "'normalize_obs'"),
     (["num_minibatches=3"], "'num_minibatches'"),
     (["policy_hidden=[0,64]"], "'policy_hidden'"),
+    # issue 5: strategies, the coherent.* group and refused pairs
+    (["explore=coherent", "coherent.integration=exact"], "'coherent.integration'"),
+    (["explore=coherent", "coherent.layers=first"], "'coherent.layers'"),
+    (["explore=coherent", "coherent.layers=all"], "'coherent.integration'"),
+    (["coherent.depth=2"], "'coherent.depth'"),
+    (["algo=sac", "explore=noisynet"], "'algo'"),
+    (["algo=sac", "explore=coherent", "coherent.integration=analytic"], "'coherent.integration'"),
+    (["algo=sac", "explore=coherent", "coherent.integration=mc", "coherent.layers=all"], "'coherent.layers'"),
+    (["gsde_resample_every=0"], "'gsde_resample_every'"),
+    (["pink_exponent=-1"], "'pink_exponent'"),
+    (["noisynet_sigma0=0"], "'noisynet_sigma0'"),
     (["lr"], "'lr'"),
 ]
 
@@ -91,3 +102,18 @@ def test_cli_help_lists_every_option_with_default(tmp_path):
     for name, value in vars(Config()).items():
         shown = "[" + ",".join(map(str, value)) + "]" if isinstance(value, list) else str(value)
         assert f"{name}={shown}" in proc.stdout
+
+
+def test_cli_refused_pair_names_the_reason(tmp_path):
+    proc = run_cli(["algo=sac", "explore=noisynet", f"run_dir={tmp_path / 'run'}"], cwd=tmp_path)
+    assert proc.returncode == 2
+    lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1 and "on-policy" in lines[0] and "explore=noisynet" in lines[0], proc.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_dotted_group_keys_and_sac_default():
+    cfg = parse_overrides(["explore=coherent", "coherent.integration=mc", "coherent.layers=all"])
+    assert (cfg.coherent.integration, cfg.coherent.layers) == ("mc", "all")
+    assert parse_overrides(["algo=sac", "explore=coherent"]).coherent.integration == "mc"
+    assert parse_overrides([]).coherent.integration == "analytic"

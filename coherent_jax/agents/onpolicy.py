@@ -142,8 +142,8 @@ class OnPolicyTrainer:
         """Policy + value loss of one minibatch of whole segments, data [T, m, ...]."""
         data: Transition = batch["data"]
         obs = self._norm(stats, data.obs)
-        seg = jax.vmap(self.strategy.log_prob, in_axes=(None, None, 0, 1, 1, 1), out_axes=1)(
-            params.policy, hp.explore, batch["carry0"], obs, data.action, data.first
+        seg = jax.vmap(self.strategy.log_prob, in_axes=(None, None, 0, 1, 1, 1, 1), out_axes=1)(
+            params.policy, hp.explore, batch["carry0"], obs, data.action, data.first, data.extras
         )
         adv = batch["advantages"]
         if self.cfg.normalize_advantages:

@@ -68,7 +68,7 @@ class ActionNoise(Exploration):
         action = mean + jnp.exp(log_std) * jax.random.normal(key, mean.shape, mean.dtype)
         return ActOutput(action, gaussian_log_prob(action, mean, log_std), carry)
 
-    def log_prob(self, params, hparams, carry0, obs, actions, first):
+    def log_prob(self, params, hparams, carry0, obs, actions, first, extras=()):
         chex.assert_rank([obs, actions], 2)
         mean = self.net.apply(params["mean"], obs)
         log_std = jnp.broadcast_to(params["log_std"], mean.shape)

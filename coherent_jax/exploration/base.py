@@ -40,11 +40,15 @@ class ActOutput(NamedTuple):
       log_prob: [n] log-probability of ``action`` under the behaviour policy, as
         the on-policy ratio needs it (for coherent: the filter's marginal).
       carry: per-env strategy state after this step.
+      extras: per-env noise that `log_prob` needs again (leading axis n; the
+        rollout stores it per step as ``Transition.extras``), e.g. NoisyNet's noise
+        or the sampled coherent chain z_t; ``()`` for strategies that need none.
     """
 
     action: jax.Array
     log_prob: jax.Array
     carry: Carry
+    extras: Any = ()
 
 
 class SegmentLogProb(NamedTuple):
@@ -93,11 +97,19 @@ class Exploration(abc.ABC):
         obs: jax.Array,
         actions: jax.Array,
         first: jax.Array,
+        extras: Any = (),
     ) -> SegmentLogProb:
         """Log-probabilities of one env's segment, obs [T, o], actions [T, p].
 
-        ``carry0`` is that env's carry as stored at the start of the segment; the
-        result is differentiable with respect to ``params``.
+        ``carry0`` is that env's carry as stored at the start of the segment;
+        ``extras`` is what `act` returned as `ActOutput.extras` at each step (leading
+        axis T). The result is differentiable with respect to ``params``.
+
+        Why stored extras rather than regenerating the noise from keys: the noise of a
+        step is a function of every earlier step's key and ``first`` flag (an episode's
+        draw, a chain), so regenerating it would repeat the strategy's sampling logic
+        inside every loss; a strategy stores what it sampled, or a key that determines
+        it when that is smaller (psne), and the algorithms stay strategy-agnostic.
         """
 
     def end_segment(

@@ -702,7 +702,7 @@ class CoherentExploration(Exploration):
         return logp, carry._replace(mean=mean, cov=cov)
 
     # ------------------------------------------------------------------ loss
-    def log_prob(self, params, hparams, carry0, obs, actions, first):
+    def log_prob(self, params, hparams, carry0, obs, actions, first, extras=()):
         chex.assert_rank([obs, actions, first], [2, 2, 1])
         mu, w_std, action_std = self._head(params, hparams)
         x = self.trunk.apply(params["trunk"], obs)

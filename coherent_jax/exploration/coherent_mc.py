@@ -1,0 +1,197 @@
+"""The coherent strategy's ablations (thesis §5): Monte Carlo integration, every layer.
+
+``coherent.integration=mc`` (`CoherentMC`): the same exploration as
+`coherent.CoherentExploration` (the beta-chain on the last layer, eqs. 4.1-4.5, and
+a_t ~ N(w_t xh_t, action_std^2), eq. 4.29), but the loss scores a_t under the
+*sampled* weights instead of integrating them out:
+
+    log p(a_t | w_t, s_t) = log N(a_t; w_t xh_t, diag(action_std^2)),
+    w_t = mu + w_std z_t,                                       (single-sample eq. 4.8)
+
+with z_t the standardised chain of collection, stored per step as the strategy's
+extras, so the gradient reaches mu and w_std through w_t (the reparameterisation of
+a single sample, as NoisyNets and PSNE do).
+
+``coherent.layers=all`` (`CoherentAllLayers`): the chain runs over every layer's
+weights and biases, w_t = mu + w_std z_t per layer with the same beta, and the loss is
+the single-sample log N(a_t; f_{w_t}(s_t), action_std^2) (only the last layer enters
+the action linearly, so only it integrates analytically). Each layer's w_std starts
+at w_std_init sqrt(q / fan_in), q the last layer's input size: the last layer starts
+as in ``layers=last`` and every layer's pre-activation noise has a similar scale.
+"""
+
+from __future__ import annotations
+
+import math
+
+import chex
+import jax
+import jax.numpy as jnp
+
+from coherent_jax.exploration.action import gaussian_entropy, gaussian_log_prob
+from coherent_jax.exploration.base import ActOutput, Exploration, SegmentLogProb
+from coherent_jax.exploration.coherent import CoherentExploration, _augment, _innovation_std
+from coherent_jax.networks import ACTIVATIONS
+
+
+def chain_step(key: chex.PRNGKey, z_prev: chex.Array, first: chex.Array, beta: chex.Array) -> chex.Array:
+    """z_t = (1-beta) z_{t-1} + sqrt(2 beta - beta^2) eps (4.1-4.4); z_t = eps where ``first`` (4.5).
+
+    z_prev [n, ...], first [n]; z_t ~ N(0, I) marginally.
+    """
+    chex.assert_rank(first, 1)
+    eps = jax.random.normal(key, z_prev.shape, z_prev.dtype)
+    follow = (1.0 - beta) * z_prev + _innovation_std(beta) * eps
+    return jnp.where(first.reshape((-1,) + (1,) * (z_prev.ndim - 1)), eps, follow)
+
+
+class CoherentMC(CoherentExploration):
+    """Coherent exploration of the last layer scored by single-sample Monte Carlo.
+
+    Parameters, hyperparameters, the evaluation action and the off-policy hooks are
+    those of `CoherentExploration`; only the per-env carry (the chain's z) and the
+    log-probability differ.
+    """
+
+    name = "coherent-mc"
+
+    def init_carry(self, key, params, hparams, num_envs):
+        return jnp.zeros((num_envs,) + params["mu"].shape, jnp.float32)
+
+    def _action_log_prob(self, params, hparams, z, x, actions):
+        mu, w_std, action_std = self._head(params, hparams)
+        mean = jnp.einsum("...pk,...k->...p", mu + w_std * z, _augment(x))
+        log_std = jnp.broadcast_to(jnp.log(action_std), mean.shape)
+        return gaussian_log_prob(actions, mean, log_std), log_std
+
+    def act(self, key, params, hparams, carry, obs, first):
+        chex.assert_rank([obs, first], [2, 1])
+        k_z, k_a = jax.random.split(key)
+        mu, w_std, action_std = self._head(params, hparams)
+        z = chain_step(k_z, carry, first, hparams["beta"])
+        x = self.trunk.apply(params["trunk"], obs)
+        mean = jnp.einsum("npk,nk->np", mu + w_std * z, _augment(x))
+        action = mean + action_std * jax.random.normal(k_a, mean.shape, mean.dtype)
+        logp, _ = self._action_log_prob(params, hparams, z, x, action)
+        return ActOutput(action, logp, z, extras=z)
+
+    def end_segment(self, params, hparams, carry0, carry, data_obs, data_actions, data_first, data_log_prob):
+        return data_log_prob, carry  # scored step by step in `act`
+
+    def log_prob(self, params, hparams, carry0, obs, actions, first, extras=()):
+        chex.assert_rank([obs, actions, extras], [2, 2, 3])
+        x = self.trunk.apply(params["trunk"], obs)
+        logp, log_std = self._action_log_prob(params, hparams, extras, x, actions)
+        return SegmentLogProb(logp, gaussian_entropy(log_std))
+
+
+class CoherentAllLayers(Exploration):
+    """The beta-chain over every layer's weights, single-sample gradients (thesis §5 ablation)."""
+
+    name = "coherent-all"
+
+    def __init__(
+        self,
+        action_size: int,
+        hidden,
+        activation: str,
+        beta: float,
+        w_std_init: float,
+        action_std: float,
+        learn_action_std: bool = False,
+    ):
+        self.action_size = int(action_size)
+        self.hidden = tuple(int(h) for h in hidden)
+        self.activation = ACTIVATIONS[activation]
+        self.beta = float(beta)
+        self.w_std_init = float(w_std_init)
+        self.action_std = float(action_std)
+        self.learn_action_std = bool(learn_action_std)
+
+    def init(self, key, obs_size):
+        sizes = (obs_size, *self.hidden, self.action_size)
+        q = self.hidden[-1]
+        mu, log_w_std = [], []
+        for i, (m, k) in enumerate(zip(sizes[:-1], sizes[1:], strict=True)):
+            key, sub = jax.random.split(key)
+            gain = 0.01 if i == len(sizes) - 2 else math.sqrt(2.0)
+            mu.append(
+                {
+                    "w": jax.nn.initializers.orthogonal(gain)(sub, (m, k), jnp.float32),
+                    "b": jnp.zeros((k,), jnp.float32),
+                }
+            )
+            log_s = math.log(self.w_std_init * math.sqrt(q / m))
+            log_w_std.append(
+                {"w": jnp.full((m, k), log_s, jnp.float32), "b": jnp.full((k,), log_s, jnp.float32)}
+            )
+        params = {"mu": mu, "log_w_std": log_w_std}
+        if self.learn_action_std:
+            params["log_action_std"] = jnp.full((self.action_size,), math.log(self.action_std), jnp.float32)
+        return params
+
+    def init_hparams(self):
+        hp = {"beta": jnp.asarray(self.beta, jnp.float32)}
+        if not self.learn_action_std:
+            hp["action_std"] = jnp.full((self.action_size,), self.action_std, jnp.float32)
+        return hp
+
+    def _action_std(self, params, hparams):
+        if self.learn_action_std:
+            return jnp.exp(params["log_action_std"])
+        return hparams["action_std"]
+
+    def init_carry(self, key, params, hparams, num_envs):
+        return jax.tree.map(lambda v: jnp.zeros((num_envs,) + v.shape, v.dtype), params["mu"])
+
+    def _forward(self, layers, obs):
+        """The network with weights ``layers`` (one set), obs [o] -> [p]."""
+        x = obs
+        for i, layer in enumerate(layers):
+            x = x @ layer["w"] + layer["b"]
+            if i < len(layers) - 1:
+                x = self.activation(x)
+        return x
+
+    def _sampled_mean(self, params, z, obs):
+        """f_{mu + w_std z}(s) for a batch: z leaves [B, ...], obs [B, o] -> [B, p]."""
+        w_std = jax.tree.map(jnp.exp, params["log_w_std"])
+
+        def one(z_b, o_b):
+            layers = jax.tree.map(lambda m, s, zz: m + s * zz, params["mu"], w_std, z_b)
+            return self._forward(layers, o_b)
+
+        return jax.vmap(one)(z, obs)
+
+    def act(self, key, params, hparams, carry, obs, first):
+        chex.assert_rank([obs, first], [2, 1])
+        leaves, treedef = jax.tree.flatten(carry)
+        keys = jax.random.split(key, len(leaves) + 1)
+        z = jax.tree.unflatten(
+            treedef,
+            [chain_step(k, leaf, first, hparams["beta"]) for k, leaf in zip(keys[1:], leaves, strict=True)],
+        )
+        mean = self._sampled_mean(params, z, obs)
+        action_std = self._action_std(params, hparams)
+        action = mean + action_std * jax.random.normal(keys[0], mean.shape, mean.dtype)
+        log_std = jnp.broadcast_to(jnp.log(action_std), mean.shape)
+        return ActOutput(action, gaussian_log_prob(action, mean, log_std), z, extras=z)
+
+    def log_prob(self, params, hparams, carry0, obs, actions, first, extras=()):
+        chex.assert_rank([obs, actions], 2)
+        mean = self._sampled_mean(params, extras, obs)
+        log_std = jnp.broadcast_to(jnp.log(self._action_std(params, hparams)), mean.shape)
+        return SegmentLogProb(gaussian_log_prob(actions, mean, log_std), gaussian_entropy(log_std))
+
+    def mean_action(self, params, obs):
+        flat = obs.reshape(-1, obs.shape[-1])
+        out = jax.vmap(lambda o: self._forward(params["mu"], o))(flat)
+        return out.reshape(obs.shape[:-1] + (self.action_size,))
+
+    def metrics(self, params, hparams):
+        stds = [jnp.mean(jnp.exp(v)) for v in jax.tree.leaves(params["log_w_std"])]
+        return {
+            "w_std": jnp.mean(jnp.stack(stds)),
+            "action_std": jnp.mean(self._action_std(params, hparams)),
+            "beta": jnp.asarray(hparams["beta"]),
+        }

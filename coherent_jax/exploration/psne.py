@@ -1,0 +1,211 @@
+"""Parameter space noise for exploration, PSNE (Plappert et al. 2018).
+
+Every layer's weights and biases are perturbed with one scalar scale sigma,
+
+    theta~ = theta + sigma eps,   eps ~ N(0, I),                  (Plappert et al. §3)
+
+drawn at each episode start and held for the episode; LayerNorm between the policy's
+layers (its gain and offset are not perturbed) gives every layer a similar
+sensitivity to the same sigma (thesis §4.1.2). sigma is not learned: after every
+collected segment it adapts by how much of the noise shows in action space, the
+distance (4.50) between the mean actions of the unperturbed and the perturbed policy,
+and the rule (4.51) (`coherent_jax.exploration.adaptive`).
+
+A2C/PPO: the policy stays Gaussian, a ~ N(f_theta~(s), std^2) with a learned
+state-independent std, and the loss uses the single-sample estimate (4.8): the
+log-probability under the perturbed network of collection. The perturbation is
+stored as the key it was drawn from (two integers per step instead of one float per
+weight) and regenerated in the loss; sigma lives in the carry (one copy per env), so
+the loss of a segment uses the sigma of its collection, and `end_segment` adapts it
+on the segment's states, using each env's current perturbation.
+
+SAC: the actor is built with LayerNorm (``actor_layer_norm``); behaviour perturbs its
+trunk and mean head (not the log-std head) with sigma per episode and samples
+tanh(mean~ + std xi); `offpolicy_adapt` applies (4.50)-(4.51) on a replay batch.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import chex
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+from flax import traverse_util
+
+from coherent_jax.exploration.action import gaussian_entropy, gaussian_log_prob
+from coherent_jax.exploration.adaptive import adapt_sigma, policy_distance
+from coherent_jax.exploration.base import ActOutput, Exploration, SegmentLogProb
+from coherent_jax.networks import MLP, squash
+
+
+def perturb(params, key: chex.PRNGKey, sigma: chex.Array, skip=("LayerNorm",)):
+    """theta + sigma eps for every leaf whose path names no module in ``skip``.
+
+    eps ~ N(0, I) drawn leaf by leaf from ``key`` in a fixed (sorted path) order, so
+    the same key always gives the same perturbation.
+    """
+    flat = traverse_util.flatten_dict(params)
+    paths = sorted(flat)
+    keys = jax.random.split(key, len(paths))
+    out = {}
+    for path, k in zip(paths, keys, strict=True):
+        leaf = flat[path]
+        if any(s in str(part) for part in path for s in skip):
+            out[path] = leaf
+        else:
+            out[path] = leaf + sigma * jax.random.normal(k, leaf.shape, leaf.dtype)
+    return traverse_util.unflatten_dict(out)
+
+
+class _PolicyNet(nn.Module):
+    """Trunk with LayerNorm between layers, then the linear mean head."""
+
+    hidden: tuple[int, ...]
+    activation: str
+    action_size: int
+
+    @nn.compact
+    def __call__(self, obs):
+        x = MLP(self.hidden, self.activation, layer_norm=True)(obs)
+        return nn.Dense(self.action_size, kernel_init=nn.initializers.orthogonal(0.01))(x)
+
+
+class PsneCarry(NamedTuple):
+    """Per-env state.
+
+    Attributes:
+      key: [n, 2] uint32, the key of this episode's perturbation.
+      sigma: [n] the current noise scale (the same in every env).
+    """
+
+    key: jax.Array
+    sigma: jax.Array
+
+
+class ParameterNoise(Exploration):
+    """PSNE: every layer perturbed with one adaptive scalar sigma, LayerNorm in between."""
+
+    name = "psne"
+    actor_layer_norm = True
+
+    def __init__(
+        self,
+        action_size: int,
+        hidden,
+        activation: str,
+        init_std: float,
+        sigma_init: float,
+        sigma_delta: float,
+        sigma_alpha: float,
+    ):
+        self.action_size = int(action_size)
+        self.net = _PolicyNet(tuple(hidden), activation, self.action_size)
+        self.init_std = float(init_std)
+        self.sigma_init = float(sigma_init)
+        self.sigma_delta = float(sigma_delta)
+        self.sigma_alpha = float(sigma_alpha)
+
+    def init(self, key, obs_size):
+        return {
+            "net": self.net.init(key, jnp.zeros((1, obs_size))),
+            "log_std": jnp.full((self.action_size,), math.log(self.init_std), jnp.float32),
+        }
+
+    def init_hparams(self):
+        return {
+            "sigma_delta": jnp.asarray(self.sigma_delta, jnp.float32),
+            "sigma_alpha": jnp.asarray(self.sigma_alpha, jnp.float32),
+        }
+
+    def init_carry(self, key, params, hparams, num_envs):
+        return PsneCarry(
+            key=jax.random.split(key, num_envs),
+            sigma=jnp.full((num_envs,), self.sigma_init, jnp.float32),
+        )
+
+    @staticmethod
+    def _new_episode_keys(key, carry_key, first):
+        fresh = jax.random.split(key, first.shape[0])
+        return jnp.where(first[:, None], fresh, carry_key)
+
+    def _perturbed_mean(self, params, keys, sigma, obs):
+        """f_theta~(s) per env: keys [n, 2], sigma [n], obs [n, ..., o]."""
+
+        def one(k, s, o):
+            return self.net.apply(perturb(params["net"], k, s), o)
+
+        return jax.vmap(one)(keys, sigma, obs)
+
+    def act(self, key, params, hparams, carry, obs, first):
+        chex.assert_rank([obs, first], [2, 1])
+        k_ep, k_a = jax.random.split(key)
+        keys = self._new_episode_keys(k_ep, carry.key, first)
+        mean = self._perturbed_mean(params, keys, carry.sigma, obs)
+        log_std = jnp.broadcast_to(params["log_std"], mean.shape)
+        action = mean + jnp.exp(log_std) * jax.random.normal(k_a, mean.shape, mean.dtype)
+        carry = carry._replace(key=keys)
+        return ActOutput(action, gaussian_log_prob(action, mean, log_std), carry, extras=keys)
+
+    def end_segment(self, params, hparams, carry0, carry, data_obs, data_actions, data_first, data_log_prob):
+        # (4.50) on the segment's states, each env under its current perturbation; (4.51).
+        chex.assert_rank(data_obs, 3)
+        mean = self.net.apply(params["net"], data_obs)  # [T, n, p]
+        perturbed = self._perturbed_mean(params, carry.key, carry.sigma, jnp.swapaxes(data_obs, 0, 1))
+        distance = policy_distance(
+            mean.reshape(-1, mean.shape[-1]), jnp.swapaxes(perturbed, 0, 1).reshape(-1, mean.shape[-1])
+        )
+        sigma = adapt_sigma(carry.sigma, distance, hparams["sigma_delta"], hparams["sigma_alpha"])
+        return data_log_prob, carry._replace(sigma=sigma)
+
+    def log_prob(self, params, hparams, carry0, obs, actions, first, extras=()):
+        chex.assert_rank([obs, actions, extras], 2)
+        sigma = jnp.broadcast_to(carry0.sigma, (obs.shape[0],))  # the sigma of collection
+        mean = self._perturbed_mean(params, extras, sigma, obs)
+        log_std = jnp.broadcast_to(params["log_std"], mean.shape)
+        return SegmentLogProb(gaussian_log_prob(actions, mean, log_std), gaussian_entropy(log_std))
+
+    def mean_action(self, params, obs):
+        return self.net.apply(params["net"], obs)
+
+    def metrics(self, params, hparams):
+        return {"action_std": jnp.mean(jnp.exp(params["log_std"]))}
+
+    # ---------------------------------------------------- off-policy (SAC)
+    def offpolicy_init_hparams(self):
+        return {
+            "sigma": jnp.asarray(self.sigma_init, jnp.float32),
+            "sigma_delta": jnp.asarray(self.sigma_delta, jnp.float32),
+            "sigma_alpha": jnp.asarray(self.sigma_alpha, jnp.float32),
+        }
+
+    def offpolicy_init_carry(self, key, actor, actor_params, hparams, num_envs):
+        return jax.random.split(key, num_envs)  # [n, 2] episode keys
+
+    @staticmethod
+    def _perturb_actor(actor_params, key, sigma):
+        """The SAC actor with trunk and mean head perturbed (log-std head untouched)."""
+        noisy = perturb({"trunk": actor_params["trunk"], "mu": actor_params["mu"]}, key, sigma)
+        return {**actor_params, "trunk": noisy["trunk"], "mu": noisy["mu"]}
+
+    def offpolicy_act(self, key, actor, actor_params, hparams, carry, obs, first):
+        chex.assert_rank([obs, first], [2, 1])
+        k_ep, k_a = jax.random.split(key)
+        keys = self._new_episode_keys(k_ep, carry, first)
+
+        def one(k, o):
+            return actor.dist(self._perturb_actor(actor_params, k, hparams["sigma"]), o[None])
+
+        dist = jax.tree.map(lambda v: v[:, 0], jax.vmap(one)(keys, obs))
+        action, _ = squash(k_a, dist)
+        return action, keys
+
+    def offpolicy_adapt(self, key, actor, actor_params, hparams, obs):
+        chex.assert_rank(obs, 2)
+        mean = actor.mode(actor_params, obs)
+        perturbed = actor.mode(self._perturb_actor(actor_params, key, hparams["sigma"]), obs)
+        distance = policy_distance(mean, perturbed)
+        sigma = adapt_sigma(hparams["sigma"], distance, hparams["sigma_delta"], hparams["sigma_alpha"])
+        return {**hparams, "sigma": sigma}, {"sigma": hparams["sigma"], "policy_distance": distance}

@@ -1,0 +1,358 @@
+"""Exploration strategies (issue 5): noise statistics, resampling, stored log-probs.
+
+Statistics are checked against independent float64 numpy references (the chain's
+stationary autocorrelation, the coloured spectrum's autocorrelation, gSDE's
+variance formula, NoisyNet's explicit weight matrix) on many envs held at one
+state, so the behaviour noise is exactly the strategy's noise.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from coherent_jax.agents.onpolicy import OnPolicyTrainer
+from coherent_jax.config import parse_overrides
+from coherent_jax.envs import VecEnv
+from coherent_jax.exploration import make_exploration
+from coherent_jax.exploration.noisynet import factorised, noisy_dense
+from coherent_jax.exploration.pink import autocorrelation, coloured_noise
+from coherent_jax.exploration.psne import perturb
+from coherent_jax.networks import SquashedGaussianActor
+from coherent_jax.rollout import unroll
+
+OBS_SIZE = 6
+
+
+def build(*overrides, action_size=2):
+    cfg = parse_overrides(["env=pointmass", "policy_hidden=[16,16]", *overrides])
+    return make_exploration(cfg, action_size), cfg
+
+
+def run_fixed_state(strategy, num_envs, steps, first_every=0, seed=0):
+    """Acts ``steps`` times in ``num_envs`` envs held at one state; returns noise, extras, carries.
+
+    Behaviour noise = action - mean_action at that state. ``first`` is True at t = 0
+    and every ``first_every`` steps (0: only at t = 0).
+    """
+    key = jax.random.PRNGKey(seed)
+    k_p, k_c, k_o, k_run = jax.random.split(key, 4)
+    params = strategy.init(k_p, OBS_SIZE)
+    hp = strategy.init_hparams()
+    carry = strategy.init_carry(k_c, params, hp, num_envs)
+    obs = jnp.broadcast_to(jax.random.normal(k_o, (OBS_SIZE,)), (num_envs, OBS_SIZE))
+    t = jnp.arange(steps)
+    firsts = t == 0 if first_every == 0 else t % first_every == 0
+
+    @jax.jit
+    def go(carry):
+        def step(c, inp):
+            k, f = inp
+            out = strategy.act(k, params, hp, c, obs, jnp.full((num_envs,), f))
+            return out.carry, (out.action, out.extras, out.carry)
+
+        return jax.lax.scan(step, carry, (jax.random.split(k_run, steps), firsts))[1]
+
+    actions, extras, carries = go(carry)
+    noise = np.asarray(actions, np.float64) - np.asarray(strategy.mean_action(params, obs), np.float64)
+    return noise, extras, carries, params, obs
+
+
+def lag1(noise, start=0):
+    """Lag-1 autocorrelation pooled over envs and action dims, noise [T, n, p] (zero mean)."""
+    x = noise[start:]
+    return float(np.sum(x[1:] * x[:-1]) / np.sqrt(np.sum(x[1:] ** 2) * np.sum(x[:-1] ** 2)))
+
+
+# ---------------------------------------------------------------- white / coherent
+
+
+def test_action_noise_is_white_with_its_std():
+    strategy, _ = build("explore=action", "init_std=0.3")
+    noise, *_ = run_fixed_state(strategy, 512, 64)
+    assert noise.std() == pytest.approx(0.3, rel=0.03)
+    assert abs(lag1(noise)) < 0.03
+
+
+@pytest.mark.parametrize("integration", ["analytic", "mc"])
+def test_coherent_noise_autocorrelation_is_one_minus_beta(integration):
+    """Noise n_t = (w_std z_t).xh + action_std eps_t: Corr(n_t, n_t+1) = (1-beta) V / (V + action_std^2).
+
+    V = sum_k w_std_k^2 xh_k^2 is computed in float64 from the parameters; the
+    stationary variance V + action_std^2 is checked too. Same chain for both
+    integrations (only the loss differs).
+    """
+    beta, action_std = 0.2, 0.05
+    strategy, _ = build(
+        "explore=coherent",
+        f"coherent.integration={integration}",
+        f"beta={beta}",
+        f"action_std={action_std}",
+        "w_std_init=0.3",
+    )
+    noise, _, _, params, obs = run_fixed_state(strategy, 256, 200)
+    x = np.asarray(strategy.trunk.apply(params["trunk"], obs[:1]), np.float64)[0]
+    xh = np.append(x, 1.0)
+    w_std = np.exp(np.asarray(params["log_w_std"], np.float64))
+    v = (w_std**2 * xh**2).sum(axis=1)  # [p]
+    expected = (1 - beta) * v / (v + action_std**2)
+    for i in range(noise.shape[-1]):
+        assert lag1(noise[..., i : i + 1]) == pytest.approx(expected[i], abs=0.03)
+        assert noise[..., i].var() == pytest.approx(v[i] + action_std**2, rel=0.1)
+
+
+def test_coherent_all_layers_chain_statistics_and_resets():
+    """layers=all: every weight's z chain is N(0, 1) with lag-1 autocorrelation 1 - beta;
+    a new episode draws z afresh (independent of the last step)."""
+    beta = 0.3
+    strategy, _ = build("explore=coherent", "coherent.integration=mc", "coherent.layers=all", f"beta={beta}")
+    noise, extras, _, _, _ = run_fixed_state(strategy, 64, 120, first_every=40)
+    z = np.concatenate([np.asarray(v).reshape(120, 64, -1) for v in jax.tree.leaves(extras)], axis=-1)
+    assert z.var() == pytest.approx(1.0, rel=0.03)
+    within = [t for t in range(1, 120) if t % 40 != 0]
+    across = [t for t in range(1, 120) if t % 40 == 0]
+    corr = lambda ts: float(np.mean(z[ts] * z[[t - 1 for t in ts]]))  # noqa: E731
+    assert corr(within) == pytest.approx(1 - beta, abs=0.02)
+    assert abs(corr(across)) < 0.02
+    assert lag1(noise) > 0.3  # the action noise inherits the coherence
+
+
+# --------------------------------------------------------------------------- pink
+
+
+def test_coloured_noise_matches_its_spectrum():
+    """Unit variance at every exponent; lag-1 and lag-5 autocorrelations match the float64 formula."""
+    length = 200
+    for exponent in (0.0, 1.0, 2.0):
+        xi = np.asarray(coloured_noise(jax.random.PRNGKey(1), exponent, length, (2000,)), np.float64)
+        assert xi.var() == pytest.approx(1.0, rel=0.03)
+        for lag in (1, 5):
+            sample = float(np.mean(xi[lag:] * xi[:-lag]))
+            assert sample == pytest.approx(autocorrelation(length, exponent, lag), abs=0.03)
+    assert abs(autocorrelation(length, 0.0, 1)) < 0.01  # -1/(2L-3): no DC term
+    assert autocorrelation(length, 1.0, 1) > 0.3 and autocorrelation(length, 2.0, 1) > 0.9
+
+
+@pytest.mark.parametrize("exponent,low,high", [(0.0, -0.04, 0.04), (1.0, 0.3, 0.9)])
+def test_pink_behaviour_noise(exponent, low, high):
+    """Behaviour noise has the policy's std, white at exponent 0, clearly positive at 1,
+    and each episode draws a new sequence (uncorrelated across the reset)."""
+    strategy, _ = build("explore=pink", f"pink_exponent={exponent}", "init_std=0.4", "episode_length=50")
+    noise, _, carries, _, _ = run_fixed_state(strategy, 256, 100, first_every=50)
+    assert noise.std() == pytest.approx(0.4, rel=0.05)
+    assert low < lag1(noise[:50]) < high
+    assert lag1(noise[:50]) == pytest.approx(autocorrelation(50, exponent, 1), abs=0.05)
+    assert abs(float(np.mean(noise[50] * noise[49])) / 0.16) < 0.1
+    np.testing.assert_array_equal(
+        np.asarray(carries.step)[[0, 49, 50, 99]], [[1] * 256, [50] * 256, [1] * 256, [50] * 256]
+    )
+
+
+# --------------------------------------------------------------------------- gsde
+
+
+def test_gsde_noise_resamples_every_n_and_has_its_variance():
+    """The noise matrix is held for n steps (noise constant at a fixed state), redrawn at
+    multiples of n and at episode starts; its variance is sum_i x_i^2 sigma_ij^2 (float64)."""
+    every = 5
+    strategy, _ = build("explore=gsde", f"gsde_resample_every={every}", "init_std=0.5")
+    noise, _, _, params, obs = run_fixed_state(strategy, 2048, 23, first_every=13)
+    change = np.abs(np.diff(noise, axis=0)).max(axis=(1, 2)) > 1e-6  # between t-1 and t
+    redraw = [t for t in range(1, 23) if t % 13 == 0 or (t % 13) % every == 0]
+    assert [t for t in range(1, 23) if change[t - 1]] == redraw
+    x = np.asarray(strategy.net.apply(params["net"], obs[:1])[0], np.float64)[0]
+    sigma = np.exp(np.asarray(params["log_sigma"], np.float64))
+    var = (x[:, None] ** 2 * sigma**2).sum(axis=0)
+    np.testing.assert_allclose(noise[0].var(axis=0), var, rtol=0.1)
+
+
+# ----------------------------------------------------------------------- noisynet
+
+
+def test_noisy_dense_equals_explicit_weights():
+    """The factorised layer equals x (mu_W + sigma_W * f(eps_in) f(eps_out)^T) + mu_b + sigma_b f(eps_out)."""
+    rng = np.random.default_rng(0)
+    m, k = 5, 3
+    layer = {
+        name: rng.normal(size=s)
+        for name, s in [("w_mu", (m, k)), ("b_mu", k), ("w_sigma", (m, k)), ("b_sigma", k)]
+    }
+    x, e_in, e_out = rng.normal(size=m), rng.normal(size=m), rng.normal(size=k)
+    f = lambda e: np.sign(e) * np.sqrt(np.abs(e))  # noqa: E731
+    w = layer["w_mu"] + layer["w_sigma"] * np.outer(f(e_in), f(e_out))
+    expected = x @ w + layer["b_mu"] + layer["b_sigma"] * f(e_out)
+    got = noisy_dense({n: jnp.asarray(v, jnp.float32) for n, v in layer.items()}, x, e_in, e_out)
+    np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(factorised(jnp.array([-4.0, 0.0, 9.0])), [-2.0, 0.0, 3.0])
+
+
+def test_noisynet_noise_is_fixed_per_episode_with_initial_sigma():
+    strategy, _ = build("explore=noisynet", "noisynet_sigma0=0.5")
+    noise, extras, _, params, _ = run_fixed_state(strategy, 64, 30, first_every=10)
+    for leaf in jax.tree.leaves(extras):
+        leaf = np.asarray(leaf)
+        for t in range(1, 30):
+            same = np.array_equal(leaf[t], leaf[t - 1])
+            assert same == (t % 10 != 0), t
+    for layer in params["layers"]:
+        fan_in = layer["w_mu"].shape[0]
+        np.testing.assert_allclose(layer["w_sigma"], 0.5 / np.sqrt(fan_in), rtol=1e-6)
+    # The sampled network shows in the behaviour noise: positively correlated within an episode.
+    assert lag1(noise) > 0.05
+
+
+# --------------------------------------------------------------------------- psne
+
+
+def test_psne_perturbation_scale_and_layer_norm_untouched():
+    params = {
+        "params": {
+            "Dense_0": {"kernel": jnp.zeros((200, 100)), "bias": jnp.zeros(100)},
+            "LayerNorm_0": {"scale": jnp.ones(100), "bias": jnp.zeros(100)},
+        }
+    }
+    out = perturb(params, jax.random.PRNGKey(0), 0.3)
+    assert float(jnp.std(out["params"]["Dense_0"]["kernel"])) == pytest.approx(0.3, rel=0.02)
+    assert float(jnp.std(out["params"]["Dense_0"]["bias"])) == pytest.approx(0.3, rel=0.25)
+    np.testing.assert_array_equal(out["params"]["LayerNorm_0"]["scale"], 1.0)
+    np.testing.assert_array_equal(out["params"]["LayerNorm_0"]["bias"], 0.0)
+    again = perturb(params, jax.random.PRNGKey(0), 0.3)
+    np.testing.assert_array_equal(again["params"]["Dense_0"]["kernel"], out["params"]["Dense_0"]["kernel"])
+
+
+def test_psne_perturbation_is_fixed_per_episode():
+    strategy, _ = build("explore=psne", "sigma_init=0.5", "init_std=0.01")
+    noise, extras, _, _, _ = run_fixed_state(strategy, 32, 30, first_every=10)
+    keys = np.asarray(extras)
+    for t in range(1, 30):
+        assert np.array_equal(keys[t], keys[t - 1]) == (t % 10 != 0)
+    # With a tiny action std the noise is the perturbed network's offset: nearly constant.
+    assert lag1(noise[:10]) > 0.9
+    assert noise.std() > 0.05
+
+
+@pytest.mark.parametrize("delta,factor", [(1e3, 1.5), (1e-6, 1 / 1.5)])
+def test_psne_sigma_adapts_by_rule_451(delta, factor):
+    """end_segment applies (4.51): sigma * alpha if the distance (4.50) < delta, else sigma / alpha."""
+    strategy, _ = build("explore=psne", "sigma_init=0.2", f"sigma_delta={delta}", "sigma_alpha=1.5")
+    params = strategy.init(jax.random.PRNGKey(0), OBS_SIZE)
+    hp = strategy.init_hparams()
+    carry = strategy.init_carry(jax.random.PRNGKey(1), params, hp, 4)
+    obs = jax.random.normal(jax.random.PRNGKey(2), (8, 4, OBS_SIZE))
+    logp = jnp.zeros((8, 4))
+    end = jax.jit(lambda c, o, lp: strategy.end_segment(params, hp, c, c, o, None, None, lp))
+    out_logp, new = end(carry, obs, logp)
+    np.testing.assert_allclose(new.sigma, 0.2 * factor, rtol=1e-6)
+    np.testing.assert_array_equal(out_logp, logp)
+
+
+# ----------------------------------------------- stored log-prob equals the recompute
+
+TINY = ["env=pointmass", "num_envs=4", "num_minibatches=2", "eval_episodes=2", "policy_hidden=[16,16]"]
+NEW_STRATEGIES = [
+    ["explore=coherent", "coherent.integration=mc", "beta=0.3"],
+    ["explore=coherent", "coherent.integration=mc", "coherent.layers=all", "beta=0.3"],
+    ["explore=noisynet"],
+    ["explore=psne"],
+    ["explore=gsde", "gsde_resample_every=3"],
+    ["explore=pink", "episode_length=7"],
+]
+
+
+@pytest.mark.parametrize(
+    "overrides", NEW_STRATEGIES, ids=lambda o: " ".join(o).replace("coherent.", "").replace("explore=", "")
+)
+def test_behaviour_log_prob_equals_segment_recompute(overrides):
+    """What collection stored equals the loss's recomputation at the same parameters
+    (PPO's first ratio is 1), over two segments with episode resets, and the same key
+    gives the same segment."""
+    env = VecEnv("pointmass", num_envs=4, episode_length=7)
+    cfg = parse_overrides(TINY + overrides)
+    trainer = OnPolicyTrainer(cfg, env=env, eval_env=env)
+    state = trainer.init(jax.random.PRNGKey(0))
+    strategy, params, hp = trainer.strategy, state.params.policy, state.hparams.explore
+
+    def act(k, carry, obs, first):
+        return strategy.act(k, params, hp, carry, obs, first)
+
+    @jax.jit
+    def collect_and_score(env_state, carry, key):
+        env_state, carry_end, data = unroll(env, act, env_state, carry, key, 10)
+        log_prob, carry_end = strategy.end_segment(
+            params, hp, carry, carry_end, data.obs, data.action, data.first, data.log_prob
+        )
+        recomputed = jax.vmap(strategy.log_prob, in_axes=(None, None, 0, 1, 1, 1, 1), out_axes=1)(
+            params, hp, carry, data.obs, data.action, data.first, data.extras
+        )
+        return env_state, carry_end, data._replace(log_prob=log_prob), recomputed
+
+    env_state, carry = state.env_state, state.carry
+    for key in jax.random.split(jax.random.PRNGKey(1), 2):
+        env_state, carry, data, recomputed = collect_and_score(env_state, carry, key)
+        assert np.asarray(data.first)[1:].any()
+        assert np.isfinite(np.asarray(data.log_prob)).all()
+        np.testing.assert_allclose(recomputed.log_prob, data.log_prob, rtol=2e-5, atol=2e-4)
+        assert np.isfinite(np.asarray(recomputed.entropy)).all()
+    _, _, again, _ = collect_and_score(state.env_state, state.carry, jax.random.PRNGKey(5))
+    _, _, same, _ = collect_and_score(state.env_state, state.carry, jax.random.PRNGKey(5))
+    np.testing.assert_array_equal(again.action, same.action)
+
+
+# ------------------------------------------------------------- off-policy (SAC) hooks
+
+
+def offpolicy_run(strategy, steps, first_every, num_envs=8, seed=0):
+    """Behaviour actions of the SAC hooks at one fixed state; returns actions [T, n, p], carries, actor."""
+    actor = SquashedGaussianActor(2, (16, 16), "relu", layer_norm=strategy.actor_layer_norm)
+    key = jax.random.PRNGKey(seed)
+    k_p, k_c, k_o, k_run = jax.random.split(key, 4)
+    actor_params = actor.init(k_p, OBS_SIZE)
+    hp = strategy.offpolicy_init_hparams()
+    carry = strategy.offpolicy_init_carry(k_c, actor, actor_params, hp, num_envs)
+    obs = jnp.broadcast_to(jax.random.normal(k_o, (OBS_SIZE,)), (num_envs, OBS_SIZE))
+    firsts = jnp.arange(steps) % first_every == 0
+
+    @jax.jit
+    def go(carry):
+        def step(c, inp):
+            k, f = inp
+            action, c = strategy.offpolicy_act(k, actor, actor_params, hp, c, obs, jnp.full((num_envs,), f))
+            return c, (action, c)
+
+        return jax.lax.scan(step, carry, (jax.random.split(k_run, steps), firsts))[1]
+
+    actions, carries = go(carry)
+    return np.asarray(actions), carries, actor, actor_params, hp, obs
+
+
+def test_sac_pink_uses_the_coloured_sequence():
+    """a = tanh(mean + std xi) with xi the episode's sequence at the step index."""
+    strategy, _ = build("explore=pink", "episode_length=20", "pink_exponent=1")
+    actions, carries, actor, actor_params, _, obs = offpolicy_run(strategy, 30, first_every=20)
+    dist = actor.dist(actor_params, obs)
+    noise, step = np.asarray(carries.noise), np.asarray(carries.step)
+    for t in (0, 7, 19, 20, 29):
+        xi = noise[t][np.arange(8), step[t] - 1]
+        expected = np.tanh(np.asarray(dist.mean) + np.exp(np.asarray(dist.log_std)) * xi)
+        np.testing.assert_allclose(actions[t], expected, rtol=1e-5, atol=1e-6)
+    assert not np.allclose(noise[19], noise[20])  # a new sequence for the new episode
+
+
+def test_sac_gsde_noise_held_for_n_steps():
+    strategy, _ = build("explore=gsde", "gsde_resample_every=4")
+    actions, *_ = offpolicy_run(strategy, 12, first_every=100)
+    change = np.abs(np.diff(actions, axis=0)).max(axis=(1, 2)) > 1e-7
+    assert [t for t in range(1, 12) if change[t - 1]] == [4, 8]
+
+
+def test_sac_psne_fixed_per_episode_and_sigma_rule():
+    strategy, _ = build("explore=psne", "sigma_init=0.3", "sigma_alpha=1.5", "sigma_delta=1000")
+    assert strategy.actor_layer_norm
+    _, keys, actor, actor_params, hp, obs = offpolicy_run(strategy, 12, first_every=5)
+    keys = np.asarray(keys)
+    assert [t for t in range(1, 12) if not np.array_equal(keys[t], keys[t - 1])] == [5, 10]
+    new_hp, metrics = strategy.offpolicy_adapt(jax.random.PRNGKey(3), actor, actor_params, hp, obs)
+    assert float(new_hp["sigma"]) == pytest.approx(0.45) and float(metrics["policy_distance"]) > 0
+    hp_small = {**hp, "sigma_delta": jnp.asarray(1e-9)}
+    new_hp, _ = strategy.offpolicy_adapt(jax.random.PRNGKey(3), actor, actor_params, hp_small, obs)
+    assert float(new_hp["sigma"]) == pytest.approx(0.2)
