@@ -123,6 +123,15 @@ class Config:
     eval_episodes: int = _field(8, "episodes per evaluation (run in parallel)")
     run_dir: str = _field("", "output directory; default runs/<env>-<algo>-<explore>-s<seed>-<time>")
     progress: bool = _field(True, "show a progress bar")
+    # --- devices (issue 6, parts 1-2: sharding over JAX devices, several hosts)
+    num_devices: int = _field(
+        0,
+        "JAX devices to spread the envs (train) or the sweep points (sweep) over; 0 = all. "
+        "num_envs must be a multiple of it",
+    )
+    distributed: bool = _field(
+        False, "call jax.distributed.initialize() first (several hosts; see README, Devices)"
+    )
 
     # --- derived (not settable)
     @property
@@ -236,6 +245,7 @@ def validate(cfg: Config) -> Config:
         )
     _check(cfg.eval_every >= 0, "eval_every", cfg.eval_every, "an integer >= 0")
     _check(cfg.eval_episodes >= 1, "eval_episodes", cfg.eval_episodes, "an integer >= 1")
+    _check(cfg.num_devices >= 0, "num_devices", cfg.num_devices, "an integer >= 0 (0 = all devices)")
     return cfg
 
 

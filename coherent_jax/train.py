@@ -46,6 +46,19 @@ def _to_float(x: Any) -> float | None:
     return value if math.isfinite(value) else None
 
 
+def run_keys(seed: int):
+    """(key, init_key) of a run: ``init_key`` starts the state, ``key`` is split once per evaluation.
+
+    Sweeps derive each grid point's keys with this same function, so a point equals
+    the single run with its settings.
+    """
+    import jax
+
+    key = jax.random.PRNGKey(seed)
+    key, init_key = jax.random.split(key)
+    return key, init_key
+
+
 def train(
     cfg: Config,
     run_dir: Path | None = None,
@@ -60,21 +73,22 @@ def train(
     from flax import serialization
     from tqdm.auto import tqdm
 
+    from coherent_jax import parallel
     from coherent_jax.agents import make_trainer
 
     t_start = time.perf_counter()
+    num_devices = parallel.resolve_num_devices(cfg.num_devices)
+    parallel.check_env_split(cfg.num_envs, num_devices)
     trainer = make_trainer(cfg)
-    key = jax.random.PRNGKey(cfg.seed)
-    key, init_key = jax.random.split(key)
-    state = jax.jit(trainer.init)(init_key)
-
+    key, init_key = run_keys(cfg.seed)
     t0 = time.perf_counter()
-    iteration = jax.jit(trainer.iteration, donate_argnums=0).lower(state).compile()
+    state, iteration = parallel.init_and_compile(trainer, init_key, num_devices, cfg.num_envs)
     evaluate = jax.jit(trainer.evaluate).lower(state, key).compile()
     compile_s = time.perf_counter() - t0
     print(
         f"[coherent_jax] {cfg.env} {cfg.algo} explore={cfg.explore}: compiled in {compile_s:.1f} s; "
-        f"{cfg.num_iterations} iterations of {cfg.steps_per_iteration} env steps",
+        f"{cfg.num_iterations} iterations of {cfg.steps_per_iteration} env steps"
+        + (f" on {num_devices} devices" if num_devices > 1 else ""),
         flush=True,
     )
 
@@ -141,6 +155,7 @@ def train(
         "train_env_steps_per_s": round(total_steps / max(train_s, 1e-9), 1),
         "jax_version": jax.__version__,
         "backend": jax.default_backend(),
+        "num_devices": num_devices,
     }
     if run_dir:
         payload = trainer.export_params(state)
@@ -162,16 +177,34 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     try:
         cfg = parse_overrides(argv)
-        run_dir = prepare_run_dir(cfg)
+        writer = check_devices(cfg)
+        run_dir = prepare_run_dir(cfg) if writer else None
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     from omegaconf import OmegaConf
 
-    _atomic_write(run_dir / "config.yaml", OmegaConf.to_yaml(to_dict(cfg)).encode())
-    print(f"[coherent_jax] run dir {run_dir}", flush=True)
+    if run_dir:
+        _atomic_write(run_dir / "config.yaml", OmegaConf.to_yaml(to_dict(cfg)).encode())
+        print(f"[coherent_jax] run dir {run_dir}", flush=True)
     train(cfg, run_dir)
     return 0
+
+
+def check_devices(cfg: Config, split_envs: bool = True) -> bool:
+    """Initialises multi-host JAX if asked and checks the device split before anything is written.
+
+    Returns whether this process writes the outputs (process 0 of a distributed run).
+    """
+    from coherent_jax import parallel
+
+    parallel.maybe_initialize_distributed(cfg.distributed)
+    num_devices = parallel.resolve_num_devices(cfg.num_devices)
+    if split_envs:
+        parallel.check_env_split(cfg.num_envs, num_devices)
+    import jax
+
+    return jax.process_index() == 0
 
 
 if __name__ == "__main__":
