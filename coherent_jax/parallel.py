@@ -106,31 +106,37 @@ def device_count_of(array: jax.Array) -> int:
     return len(array.sharding.device_set)
 
 
-def init_and_compile(trainer: Any, init_key: jax.Array, num_devices: int, num_envs: int):
-    """The initial train state and the compiled iteration, on one device or data parallel.
-
-    With one device this is plain ``jit`` (the state's buffers are donated to the next
-    iteration). With several, the state is created already sharded
-    (`env_state_shardings`) and the iteration is compiled with those shardings in and
-    out, and with its metrics replicated.
+def init_state(trainer: Any, init_key: jax.Array, num_devices: int, num_envs: int):
+    """The initial train state, on one device or already sharded over ``num_devices``.
 
     Returns:
-      (state, iteration) where ``iteration(state) -> (state, metrics)`` is compiled.
+      (state, shardings): ``shardings`` is None on one device, else the state's
+      `env_state_shardings`, for `compile_iteration`.
     """
     if num_devices == 1:
-        state = jax.jit(trainer.init)(init_key)
-        return state, jax.jit(trainer.iteration, donate_argnums=0).lower(state).compile()
+        return jax.jit(trainer.init)(init_key), None
     check_env_split(num_envs, num_devices)
     mesh = make_mesh(num_devices, ENV_AXIS)
     shardings = env_state_shardings(jax.eval_shape(trainer.init, init_key), mesh, num_envs)
-    state = jax.jit(trainer.init, out_shardings=shardings)(init_key)
+    return jax.jit(trainer.init, out_shardings=shardings)(init_key), shardings
+
+
+def compile_iteration(trainer: Any, state: Any, shardings: Any = None):
+    """``iteration(state) -> (state, metrics)`` compiled; the state's buffers are donated.
+
+    With ``shardings`` (from `init_state`) the state keeps them in and out and the
+    metrics are replicated; XLA's SPMD partitioner splits the work over the devices.
+    """
+    if shardings is None:
+        return jax.jit(trainer.iteration, donate_argnums=0).lower(state).compile()
+    mesh = jax.tree.leaves(shardings)[0].mesh
     iteration = jax.jit(
         trainer.iteration,
         in_shardings=(shardings,),
         out_shardings=(shardings, replicated(mesh)),
         donate_argnums=0,
     )
-    return state, iteration.lower(state).compile()
+    return iteration.lower(state).compile()
 
 
 def maybe_initialize_distributed(enabled: bool) -> None:

@@ -81,8 +81,10 @@ def train(
     parallel.check_env_split(cfg.num_envs, num_devices)
     trainer = make_trainer(cfg)
     key, init_key = run_keys(cfg.seed)
+    state, shardings = parallel.init_state(trainer, init_key, num_devices, cfg.num_envs)
+
     t0 = time.perf_counter()
-    state, iteration = parallel.init_and_compile(trainer, init_key, num_devices, cfg.num_envs)
+    iteration = parallel.compile_iteration(trainer, state, shardings)
     evaluate = jax.jit(trainer.evaluate).lower(state, key).compile()
     compile_s = time.perf_counter() - t0
     print(

@@ -32,7 +32,8 @@ out = {"device_count": jax.device_count()}
 for n in (1, 2):
     trainer = make_trainer(cfg)
     _, init_key = train.run_keys(cfg.seed)
-    state, iteration = parallel.init_and_compile(trainer, init_key, n, cfg.num_envs)
+    state, shardings = parallel.init_state(trainer, init_key, n, cfg.num_envs)
+    iteration = parallel.compile_iteration(trainer, state, shardings)
     metrics = []
     for _ in range(cfg.num_iterations):
         state, m = iteration(state)
