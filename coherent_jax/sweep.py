@@ -266,7 +266,9 @@ def run_sweep(plan: SweepPlan, out_dir: Path | None, env=None, eval_env=None) ->
         for p in plan.points:
             d = out_dir / p.name
             d.mkdir()
-            _atomic_write(d / "config.yaml", OmegaConf.to_yaml(to_dict(p.cfg)).encode())
+            # The point's own settings, as the single run that it equals would record them.
+            point_cfg = dataclasses.replace(p.cfg, run_dir=str(d))
+            _atomic_write(d / "config.yaml", OmegaConf.to_yaml(to_dict(point_cfg)).encode())
             point_dirs.append(d)
             files.append(open(d / "metrics.jsonl", "w"))
     bar = tqdm(

@@ -63,6 +63,9 @@ def test_sweep_point_equals_single_run(tmp_path):
     single = tmp_path / "single"
     assert train.main([*TINY, "seed=1", "ent_coef=0.5", "lr=1e-3", f"run_dir={single}"]) == 0
     expected = read_rows(single / "metrics.jsonl")
+    # Its config.yaml is the single run's (its own run directory, its seed and values).
+    point_yaml = (out / names[7] / "config.yaml").read_text().replace(str(out / names[7]), "RUN")
+    assert point_yaml == (single / "config.yaml").read_text().replace(str(single), "RUN")
     assert "eval/episode_return" in expected[1]
     assert_rows_close(read_rows(out / names[7] / "metrics.jsonl"), expected)
     # The other seed of that setting is a different run (the grid is not one point copied).
