@@ -115,13 +115,26 @@ def _parse_bool(text: str) -> bool:
     raise ValueError
 
 
+# Rows of the throughput suite besides the raw env; brax_ppo is Brax's own trainer.
+THROUGHPUT_ROWS = ("ppo", "coherent_ppo", "sac", "coherent_sac", "brax_ppo")
+
+
+def _parse_choice_list(text: str, choices: Sequence[str]) -> list[str]:
+    items = [s.strip() for s in text.strip().strip("[]").split(",") if s.strip()]
+    if not items or any(item not in choices for item in items):
+        raise ValueError
+    return [c for c in choices if c in items]
+
+
 # The throughput suite's own keys (issue 6, part 3).
 THROUGHPUT_KEYS: dict[str, BenchKey] = {
     "iterations": BenchKey(5, _parse_int, "an integer >= 1", "timed iterations per row (after one warm-up)"),
     "out": BenchKey("bench_results/throughput.json", _parse_path, "a file path", "where the JSON goes"),
-    "brax": BenchKey(True, _parse_bool, "true or false", "also run Brax's own PPO trainer on the same env"),
-    "sac": BenchKey(
-        True, _parse_bool, "true or false", "SAC and Coherent-SAC rows (when coherent_jax.agents.sac exists)"
+    "rows": BenchKey(
+        list(THROUGHPUT_ROWS),
+        lambda text: _parse_choice_list(text, THROUGHPUT_ROWS),
+        "a non-empty list of " + ", ".join(THROUGHPUT_ROWS),
+        "rows besides the raw env (always run); sac rows need coherent_jax.agents.sac",
     ),
 }
 SUITE_KEYS: dict[str, dict[str, BenchKey]] = {"coherent": BENCH_KEYS, "throughput": THROUGHPUT_KEYS}
@@ -627,20 +640,20 @@ def sac_available() -> bool:
     return importlib.util.find_spec("coherent_jax.agents.sac") is not None
 
 
-def _throughput_configs(cfg: Config, items: list[str], with_sac: bool) -> dict[str, Config]:
+def _throughput_configs(cfg: Config, items: list[str], rows: Sequence[str]) -> dict[str, Config]:
     """The trainer rows: our PPO and Coherent-PPO on ``cfg``; SAC rows on SAC's defaults.
 
     SAC keeps its own defaults (networks, batch, UTD ratio; `ALGO_DEFAULTS`) but the
     bench's task, env count, unroll and episode length, and its random-action warm-up
     is one iteration long, so that the timed iterations all do gradient updates.
     """
-    configs = {
-        "ppo": dataclasses.replace(cfg, algo="ppo", explore="action"),
-        "coherent_ppo": dataclasses.replace(cfg, algo="ppo", explore="coherent"),
-    }
-    if with_sac:
-        shared = [f"{k}={getattr(cfg, k)}" for k in ("env", "num_envs", "unroll_length", "episode_length")]
-        for name, explore in (("sac", "action"), ("coherent_sac", "coherent")):
+    configs = {}
+    for name, explore in (("ppo", "action"), ("coherent_ppo", "coherent")):
+        if name in rows:
+            configs[name] = dataclasses.replace(cfg, algo="ppo", explore=explore)
+    shared = [f"{k}={getattr(cfg, k)}" for k in ("env", "num_envs", "unroll_length", "episode_length")]
+    for name, explore in (("sac", "action"), ("coherent_sac", "coherent")):
+        if name in rows:
             sac_items = [i for i in items if i.split("=", 1)[0].strip() not in ("algo", "explore")]
             configs[name] = parse_overrides(
                 [
@@ -809,7 +822,13 @@ def run_throughput_bench(overrides: Sequence[str], log: Callable[[str], None] | 
     device = jax.devices()[0]
     started = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
     load_start = _load()
-    with_sac = bench["sac"] and sac_available()
+    skipped = {n: "not in rows=" for n in THROUGHPUT_ROWS if n not in bench["rows"]}
+    rows_wanted = list(bench["rows"])
+    if not sac_available():
+        for name in ("sac", "coherent_sac"):
+            if name in rows_wanted:
+                rows_wanted.remove(name)
+                skipped[name] = "coherent_jax.agents.sac is not in this version"
     log(
         f"[bench] throughput suite: jax {jax.__version__} on {device.platform} ({_cpu_model()}, "
         f"{os.cpu_count()} CPUs), load average {load_start}"
@@ -833,7 +852,7 @@ def run_throughput_bench(overrides: Sequence[str], log: Callable[[str], None] | 
     }
     log(f"[bench]   compiled in {compile_s:.1f} s")
 
-    configs = _throughput_configs(cfg, items, with_sac)
+    configs = _throughput_configs(cfg, items, rows_wanted)
     for name, run_cfg in configs.items():
         log(f"[bench] compiling the {run_cfg.algo} iteration, explore={run_cfg.explore} ({shape}) ...")
         trainer = make_trainer(run_cfg, env=env, eval_env=env)  # no evaluation runs here
@@ -881,17 +900,10 @@ def run_throughput_bench(overrides: Sequence[str], log: Callable[[str], None] | 
         }
     del rows
     rss_ours = _peak_rss_bytes()
-    skipped = {}
-    if not with_sac:
-        skipped["sac"] = skipped["coherent_sac"] = (
-            "sac=false" if not bench["sac"] else "coherent_jax.agents.sac is not in this version"
-        )
-    if bench["brax"]:
+    if "brax_ppo" in rows_wanted:
         load_brax = _load()
         results["brax_ppo"] = _brax_ppo(cfg, bench["iterations"], log)
         results["brax_ppo"]["load_average_start"] = load_brax
-    else:
-        skipped["brax_ppo"] = "brax=false"
 
     raw = results["raw_env"]["env_steps_per_s"]
     ratios = {
@@ -899,16 +911,14 @@ def run_throughput_bench(overrides: Sequence[str], log: Callable[[str], None] | 
         for name in ("ppo", "coherent_ppo", "sac", "coherent_sac", "brax_ppo")
         if name in results
     }
-    if "brax_ppo" in results:
-        ratios["ppo_over_brax_ppo"] = (
-            results["ppo"]["env_steps_per_s"] / results["brax_ppo"]["env_steps_per_s"]
-        )
-        ratios["coherent_ppo_over_brax_ppo"] = (
-            results["coherent_ppo"]["env_steps_per_s"] / results["brax_ppo"]["env_steps_per_s"]
-        )
-    ratios["coherent_ppo_over_ppo"] = (
-        results["coherent_ppo"]["env_steps_per_s"] / results["ppo"]["env_steps_per_s"]
-    )
+    for a, b in (
+        ("ppo", "brax_ppo"),
+        ("coherent_ppo", "brax_ppo"),
+        ("coherent_ppo", "ppo"),
+        ("coherent_sac", "sac"),
+    ):
+        if a in results and b in results:
+            ratios[f"{a}_over_{b}"] = results[a]["env_steps_per_s"] / results[b]["env_steps_per_s"]
     result = {
         "suite": "throughput",
         "timestamp": started,
@@ -973,12 +983,12 @@ def format_throughput_table(result: dict) -> str:
             f"{e['env_steps_per_s']:>13,.0f}{e['env_steps_per_s'] / raw:>7.2f}{mem:>10}"
         )
     lines.append("")
-    if "ppo_over_brax_ppo" in ratios:
-        lines.append(
-            f"  PPO (ours) / Brax PPO: {ratios['ppo_over_brax_ppo']:.2f}x (target >= 1.0); "
-            f"Coherent-PPO / Brax PPO: {ratios['coherent_ppo_over_brax_ppo']:.2f}x"
-        )
-    lines.append(f"  PPO training / raw env: {ratios['ppo_over_raw_env']:.2f}x (target >= 0.6)")
+    labels = {**_ROW_LABELS, "brax_ppo": "Brax PPO"}
+    targets = {"ppo_over_brax_ppo": 1.0, "ppo_over_raw_env": 0.6}
+    for key, value in ratios.items():
+        a, b = key.split("_over_")
+        target = f" (target >= {targets[key]})" if key in targets else ""
+        lines.append(f"  {labels[a]} / {labels.get(b, b)}: {value:.2f}x{target}")
     lines.append(
         f"  peak memory: XLA estimate per compiled program (ours); process peak RSS "
         f"{_mb(result['peak_rss_bytes_after_ours'])} MB after our rows, "

@@ -122,7 +122,8 @@ def run_cli(args, cwd):
         (["iterations=0"], "'iterations'"),
         (["throughput", "algo=sac"], "'algo'"),
         (["throughput", "explore=coherent"], "'explore'"),
-        (["throughput", "brax=maybe"], "'brax'"),
+        (["throughput", "rows=[ppo,trpo]"], "'rows'"),
+        (["throughput", "rows=[]"], "'rows'"),
         (["throughput", "filter_q=[8]"], "'filter_q'"),
         (["throughput", "num_envs=0"], "'num_envs'"),
         (["coherent", "foo=1"], "'foo'"),
@@ -149,7 +150,8 @@ def test_throughput_suite_writes_every_row(tmp_path):
     """
     out = tmp_path / "results" / "throughput.json"
     args = ["env=pointmass", "num_envs=4", "unroll_length=8", "num_minibatches=2", "iterations=2"]
-    result = run_throughput_bench([*args, "brax=false", "sac=false", f"out={out}"], log=lambda msg: None)
+    only_ppo = "rows=[ppo,coherent_ppo]"
+    result = run_throughput_bench([*args, only_ppo, f"out={out}"], log=lambda msg: None)
     assert json.loads(out.read_text()) == json.loads(json.dumps(result))
     assert sorted(p.name for p in out.parent.iterdir()) == ["throughput.json"]
     data = json.loads(out.read_text())
@@ -173,6 +175,9 @@ def test_throughput_suite_writes_every_row(tmp_path):
         rows["ppo"]["env_steps_per_s"] / rows["raw_env"]["env_steps_per_s"]
     )
     assert "ppo_over_brax_ppo" not in ratios
-    assert data["skipped"]["brax_ppo"] == "brax=false" and data["skipped"]["sac"] == "sac=false"
+    assert data["skipped"] == {n: "not in rows=" for n in ("sac", "coherent_sac", "brax_ppo")}
+    assert ratios["coherent_ppo_over_ppo"] == pytest.approx(
+        rows["coherent_ppo"]["env_steps_per_s"] / rows["ppo"]["env_steps_per_s"]
+    )
     table = format_throughput_table(data)
-    assert "Brax PPO" in table and "skipped: brax=false" in table and "raw env" in table
+    assert "Brax PPO" in table and "skipped: not in rows=" in table and "PPO (ours) / raw env" in table
