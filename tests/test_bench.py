@@ -159,7 +159,7 @@ def test_throughput_suite_writes_every_row(tmp_path):
     rows = data["rows"]
     assert sorted(rows) == ["coherent_ppo", "ppo", "raw_env"]
     for name, row in rows.items():
-        for key in ("compile_s", "iteration_s_median", "env_steps_per_s"):
+        for key in ("compile_s", "iteration_s_median", "env_steps_per_s", "env_steps_per_s_best"):
             assert _positive(row[key]), (name, key)
         assert len(row["iteration_s"]) == 2
         assert row["env_steps_per_s"] == pytest.approx(32 / row["iteration_s_median"])
