@@ -163,6 +163,7 @@ def test_throughput_suite_writes_every_row(tmp_path):
             assert _positive(row[key]), (name, key)
         assert len(row["iteration_s"]) == 2
         assert row["env_steps_per_s"] == pytest.approx(32 / row["iteration_s_median"])
+        assert row["env_steps_per_s_best"] == pytest.approx(32 / min(row["iteration_s"]))
     for name in ("ppo", "coherent_ppo"):
         assert _positive(rows[name]["memory"]["peak_bytes"]), name
         assert rows[name]["config"]["num_envs"] == 4
