@@ -692,9 +692,10 @@ def _brax_ppo(cfg: Config, iterations: int, log, between_epochs: Callable[[int],
     num_envs`` makes it collect one unroll of ``unroll_length`` steps from every env,
     then ``num_updates_per_batch`` epochs of ``num_minibatches`` minibatches of whole
     env segments. One step per Brax epoch, ``iterations + 2`` epochs: Brax times each
-    epoch itself (its ``training/sps``); the first includes XLA compilation, and the
-    steady rate is the median over the rest (robust to the one recompilation seen
-    in the second epoch); compile time is the time the epochs took above that median.
+    epoch itself (its ``training/sps``). The first two are warm-up: the first compiles,
+    and Brax 0.14.2 recompiles its training epoch once, in the second, on CPU. The
+    steady rate is the median of epochs 3 .. iterations + 2 (as many as our timed
+    iterations); compile time is the time all epochs took above that median.
 
     ``between_epochs(i)`` runs after Brax's epoch ``i + 2`` (i = 0 .. iterations-1), once
     Brax is compiled and warm: the suite times one round of its own rows there, so
@@ -767,7 +768,7 @@ def _brax_ppo(cfg: Config, iterations: int, log, between_epochs: Callable[[int],
     brax_train.train(environment=env, network_factory=network_factory, progress_fn=progress, **settings)
     wall_s = time.perf_counter() - t0
     jax.clear_caches()
-    steady = epoch_s[1:]
+    steady = epoch_s[2:]
     median = statistics.median(steady)
     return {
         "settings": {k: v for k, v in settings.items()},
@@ -783,8 +784,7 @@ def _brax_ppo(cfg: Config, iterations: int, log, between_epochs: Callable[[int],
         "iteration_s_median": median,
         "env_steps_per_s": steps / median,
         "env_steps_per_s_best": steps / min(steady),
-        # Time above the steady epoch's: the first epoch's compile and any recompilation
-        # (Brax 0.14.2 recompiles its training epoch once, in the second epoch, on CPU).
+        # Time above the steady epoch's: the first epoch's compile and the recompilation.
         "compile_s": sum(max(0.0, t - median) for t in epoch_s),
         "setup_s": wall_s - sum(epoch_s),  # env reset, network init and their compiles
         "wall_s": wall_s,
