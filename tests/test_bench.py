@@ -120,12 +120,6 @@ def run_cli(args, cwd):
         (["speed"], "'speed'"),
         # No suite named runs the default (throughput) suite: its keys are checked.
         (["iterations=0"], "'iterations'"),
-        (["throughput", "algo=sac"], "'algo'"),
-        (["throughput", "explore=coherent"], "'explore'"),
-        (["throughput", "rows=[ppo,trpo]"], "'rows'"),
-        (["throughput", "rows=[]"], "'rows'"),
-        (["throughput", "filter_q=[8]"], "'filter_q'"),
-        (["throughput", "num_envs=0"], "'num_envs'"),
         (["coherent", "foo=1"], "'foo'"),
         (["coherent", "iterations=0"], "'iterations'"),
         (["coherent", "filter_q=[8,x]"], "'filter_q'"),
@@ -182,3 +176,26 @@ def test_throughput_suite_writes_every_row(tmp_path):
     )
     table = format_throughput_table(data)
     assert "Brax PPO" in table and "skipped: not in rows=" in table and "PPO (ours) / raw env" in table
+
+
+@pytest.mark.parametrize(
+    "args,named",
+    [
+        (["algo=sac"], "'algo'"),
+        (["explore=coherent"], "'explore'"),
+        (["rows=[ppo,trpo]"], "'rows'"),
+        (["rows=[]"], "'rows'"),
+        (["filter_q=[8]"], "'filter_q'"),
+        (["num_envs=0"], "'num_envs'"),
+    ],
+)
+def test_throughput_bad_input_exits_2_and_writes_nothing(tmp_path, capsys, args, named):
+    """The same checks in-process (the subprocess test above covers the entry point)."""
+    from coherent_jax.bench import main
+
+    for argv in (["throughput", *args], args):  # the suite named, and the default
+        assert main([*argv, f"out={tmp_path / 'r.json'}"]) == 2
+        lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+        assert len(lines) == 1 and lines[0].startswith("error:") and named in lines[0], lines
+        assert "allowed" in lines[0] or "valid" in lines[0]
+        assert list(tmp_path.iterdir()) == []
