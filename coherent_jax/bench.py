@@ -1,4 +1,10 @@
-"""Benchmarks: ``python -m coherent_jax.bench coherent [key=value ...]``.
+"""Benchmarks: ``python -m coherent_jax.bench [throughput|coherent|sac] [key=value ...]``.
+
+(The ``sac`` suite lives in `coherent_jax.bench_sac`.) The ``throughput`` suite, the
+default, is `run_throughput_bench`: in one process on one task and one set of
+settings, the raw vectorized env rate, the training rate of PPO, Coherent-PPO, SAC
+and Coherent-SAC, and Brax's own PPO trainer on the same env and batch layout, with
+compile times apart, peak memory and the ratios.
 
 The ``coherent`` suite measures, in one process and on one set of settings, what
 coherent exploration costs next to Gaussian action noise:
@@ -40,7 +46,7 @@ from typing import Any
 
 from coherent_jax.config import Config, ConfigError, parse_overrides, to_dict
 
-SUITES = ("throughput", "coherent")
+SUITES = ("throughput", "coherent", "sac")  # sac: coherent_jax/bench_sac.py
 DEFAULT_SUITE = "throughput"  # what ``python -m coherent_jax.bench`` runs with no suite named
 # Config keys the coherent suite sets itself: it runs both strategies, and remat on and off.
 _SET_BY_SUITE = ("explore", "remat")
@@ -1177,6 +1183,7 @@ def help_text() -> str:
             "  and every training option of `python -m coherent_jax.train --help` except "
             + ", ".join(SET_BY_SUITE[suite])
         )
+    lines += ["", "sac suite: see coherent_jax/bench_sac.py"]
     return "\n".join(lines)
 
 
@@ -1191,6 +1198,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if suite not in SUITES:
         print(f"error: unknown suite {suite!r}; valid suites: {', '.join(SUITES)}", file=sys.stderr)
         return 2
+    if argv[0] == "sac":
+        from coherent_jax import bench_sac
+
+        return bench_sac.main(argv[1:])
     try:
         parse_bench_overrides(argv[1:], suite)
     except ConfigError as exc:

@@ -123,6 +123,12 @@ class Config:
     eval_episodes: int = _field(8, "episodes per evaluation (run in parallel)")
     run_dir: str = _field("", "output directory; default runs/<env>-<algo>-<explore>-s<seed>-<time>")
     progress: bool = _field(True, "show a progress bar")
+    # --- long runs (issue 7): checkpoints, resume, TensorBoard
+    checkpoint_every: int = _field(
+        10, "iterations between checkpoints (atomic; one also at the end and on SIGINT/SIGTERM)"
+    )
+    resume: str = _field("", "continue the run in this directory from its checkpoint, with its config")
+    tensorboard: bool = _field(True, "write TensorBoard event files to <run_dir>/tb")
     # --- devices (issue 6, parts 1-2: sharding over JAX devices, several hosts)
     num_devices: int = _field(
         0,
@@ -245,6 +251,7 @@ def validate(cfg: Config) -> Config:
         )
     _check(cfg.eval_every >= 0, "eval_every", cfg.eval_every, "an integer >= 0")
     _check(cfg.eval_episodes >= 1, "eval_episodes", cfg.eval_episodes, "an integer >= 1")
+    _check(cfg.checkpoint_every >= 0, "checkpoint_every", cfg.checkpoint_every, "an integer >= 0")
     _check(cfg.num_devices >= 0, "num_devices", cfg.num_devices, "an integer >= 0 (0 = all devices)")
     return cfg
 

@@ -121,6 +121,19 @@ def init_state(trainer: Any, init_key: jax.Array, num_devices: int, num_envs: in
     return jax.jit(trainer.init, out_shardings=shardings)(init_key), shardings
 
 
+def shard_state(state: Any, num_devices: int, num_envs: int):
+    """An existing state (e.g. restored from a checkpoint) placed as `init_state` places a new one.
+
+    Returns:
+      (state, shardings), shardings None on one device.
+    """
+    if num_devices == 1:
+        return state, None
+    check_env_split(num_envs, num_devices)
+    shardings = env_state_shardings(state, make_mesh(num_devices, ENV_AXIS), num_envs)
+    return jax.device_put(state, shardings), shardings
+
+
 def compile_iteration(trainer: Any, state: Any, shardings: Any = None):
     """``iteration(state) -> (state, metrics)`` compiled; the state's buffers are donated.
 

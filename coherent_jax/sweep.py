@@ -39,7 +39,8 @@ from pathlib import Path
 from typing import Any
 
 from coherent_jax.config import SWEEPABLE, Config, ConfigError, help_text, parse_overrides, to_dict
-from coherent_jax.train import _atomic_write, _to_float, check_devices, prepare_run_dir, run_keys
+from coherent_jax.runs import atomic_write
+from coherent_jax.train import _to_float, check_devices, prepare_run_dir, run_keys
 
 # Keys that may take a list of values: the state's array hyperparameters, and seed.
 AXIS_KEYS = (*SWEEPABLE, "seed")
@@ -268,7 +269,7 @@ def run_sweep(plan: SweepPlan, out_dir: Path | None, env=None, eval_env=None) ->
             d.mkdir()
             # The point's own settings, as the single run that it equals would record them.
             point_cfg = dataclasses.replace(p.cfg, run_dir=str(d))
-            _atomic_write(d / "config.yaml", OmegaConf.to_yaml(to_dict(point_cfg)).encode())
+            atomic_write(d / "config.yaml", OmegaConf.to_yaml(to_dict(point_cfg)).encode())
             point_dirs.append(d)
             files.append(open(d / "metrics.jsonl", "w"))
     bar = tqdm(
@@ -357,10 +358,10 @@ def run_sweep(plan: SweepPlan, out_dir: Path | None, env=None, eval_env=None) ->
         params = _gather(trainer.export_params(states))
         for j, d in enumerate(point_dirs):
             one = jax.tree.map(lambda x, j=j: x[j], params)
-            _atomic_write(d / "params.msgpack", serialization.to_bytes(one))
-            _atomic_write(d / "summary.json", json.dumps(summaries[j], indent=2).encode())
-        _atomic_write(out_dir / "sweep.csv", to_csv(plan, rows).encode())
-        _atomic_write(out_dir / "sweep.json", json.dumps(result, indent=2).encode())
+            atomic_write(d / "params.msgpack", serialization.to_bytes(one))
+            atomic_write(d / "summary.json", json.dumps(summaries[j], indent=2).encode())
+        atomic_write(out_dir / "sweep.csv", to_csv(plan, rows).encode())
+        atomic_write(out_dir / "sweep.json", json.dumps(result, indent=2).encode())
     print(format_table(plan, rows), flush=True)
     print(
         f"[coherent_jax] sweep done: {result['sweep_env_steps_per_s']:.0f} env steps/s over all points, "

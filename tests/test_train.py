@@ -31,10 +31,13 @@ def test_cli_run_writes_run_dir_and_is_reproducible(tmp_path):
     run = tmp_path / "run"
     assert main([*FAST, "total_steps=3072", "eval_every=2", "seed=3", f"run_dir={run}"]) == 0
     assert sorted(p.name for p in run.iterdir()) == [
+        "checkpoint.msgpack",
         "config.yaml",
         "metrics.jsonl",
         "params.msgpack",
         "summary.json",
+        "tb",
+        "versions.json",
     ]
     rows = read_rows(run / "metrics.jsonl")
     assert [r["iteration"] for r in rows] == [1, 2, 3]

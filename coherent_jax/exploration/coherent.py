@@ -751,12 +751,16 @@ class CoherentExploration(Exploration):
     def offpolicy_act(self, key, actor, actor_params, hparams, carry, obs, first):
         chex.assert_rank([obs, first], [2, 1])
         chex.assert_shape(carry, (obs.shape[0],) + actor_params["mu"].shape)
-        k_z, k_a = jax.random.split(key)
+        # ``key`` draws xi exactly as plain SAC does, so sigma = 0 reproduces its actions.
+        k_z, k_a = jax.random.fold_in(key, 1), key
         beta = hparams["beta"]
         eps = jax.random.normal(k_z, carry.shape, carry.dtype)
         z = jnp.where(first[:, None, None], eps, (1.0 - beta) * carry + _innovation_std(beta) * eps)
-        head = actor_params["mu"] + hparams["sigma"] * z  # [n, p, q+1]
-        dist = actor.dist_from_features(actor_params, actor.features(actor_params, obs), head)
+        x = actor.features(actor_params, obs)
+        # (mu + sigma z_t) xh = mu xh + sigma z_t xh: the first term is the unperturbed
+        # actor's, computed the same way, so sigma = 0 gives its actions bit for bit.
+        dist = actor.dist_from_features(actor_params, x)
+        dist = dist._replace(mean=dist.mean + hparams["sigma"] * jnp.einsum("npk,nk->np", z, _augment(x)))
         action, _ = squash(k_a, dist)
         return action, z
 
@@ -765,9 +769,9 @@ class CoherentExploration(Exploration):
         x = actor.features(actor_params, obs)
         # One perturbed actor: a draw from the chain's stationary law N(mu, sigma^2 I).
         z = jax.random.normal(key, actor_params["mu"].shape, actor_params["mu"].dtype)
-        head = actor_params["mu"] + hparams["sigma"] * z
-        mean = jnp.tanh(actor.dist_from_features(actor_params, x).mean)
-        perturbed = jnp.tanh(actor.dist_from_features(actor_params, x, head).mean)
+        pre = actor.dist_from_features(actor_params, x).mean
+        mean = jnp.tanh(pre)
+        perturbed = jnp.tanh(pre + hparams["sigma"] * jnp.einsum("pk,nk->np", z, _augment(x)))
         distance = policy_distance(mean, perturbed)
         sigma = adapt_sigma(hparams["sigma"], distance, hparams["sigma_delta"], hparams["sigma_alpha"])
         metrics = {"sigma": hparams["sigma"], "policy_distance": distance, "beta": hparams["beta"]}

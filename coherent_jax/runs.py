@@ -1,0 +1,283 @@
+"""The run directory: checkpoints, the stored config, package versions, metrics rows.
+
+A checkpoint is one file, ``checkpoint.msgpack``, replaced atomically (written to a
+temporary file, flushed to disk, then renamed over the old one), so a run killed at
+any moment leaves either the previous checkpoint or the new one, never a mixture.
+It is a msgpack map (flax serialisation, never pickle) of
+
+* ``meta``: JSON text: format tag, the config fingerprint, the iteration, the env
+  steps and the run loop's own state (evaluation PRNG key, timers, last metrics);
+* ``state``: the leaves of the trainer's whole state pytree (`state_to_bytes`);
+* ``sha256``: digest of ``meta`` and ``state``, so truncation or corruption is
+  detected before anything is restored.
+
+The fingerprint is a hash of every config field that changes what a run computes
+(all but `RESUMABLE_KEYS`); resuming with a different config or from another run's
+directory is refused, naming the first key that differs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import importlib.metadata
+import json
+import math
+import os
+import platform
+import sys
+from pathlib import Path
+from typing import Any
+
+import msgpack
+
+from coherent_jax.config import Config, ConfigError, to_dict, validate
+
+CHECKPOINT = "checkpoint.msgpack"
+CONFIG = "config.yaml"
+METRICS = "metrics.jsonl"
+VERSIONS = "versions.json"
+FORMAT = "coherent_jax-checkpoint-1"
+# Fields that may differ between a run and its resumption: they change where and how
+# a run reports, never what it computes.
+RESUMABLE_KEYS = ("run_dir", "progress", "resume", "checkpoint_every", "tensorboard")
+VERSIONED_PACKAGES = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "brax", "flax", "optax", "numpy", "chex")
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be used: missing, truncated, corrupted or from another run."""
+
+
+def atomic_write(path: Path, data: bytes) -> None:
+    """Writes `data` to `path` through a temporary file and a rename (POSIX-atomic)."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def fingerprint_fields(cfg: Config) -> dict[str, Any]:
+    """The config fields a checkpoint must agree with (all but `RESUMABLE_KEYS`)."""
+    return {k: v for k, v in to_dict(cfg).items() if k not in RESUMABLE_KEYS}
+
+
+def config_fingerprint(cfg: Config) -> str:
+    """sha256 of the fields of `fingerprint_fields`, as canonical JSON."""
+    text = json.dumps(fingerprint_fields(cfg), sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def config_difference(a: Config, b: Config) -> str | None:
+    """The first fingerprinted key where `a` and `b` differ, or None."""
+    fa, fb = fingerprint_fields(a), fingerprint_fields(b)
+    for key in fa:
+        if fa[key] != fb.get(key):
+            return key
+    return None
+
+
+def load_config(run_dir: Path) -> Config:
+    """The validated `Config` stored in ``run_dir/config.yaml``.
+
+    Raises `ConfigError` (one line) for a missing file, a malformed YAML, an unknown
+    key or a bad value (a NaN learning rate, say), naming the file and the key.
+    """
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    path = Path(run_dir) / CONFIG
+    if not path.is_file():
+        raise ConfigError(
+            f"invalid run directory {str(run_dir)!r}: no {CONFIG} (allowed: a training run's directory)"
+        )
+    try:
+        stored = OmegaConf.load(path)
+        merged = OmegaConf.merge(OmegaConf.structured(Config()), stored)
+        cfg = OmegaConf.to_object(merged)
+    except (OmegaConfBaseException, ValueError) as exc:
+        key = getattr(exc, "full_key", None) or "?"
+        raise ConfigError(f"invalid {path}: key {key!r}: {str(exc).splitlines()[0]}") from None
+    try:
+        return validate(cfg)
+    except ConfigError as exc:
+        raise ConfigError(f"invalid {path}: {exc}") from None
+
+
+def package_versions() -> dict[str, str]:
+    """Python, platform and the versions of the packages a run's numbers depend on."""
+    versions = {"python": sys.version.split()[0], "platform": platform.platform()}
+    for name in VERSIONED_PACKAGES:
+        try:
+            versions[name] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            versions[name] = "not installed"
+    try:
+        import jax
+
+        versions["jax_backend"] = jax.default_backend()
+    except Exception:  # noqa: BLE001 - best effort: versions.json must not stop a run
+        pass
+    return versions
+
+
+@dataclasses.dataclass
+class LoopState:
+    """What the run loop itself carries between iterations (besides the trainer state).
+
+    Attributes:
+      eval_key: the loop's PRNG key for evaluations (two uint32 words).
+      train_s, eval_s, elapsed_s: seconds spent so far (reported, never compared).
+      last_return: latest finite training-episode return (NaN before any).
+      last_eval: metrics of the latest evaluation.
+    """
+
+    eval_key: list[int]
+    train_s: float = 0.0
+    eval_s: float = 0.0
+    elapsed_s: float = 0.0
+    last_return: float = float("nan")
+    last_eval: dict[str, float] = dataclasses.field(default_factory=dict)
+
+
+@dataclasses.dataclass
+class Checkpoint:
+    """A verified checkpoint: its metadata and the raw state bytes."""
+
+    iteration: int
+    env_steps: int
+    fingerprint: str
+    loop: LoopState
+    state_bytes: bytes
+
+
+def _json_safe(x: float) -> float | None:
+    return x if math.isfinite(x) else None
+
+
+def encode_checkpoint(
+    cfg: Config, iteration: int, env_steps: int, loop: LoopState, state_bytes: bytes
+) -> bytes:
+    """The bytes of ``checkpoint.msgpack`` (see the module docstring)."""
+    loop_dict = dataclasses.asdict(loop)
+    loop_dict["last_return"] = _json_safe(loop.last_return)
+    loop_dict["last_eval"] = {k: _json_safe(v) for k, v in loop.last_eval.items()}
+    meta = json.dumps(
+        {
+            "format": FORMAT,
+            "fingerprint": config_fingerprint(cfg),
+            "iteration": int(iteration),
+            "env_steps": int(env_steps),
+            "loop": loop_dict,
+        },
+        sort_keys=True,
+    ).encode()
+    digest = hashlib.sha256(meta + state_bytes).hexdigest()
+    return msgpack.packb({"meta": meta, "state": state_bytes, "sha256": digest}, use_bin_type=True)
+
+
+def decode_checkpoint(path: Path, cfg: Config) -> Checkpoint:
+    """Reads and verifies ``path`` against `cfg`; raises `CheckpointError` in one line.
+
+    Nothing is written or changed, whatever the outcome.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"no checkpoint at {str(path)!r} (allowed: a run directory with {CHECKPOINT})")
+    raw = path.read_bytes()
+    try:
+        record = msgpack.unpackb(raw, raw=False)
+        meta_bytes, state_bytes, digest = record["meta"], record["state"], record["sha256"]
+    except Exception:  # noqa: BLE001 - any decoding failure means the same thing
+        raise CheckpointError(
+            f"corrupted or truncated checkpoint {str(path)!r} ({len(raw)} bytes): not a checkpoint record"
+        ) from None
+    if not isinstance(meta_bytes, bytes) or not isinstance(state_bytes, bytes):
+        raise CheckpointError(f"corrupted checkpoint {str(path)!r}: malformed record")
+    if hashlib.sha256(meta_bytes + state_bytes).hexdigest() != digest:
+        raise CheckpointError(f"corrupted checkpoint {str(path)!r}: sha256 mismatch")
+    meta = json.loads(meta_bytes)
+    if meta.get("format") != FORMAT:
+        raise CheckpointError(
+            f"checkpoint {str(path)!r} has format {meta.get('format')!r} (allowed: {FORMAT})"
+        )
+    if meta["fingerprint"] != config_fingerprint(cfg):
+        raise CheckpointError(
+            f"checkpoint {str(path)!r} belongs to another run: its config fingerprint "
+            f"{meta['fingerprint'][:12]} differs from this config's {config_fingerprint(cfg)[:12]}"
+        )
+    loop = dict(meta["loop"])
+    loop["last_return"] = float("nan") if loop["last_return"] is None else loop["last_return"]
+    loop["last_eval"] = {k: float("nan") if v is None else v for k, v in loop["last_eval"].items()}
+    return Checkpoint(
+        iteration=meta["iteration"],
+        env_steps=meta["env_steps"],
+        fingerprint=meta["fingerprint"],
+        loop=LoopState(**loop),
+        state_bytes=state_bytes,
+    )
+
+
+def state_to_bytes(state: Any) -> bytes:
+    """The leaves of the state pytree, in tree order, as flax msgpack.
+
+    Leaves rather than the tree itself: the physics state of an MJX environment is a
+    pytree that flax's serialisation does not know, and the tree structure is
+    rebuilt from the trainer's own template on restore.
+    """
+    import jax
+    import numpy as np
+    from flax import serialization
+
+    leaves = jax.tree_util.tree_leaves(jax.device_get(state))
+    return serialization.msgpack_serialize({str(i): np.asarray(x) for i, x in enumerate(leaves)})
+
+
+def restore_state(template: Any, state_bytes: bytes, path: Path) -> Any:
+    """The state pytree of a checkpoint, shaped like `template` (checked leaf by leaf).
+
+    `template` may hold arrays or ``jax.ShapeDtypeStruct``s (``jax.eval_shape`` of
+    the trainer's ``init``).
+    """
+    import jax
+    import numpy as np
+    from flax import serialization
+
+    try:
+        stored = serialization.msgpack_restore(state_bytes)
+        leaves = [np.asarray(stored[str(i)]) for i in range(len(stored))]
+    except Exception as exc:  # noqa: BLE001
+        raise CheckpointError(f"checkpoint {str(path)!r}: unreadable state ({exc})") from None
+    flat_t, treedef = jax.tree_util.tree_flatten_with_path(template)
+    if len(flat_t) != len(leaves):
+        raise CheckpointError(
+            f"checkpoint {str(path)!r} has {len(leaves)} arrays, this trainer {len(flat_t)}"
+        )
+    for (where, t), s in zip(flat_t, leaves, strict=True):
+        if s.shape != tuple(t.shape) or s.dtype != t.dtype:
+            raise CheckpointError(
+                f"checkpoint {str(path)!r}: {jax.tree_util.keystr(where)} is {s.dtype}{list(s.shape)}, "
+                f"this trainer expects {t.dtype}{list(t.shape)}"
+            )
+    return jax.device_put(jax.tree_util.tree_unflatten(treedef, leaves))
+
+
+def read_metrics(path: Path) -> list[dict[str, Any]]:
+    """Rows of a ``metrics.jsonl``; a partial last line (killed mid-write) is dropped."""
+    rows = []
+    if not Path(path).is_file():
+        return rows
+    for line in Path(path).read_text().splitlines():
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:
+            break
+    return rows
+
+
+def truncate_metrics(path: Path, iteration: int) -> None:
+    """Keeps the rows up to `iteration` (atomically): a resumed run rewrites the rest."""
+    rows = [r for r in read_metrics(path) if r["iteration"] <= iteration]
+    atomic_write(Path(path), "".join(json.dumps(r) + "\n" for r in rows).encode())
