@@ -189,6 +189,15 @@ class Config:
         4, "gsde: steps between redraws of the noise matrix (also redrawn at each episode start)"
     )
     pink_exponent: float = _field(1.0, "pink: noise spectrum ~ 1/f^exponent (0 white, 1 pink, 2 red)")
+    # --- devices (issue 6, parts 1-2: sharding over JAX devices, several hosts)
+    num_devices: int = _field(
+        0,
+        "JAX devices to spread the envs (train) or the sweep points (sweep) over; 0 = all. "
+        "num_envs must be a multiple of it",
+    )
+    distributed: bool = _field(
+        False, "call jax.distributed.initialize() first (several hosts; see README, Devices)"
+    )
 
     # --- derived (not settable)
     @property
@@ -206,7 +215,22 @@ class Config:
 
 
 # Scalars that may differ across the points of one vmapped sweep.
-SWEEPABLE = ("lr", "gamma", "gae_lambda", "clip_eps", "target_kl", "vf_coef", "ent_coef", "beta")
+SWEEPABLE = (
+    "lr",
+    "gamma",
+    "gae_lambda",
+    "clip_eps",
+    "target_kl",
+    "vf_coef",
+    "ent_coef",
+    "beta",
+    # SAC and Coherent-SAC
+    "tau",
+    "temperature",
+    "sigma_init",
+    "sigma_delta",
+    "sigma_alpha",
+)
 
 
 class ConfigError(ValueError):
@@ -315,6 +339,7 @@ def validate(cfg: Config) -> Config:
     _check(cfg.eval_every >= 0, "eval_every", cfg.eval_every, "an integer >= 0")
     _check(cfg.eval_episodes >= 1, "eval_episodes", cfg.eval_episodes, "an integer >= 1")
     _check(cfg.checkpoint_every >= 0, "checkpoint_every", cfg.checkpoint_every, "an integer >= 0")
+    _check(cfg.num_devices >= 0, "num_devices", cfg.num_devices, "an integer >= 0 (0 = all devices)")
     return cfg
 
 

@@ -82,6 +82,19 @@ def _to_float(x: Any) -> float | None:
     return value if math.isfinite(value) else None
 
 
+def run_keys(seed: int):
+    """(key, init_key) of a run: ``init_key`` starts the state, ``key`` is split once per evaluation.
+
+    Sweeps derive each grid point's keys with this same function, so a point equals
+    the single run with its settings.
+    """
+    import jax
+
+    key = jax.random.PRNGKey(seed)
+    key, init_key = jax.random.split(key)
+    return key, init_key
+
+
 def _first_non_finite(tree: Any) -> str:
     """Path of the first array of `tree` (on the host) holding a NaN or an infinity."""
     import jax
@@ -143,19 +156,22 @@ def train(
     from flax import serialization
     from tqdm.auto import tqdm
 
+    from coherent_jax import parallel
     from coherent_jax.agents import make_trainer
 
     t_start = time.perf_counter()
+    num_devices = parallel.resolve_num_devices(cfg.num_devices)
+    parallel.check_env_split(cfg.num_envs, num_devices)
     trainer = make_trainer(cfg)
-    key = jax.random.PRNGKey(cfg.seed)
-    key, init_key = jax.random.split(key)
+    key, init_key = run_keys(cfg.seed)
     loop = LoopState(eval_key=[int(w) for w in jax.device_get(key)])
     start = 0
     if resume is None:
-        state = jax.jit(trainer.init)(init_key)
+        state, shardings = parallel.init_state(trainer, init_key, num_devices, cfg.num_envs)
     else:  # the state's structure from tracing init, its values from the checkpoint
         template = jax.eval_shape(trainer.init, init_key)
         state = restore_state(template, resume.state_bytes, run_dir / CHECKPOINT)
+        state, shardings = parallel.shard_state(state, num_devices, cfg.num_envs)
         loop, start = resume.loop, resume.iteration
         key = jnp.asarray(loop.eval_key, dtype=jnp.uint32)
 
@@ -169,7 +185,7 @@ def train(
     physics = getattr(getattr(trainer, "env", None), "physics", cfg.physics)
 
     t0 = time.perf_counter()
-    iteration = jax.jit(trainer.iteration, donate_argnums=0).lower(state).compile()
+    iteration = parallel.compile_iteration(trainer, state, shardings)
     evaluate = jax.jit(trainer.evaluate).lower(state, key).compile()
     check_params = jax.jit(params_finite).lower(state).compile()
     compile_s = time.perf_counter() - t0
@@ -177,6 +193,7 @@ def train(
         f"[coherent_jax] {cfg.env} {cfg.algo} explore={cfg.explore} physics={physics}: "
         f"compiled in {compile_s:.1f} s; "
         f"{cfg.num_iterations} iterations of {cfg.steps_per_iteration} env steps"
+        + (f" on {num_devices} devices" if num_devices > 1 else "")
         + (f"; resuming after iteration {start}" if resume is not None else ""),
         flush=True,
     )
@@ -287,6 +304,7 @@ def train(
         "train_env_steps_per_s": round(total_steps / max(loop.train_s, 1e-9), 1),
         "jax_version": jax.__version__,
         "backend": jax.default_backend(),
+        "num_devices": num_devices,
         "resumed_from": start if resume is not None else None,
         "stopped_by": signal.Signals(stopper.signum).name if stopper.signum is not None else None,
         "physics": physics,
@@ -378,21 +396,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if resume_args and resume_args[-1].split("=", 1)[1].strip():
             cfg, run_dir = _resume_config(resume_args[-1].split("=", 1)[1].strip(), rest)
+            check_devices(cfg)
             checkpoint = decode_checkpoint(run_dir / CHECKPOINT, cfg)
             if checkpoint.iteration >= cfg.num_iterations and (run_dir / "summary.json").exists():
                 print(f"[coherent_jax] {run_dir} is already complete ({checkpoint.iteration} iterations)")
                 return 0
         else:
             cfg = parse_overrides(argv)
-            run_dir = prepare_run_dir(cfg)
+            is_writer = check_devices(cfg)  # several hosts: only process 0 writes
+            run_dir = prepare_run_dir(cfg) if is_writer else None
     except (ConfigError, CheckpointError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     if checkpoint is None:
         from omegaconf import OmegaConf
 
-        atomic_write(run_dir / CONFIG, OmegaConf.to_yaml(to_dict(cfg)).encode())
-        atomic_write(run_dir / VERSIONS, json.dumps(package_versions(), indent=2).encode())
+        if run_dir:
+            atomic_write(run_dir / CONFIG, OmegaConf.to_yaml(to_dict(cfg)).encode())
+            atomic_write(run_dir / VERSIONS, json.dumps(package_versions(), indent=2).encode())
     else:
         versions = package_versions()
         stored = json.loads((run_dir / VERSIONS).read_text()) if (run_dir / VERSIONS).exists() else {}
@@ -402,7 +423,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             name = f"versions-resumed-{checkpoint.iteration}.json"
             atomic_write(run_dir / name, json.dumps(versions, indent=2).encode())
             print(f"[coherent_jax] warning: package versions differ from the run's; see {name}", flush=True)
-    print(f"[coherent_jax] run dir {run_dir}", flush=True)
+    if run_dir:
+        print(f"[coherent_jax] run dir {run_dir}", flush=True)
     try:
         summary = train(cfg, run_dir, resume=checkpoint)
     except DivergenceError as exc:
@@ -411,6 +433,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     if summary["stopped_by"] is not None:
         return 128 + int(signal.Signals[summary["stopped_by"]])
     return 0
+
+
+def check_devices(cfg: Config, split_envs: bool = True) -> bool:
+    """Initialises multi-host JAX if asked and checks the device split before anything is written.
+
+    Returns whether this process writes the outputs (process 0 of a distributed run).
+    """
+    from coherent_jax import parallel
+
+    parallel.maybe_initialize_distributed(cfg.distributed)
+    num_devices = parallel.resolve_num_devices(cfg.num_devices)
+    if split_envs:
+        parallel.check_env_split(cfg.num_envs, num_devices)
+    import jax
+
+    return jax.process_index() == 0
 
 
 if __name__ == "__main__":

@@ -9,7 +9,14 @@ from pathlib import Path
 
 import pytest
 
-from coherent_jax.bench import _sample_segments, dense_log_marginals, format_table, run_coherent_bench
+from coherent_jax.bench import (
+    _sample_segments,
+    dense_log_marginals,
+    format_table,
+    format_throughput_table,
+    run_coherent_bench,
+    run_throughput_bench,
+)
 
 TINY = [
     "env=pointmass",
@@ -110,8 +117,9 @@ def run_cli(args, cwd):
 @pytest.mark.parametrize(
     "args,named",
     [
-        ([], "''"),
         (["speed"], "'speed'"),
+        # No suite named runs the default (throughput) suite: its keys are checked.
+        (["iterations=0"], "'iterations'"),
         (["coherent", "foo=1"], "'foo'"),
         (["coherent", "iterations=0"], "'iterations'"),
         (["coherent", "filter_q=[8,x]"], "'filter_q'"),
@@ -120,9 +128,74 @@ def run_cli(args, cwd):
     ],
 )
 def test_cli_bad_input_exits_2_and_writes_nothing(tmp_path, args, named):
-    proc = run_cli([*args, f"out={tmp_path / 'r.json'}"] if args else [], cwd=tmp_path)
+    proc = run_cli([*args, f"out={tmp_path / 'r.json'}"], cwd=tmp_path)
     assert proc.returncode == 2, proc.stderr
     lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("error:") and named in lines[0], proc.stderr
     assert "allowed" in lines[0] or "valid" in lines[0]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_throughput_suite_writes_every_row(tmp_path):
+    """Raw env, PPO and Coherent-PPO rows with positive rates, compile times, memory and ratios.
+
+    Brax's PPO (about a minute of compiling even here) and the SAC rows are left to
+    the full bench; their skip reasons are recorded.
+    """
+    out = tmp_path / "results" / "throughput.json"
+    args = ["env=pointmass", "num_envs=4", "unroll_length=8", "num_minibatches=2", "iterations=2"]
+    only_ppo = "rows=[ppo,coherent_ppo]"
+    result = run_throughput_bench([*args, only_ppo, f"out={out}"], log=lambda msg: None)
+    assert json.loads(out.read_text()) == json.loads(json.dumps(result))
+    assert sorted(p.name for p in out.parent.iterdir()) == ["throughput.json"]
+    data = json.loads(out.read_text())
+    assert data["suite"] == "throughput" and data["env_steps_per_iteration"] == 32
+    rows = data["rows"]
+    assert sorted(rows) == ["coherent_ppo", "ppo", "raw_env"]
+    for name, row in rows.items():
+        for key in ("compile_s", "iteration_s_median", "env_steps_per_s", "env_steps_per_s_best"):
+            assert _positive(row[key]), (name, key)
+        assert len(row["iteration_s"]) == 2
+        assert row["env_steps_per_s"] == pytest.approx(32 / row["iteration_s_median"])
+        assert row["env_steps_per_s_best"] == pytest.approx(32 / min(row["iteration_s"]))
+    for name in ("ppo", "coherent_ppo"):
+        assert _positive(rows[name]["memory"]["peak_bytes"]), name
+        assert rows[name]["config"]["num_envs"] == 4
+    assert (
+        rows["ppo"]["config"]["explore"] == "action"
+        and rows["coherent_ppo"]["config"]["explore"] == "coherent"
+    )
+    ratios = data["ratios"]
+    assert ratios["ppo_over_raw_env"] == pytest.approx(
+        rows["ppo"]["env_steps_per_s"] / rows["raw_env"]["env_steps_per_s"]
+    )
+    assert "ppo_over_brax_ppo" not in ratios
+    assert data["skipped"] == {n: "not in rows=" for n in ("sac", "coherent_sac", "brax_ppo")}
+    assert ratios["coherent_ppo_over_ppo"] == pytest.approx(
+        rows["coherent_ppo"]["env_steps_per_s"] / rows["ppo"]["env_steps_per_s"]
+    )
+    table = format_throughput_table(data)
+    assert "Brax PPO" in table and "skipped: not in rows=" in table and "PPO (ours) / raw env" in table
+
+
+@pytest.mark.parametrize(
+    "args,named",
+    [
+        (["algo=sac"], "'algo'"),
+        (["explore=coherent"], "'explore'"),
+        (["rows=[ppo,trpo]"], "'rows'"),
+        (["rows=[]"], "'rows'"),
+        (["filter_q=[8]"], "'filter_q'"),
+        (["num_envs=0"], "'num_envs'"),
+    ],
+)
+def test_throughput_bad_input_exits_2_and_writes_nothing(tmp_path, capsys, args, named):
+    """The same checks in-process (the subprocess test above covers the entry point)."""
+    from coherent_jax.bench import main
+
+    for argv in (["throughput", *args], args):  # the suite named, and the default
+        assert main([*argv, f"out={tmp_path / 'r.json'}"]) == 2
+        lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+        assert len(lines) == 1 and lines[0].startswith("error:") and named in lines[0], lines
+        assert "allowed" in lines[0] or "valid" in lines[0]
+        assert list(tmp_path.iterdir()) == []

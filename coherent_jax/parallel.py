@@ -1,0 +1,178 @@
+"""Spreading a run over JAX devices with `jax.sharding` (data parallel, SPMD).
+
+A training run shards its environments: every array of the per-env part of the
+train state (``env_state`` and the exploration ``carry``, leading axis
+``num_envs``) is split over a 1-D device mesh along that axis, and everything
+else (parameters, optimiser state, observation statistics, hyperparameters,
+keys) is replicated. The iteration is jitted with these shardings as its input
+and output shardings; XLA's SPMD partitioner then runs each device's envs on
+that device and inserts the all-reduces that the batch means of the loss need,
+so the gradient every device applies is the mean over *all* envs, the same
+function as on one device (up to the order of float sums).
+
+A sweep instead shards its leading grid-point axis: each device runs whole
+points, with no communication at all.
+
+Several hosts: with ``distributed=true`` the CLIs call
+`jax.distributed.initialize()` first (coordinator, process count and id from the
+usual ``JAX_COORDINATOR_ADDRESS``-style environment or the cluster's own, e.g.
+SLURM), after which `jax.devices()` lists every host's devices and the same mesh
+spans them; only process 0 writes files.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from coherent_jax.config import ConfigError
+
+ENV_AXIS = "envs"
+POINT_AXIS = "points"
+# Fields of a train state whose arrays carry one row per env (leading axis num_envs).
+PER_ENV_FIELDS = ("env_state", "carry")
+
+
+def resolve_num_devices(requested: int) -> int:
+    """``requested`` devices (0 = all); raises `ConfigError` if there are fewer."""
+    available = jax.device_count()
+    if requested == 0:
+        return available
+    if requested > available:
+        raise ConfigError(
+            f"invalid value for 'num_devices': {requested} (allowed: 0 = all, or 1 to {available}, "
+            f"the JAX devices found: {jax.devices()[0].platform} x {available})"
+        )
+    return requested
+
+
+def check_env_split(num_envs: int, num_devices: int) -> None:
+    """Each device must get the same number of envs."""
+    if num_envs % num_devices:
+        raise ConfigError(
+            f"invalid value for 'num_envs': {num_envs} (allowed: a multiple of the {num_devices} devices "
+            f"the envs are split over; or set num_devices to a divisor of it)"
+        )
+
+
+def make_mesh(num_devices: int, axis: str) -> Mesh:
+    """A 1-D mesh over the first ``num_devices`` devices (all hosts' devices when distributed)."""
+    return Mesh(np.asarray(jax.devices()[:num_devices]), (axis,))
+
+
+def _leading_axis_sharding(mesh: Mesh, axis: str, size: int):
+    """Sharding for one leaf: split its leading axis if it has ``size`` rows, else replicate."""
+    split = NamedSharding(mesh, PartitionSpec(axis))
+    replicated = NamedSharding(mesh, PartitionSpec())
+
+    def for_leaf(leaf) -> NamedSharding:
+        shape = getattr(leaf, "shape", ())
+        return split if len(shape) >= 1 and shape[0] == size else replicated
+
+    return for_leaf
+
+
+def env_state_shardings(state: Any, mesh: Mesh, num_envs: int) -> Any:
+    """Shardings for a train state (or its `jax.eval_shape`): per-env fields split, the rest replicated.
+
+    The per-env fields are the state's attributes named in `PER_ENV_FIELDS`; within them
+    a leaf is split along its leading axis when that axis has ``num_envs`` rows (a
+    scalar PRNG key inside ``env_state`` stays replicated).
+    """
+    replicated = NamedSharding(mesh, PartitionSpec())
+    per_env = _leading_axis_sharding(mesh, ENV_AXIS, num_envs)
+    shardings = jax.tree.map(lambda _: replicated, state)
+    updates = {
+        name: jax.tree.map(per_env, getattr(state, name)) for name in PER_ENV_FIELDS if hasattr(state, name)
+    }
+    return shardings.replace(**updates) if updates else shardings
+
+
+def point_shardings(states: Any, mesh: Mesh) -> Any:
+    """Shardings for a stacked sweep state: every leaf split along its leading (grid point) axis."""
+    split = NamedSharding(mesh, PartitionSpec(POINT_AXIS))
+    return jax.tree.map(lambda _: split, states)
+
+
+def replicated(mesh: Mesh) -> NamedSharding:
+    return NamedSharding(mesh, PartitionSpec())
+
+
+def device_count_of(array: jax.Array) -> int:
+    """How many devices hold a piece of ``array`` (for tests and logs)."""
+    return len(array.sharding.device_set)
+
+
+def init_state(trainer: Any, init_key: jax.Array, num_devices: int, num_envs: int):
+    """The initial train state, on one device or already sharded over ``num_devices``.
+
+    Returns:
+      (state, shardings): ``shardings`` is None on one device, else the state's
+      `env_state_shardings`, for `compile_iteration`.
+    """
+    if num_devices == 1:
+        return jax.jit(trainer.init)(init_key), None
+    check_env_split(num_envs, num_devices)
+    mesh = make_mesh(num_devices, ENV_AXIS)
+    shardings = env_state_shardings(jax.eval_shape(trainer.init, init_key), mesh, num_envs)
+    return jax.jit(trainer.init, out_shardings=shardings)(init_key), shardings
+
+
+def shard_state(state: Any, num_devices: int, num_envs: int):
+    """An existing state (e.g. restored from a checkpoint) placed as `init_state` places a new one.
+
+    Returns:
+      (state, shardings), shardings None on one device.
+    """
+    if num_devices == 1:
+        return state, None
+    check_env_split(num_envs, num_devices)
+    shardings = env_state_shardings(state, make_mesh(num_devices, ENV_AXIS), num_envs)
+    return jax.device_put(state, shardings), shardings
+
+
+def compile_iteration(trainer: Any, state: Any, shardings: Any = None):
+    """``iteration(state) -> (state, metrics)`` compiled; the state's buffers are donated.
+
+    With ``shardings`` (from `init_state`) the state keeps them in and out and the
+    metrics are replicated; XLA's SPMD partitioner splits the work over the devices.
+    """
+    if shardings is None:
+        return jax.jit(trainer.iteration, donate_argnums=0).lower(state).compile()
+    mesh = jax.tree.leaves(shardings)[0].mesh
+    iteration = jax.jit(
+        trainer.iteration,
+        in_shardings=(shardings,),
+        out_shardings=(shardings, replicated(mesh)),
+        donate_argnums=0,
+    )
+    return iteration.lower(state).compile()
+
+
+def maybe_initialize_distributed(enabled: bool) -> None:
+    """`jax.distributed.initialize()` once, before any other JAX call, when ``enabled``.
+
+    On a cluster JAX detects coordinator, process count and id itself (SLURM, Open MPI,
+    Kubernetes, Cloud TPU). Elsewhere set ``JAX_COORDINATOR_ADDRESS=host:port`` (JAX
+    reads it) and ``JAX_NUM_PROCESSES`` and ``JAX_PROCESS_ID`` (read here) on every process.
+    """
+    if not enabled:
+        return
+    import os
+
+    kwargs = {}
+    if "JAX_NUM_PROCESSES" in os.environ:
+        kwargs["num_processes"] = int(os.environ["JAX_NUM_PROCESSES"])
+    if "JAX_PROCESS_ID" in os.environ:
+        kwargs["process_id"] = int(os.environ["JAX_PROCESS_ID"])
+    try:
+        jax.distributed.initialize(**kwargs)
+    except (ValueError, RuntimeError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ConfigError(
+            f"invalid value for 'distributed': True ({first}) (allowed: false, or true on a cluster JAX "
+            "detects or with JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES and JAX_PROCESS_ID set)"
+        ) from None
