@@ -856,7 +856,7 @@ def run_throughput_bench(overrides: Sequence[str], log: Callable[[str], None] | 
     )
     steps = cfg.steps_per_iteration
     shape = f"{cfg.env}, {cfg.num_envs} envs x {cfg.unroll_length} steps"
-    env = VecEnv(cfg.env, cfg.num_envs, cfg.episode_length)
+    env = VecEnv(cfg.env, cfg.num_envs, cfg.episode_length, cfg.physics, cfg.physics_threads)
     rows: dict[str, dict] = {}
 
     log(f"[bench] compiling the raw env rollout ({shape}, random actions) ...")

@@ -218,8 +218,10 @@ def run_sweep(plan: SweepPlan, out_dir: Path | None, env=None, eval_env=None) ->
 
     cfg = plan.base
     t_start = time.perf_counter()
-    env = env or VecEnv(cfg.env, cfg.num_envs, cfg.episode_length)
-    eval_env = eval_env or VecEnv(cfg.env, cfg.eval_episodes, cfg.episode_length)
+    env = env or VecEnv(cfg.env, cfg.num_envs, cfg.episode_length, cfg.physics, cfg.physics_threads)
+    eval_env = eval_env or VecEnv(
+        cfg.env, cfg.eval_episodes, cfg.episode_length, cfg.physics, cfg.physics_threads
+    )
     hparams = build_hparams(plan, env, eval_env)
     trainer = make_trainer(cfg, env, eval_env)  # shapes and program: shared by every point
     num_points = len(plan.points)
@@ -437,8 +439,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         from coherent_jax.envs.vec_env import VecEnv
 
         cfg = plan.base
-        env = VecEnv(cfg.env, cfg.num_envs, cfg.episode_length)
-        eval_env = VecEnv(cfg.env, cfg.eval_episodes, cfg.episode_length)
+        env = VecEnv(cfg.env, cfg.num_envs, cfg.episode_length, cfg.physics, cfg.physics_threads)
+        eval_env = VecEnv(cfg.env, cfg.eval_episodes, cfg.episode_length, cfg.physics, cfg.physics_threads)
         build_hparams(plan, env, eval_env)  # refuses an axis without effect, before anything is written
         out_dir = None
         if writer:
