@@ -97,3 +97,30 @@ def evaluate_policy(
     init = (env.reset(key), jnp.zeros((n,)), jnp.zeros((n,), jnp.int32), jnp.ones((n,), bool))
     (_, returns, lengths, _), _ = jax.lax.scan(step, init, None, length=env.episode_length)
     return returns, lengths
+
+
+def episode_metrics(data: Transition) -> dict[str, jax.Array]:
+    """``train/*`` episode figures of one collected segment [T, n].
+
+    episode_return: mean return of the episodes that ended in the segment (NaN if none).
+    """
+    n_done = data.done.sum()
+    return {
+        "train/episode_return": jnp.where(
+            n_done > 0, jnp.sum(data.episode_return) / jnp.maximum(n_done, 1), jnp.nan
+        ),
+        "train/episodes": n_done.astype(jnp.float32),
+        "train/reward_mean": data.reward.mean(),
+    }
+
+
+def evaluation_metrics(
+    env: VecEnv, policy: Callable[[jax.Array], jax.Array], key: jax.Array
+) -> dict[str, jax.Array]:
+    """``eval/*`` figures of one deterministic episode per env (`evaluate_policy`)."""
+    returns, lengths = evaluate_policy(env, policy, key)
+    return {
+        "eval/episode_return": returns.mean(),
+        "eval/episode_return_std": returns.std(),
+        "eval/episode_length": lengths.astype(jnp.float32).mean(),
+    }

@@ -25,7 +25,7 @@ from coherent_jax.envs.vec_env import EnvState, VecEnv
 from coherent_jax.exploration import make_exploration
 from coherent_jax.exploration.base import Exploration
 from coherent_jax.networks import RunningStats, ValueNetwork, normalize, update_stats
-from coherent_jax.rollout import Transition, evaluate_policy, unroll
+from coherent_jax.rollout import Transition, episode_metrics, evaluation_metrics, unroll
 
 
 @struct.dataclass
@@ -237,13 +237,7 @@ class OnPolicyTrainer:
         metrics["train/updates_applied"] = applied.sum()
         metrics["train/kl_first_minibatch"] = aux["approx_kl"][0, 0]
 
-        done = data.done
-        n_done = done.sum()
-        metrics["train/episode_return"] = jnp.where(
-            n_done > 0, jnp.sum(data.episode_return) / jnp.maximum(n_done, 1), jnp.nan
-        )
-        metrics["train/episodes"] = n_done.astype(jnp.float32)
-        metrics["train/reward_mean"] = data.reward.mean()
+        metrics.update(episode_metrics(data))
         var_t = targets.var()
         metrics["train/explained_variance"] = 1.0 - (targets - values).var() / (var_t + 1e-8)
         metrics.update({f"train/{k}": v for k, v in strategy.metrics(new_params.policy, hp.explore).items()})
@@ -273,9 +267,4 @@ class OnPolicyTrainer:
         def policy(obs):
             return self.strategy.mean_action(params.policy, self._norm(stats, obs))
 
-        returns, lengths = evaluate_policy(self.eval_env, policy, key)
-        return {
-            "eval/episode_return": returns.mean(),
-            "eval/episode_return_std": returns.std(),
-            "eval/episode_length": lengths.astype(jnp.float32).mean(),
-        }
+        return evaluation_metrics(self.eval_env, policy, key)

@@ -46,7 +46,7 @@ from coherent_jax.networks import (
     update_stats,
 )
 from coherent_jax.replay import Experience, ReplayBuffer, replay_add, replay_init, replay_sample
-from coherent_jax.rollout import evaluate_policy, unroll
+from coherent_jax.rollout import episode_metrics, evaluation_metrics, unroll
 
 
 @struct.dataclass
@@ -336,12 +336,7 @@ class SACTrainer:
         metrics["train/updates_applied"] = jnp.where(ready, float(self.num_updates), 0.0)
         metrics["train/warmup"] = warm.astype(jnp.float32)
         metrics["train/buffer_size"] = buffer.size.astype(jnp.float32)
-        n_done = data.done.sum()
-        metrics["train/episode_return"] = jnp.where(
-            n_done > 0, jnp.sum(data.episode_return) / jnp.maximum(n_done, 1), jnp.nan
-        )
-        metrics["train/episodes"] = n_done.astype(jnp.float32)
-        metrics["train/reward_mean"] = data.reward.mean()
+        metrics.update(episode_metrics(data))
 
         new_state = state.replace(
             params=params,
@@ -369,9 +364,4 @@ class SACTrainer:
         def policy(obs):
             return self.actor.mode(params.actor, self._norm(stats, obs))
 
-        returns, lengths = evaluate_policy(self.eval_env, policy, key)
-        return {
-            "eval/episode_return": returns.mean(),
-            "eval/episode_return_std": returns.std(),
-            "eval/episode_length": lengths.astype(jnp.float32).mean(),
-        }
+        return evaluation_metrics(self.eval_env, policy, key)
