@@ -38,9 +38,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from coherent_jax import distributed
 from coherent_jax.config import SWEEPABLE, Config, ConfigError, help_text, parse_overrides, to_dict
 from coherent_jax.runs import atomic_write
-from coherent_jax.train import _to_float, check_devices, prepare_run_dir, run_keys
+from coherent_jax.train import _to_float, check_devices, prepare_run_dir, run_keys, supervised
 
 # Keys that may take a list of values: the state's array hyperparameters, and seed.
 AXIS_KEYS = (*SWEEPABLE, "seed")
@@ -190,15 +191,9 @@ def build_hparams(plan: SweepPlan, env, eval_env) -> list[Any]:
     return hparams
 
 
-def _gather(tree: Any) -> Any:
-    """Host copy of a (possibly multi-host sharded) pytree."""
-    import jax
-
-    if jax.process_count() > 1:
-        from jax.experimental import multihost_utils
-
-        tree = multihost_utils.process_allgather(tree, tiled=True)
-    return jax.device_get(tree)
+def point_device_count(num_points: int, available: int) -> int:
+    """The largest device count up to `available` that divides the points (each device runs whole points)."""
+    return max(d for d in range(1, available + 1) if num_points % d == 0)
 
 
 def run_sweep(plan: SweepPlan, out_dir: Path | None, env=None, eval_env=None) -> dict[str, Any]:
@@ -231,8 +226,7 @@ def run_sweep(plan: SweepPlan, out_dir: Path | None, env=None, eval_env=None) ->
     init_keys = jnp.stack([k for _, k in keys])
 
     # The largest device count that divides the points (each device runs whole points).
-    available = parallel.resolve_num_devices(cfg.num_devices)
-    num_devices = max(d for d in range(1, available + 1) if num_points % d == 0)
+    num_devices = point_device_count(num_points, parallel.resolve_num_devices(cfg.num_devices))
     init = jax.vmap(trainer.init)
     step = jax.vmap(trainer.iteration)
     t0 = time.perf_counter()
@@ -288,15 +282,14 @@ def run_sweep(plan: SweepPlan, out_dir: Path | None, env=None, eval_env=None) ->
         for i in range(cfg.num_iterations):
             t0 = time.perf_counter()
             states, metrics = iteration(states)
-            metrics = {k: np.asarray(v, np.float64) for k, v in _gather(metrics).items()}
+            metrics = {k: np.asarray(v, np.float64) for k, v in distributed.to_host(metrics).items()}
             train_s += time.perf_counter() - t0
             if i == cfg.num_iterations - 1 or (cfg.eval_every > 0 and (i + 1) % cfg.eval_every == 0):
                 t0 = time.perf_counter()
                 split = jax.vmap(jax.random.split)(key)  # each point: key, eval_key = split(key)
                 key, eval_key = split[:, 0], split[:, 1]
-                last_eval = {
-                    k: np.asarray(v, np.float64) for k, v in _gather(evaluate(states, eval_key)).items()
-                }
+                evaluated = distributed.to_host(evaluate(states, eval_key))
+                last_eval = {k: np.asarray(v, np.float64) for k, v in evaluated.items()}
                 eval_s += time.perf_counter() - t0
                 metrics.update(last_eval)
             ret = metrics["train/episode_return"]
@@ -356,8 +349,8 @@ def run_sweep(plan: SweepPlan, out_dir: Path | None, env=None, eval_env=None) ->
         "rows": rows,
         "points": summaries,
     }
+    params = distributed.to_host(trainer.export_params(states))  # every process: a collective
     if out_dir is not None:
-        params = _gather(trainer.export_params(states))
         for j, d in enumerate(point_dirs):
             one = jax.tree.map(lambda x, j=j: x[j], params)
             atomic_write(d / "params.msgpack", serialization.to_bytes(one))
@@ -435,7 +428,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     try:
         plan = parse_sweep(argv)
+        if supervised(plan.base):
+            return distributed.supervise("coherent_jax.sweep", argv)
         writer = check_devices(plan.base, split_envs=False)
+        from coherent_jax import parallel
+
+        available = parallel.resolve_num_devices(plan.base.num_devices)
+        distributed.check_device_split(point_device_count(len(plan.points), available))
         from coherent_jax.envs.vec_env import VecEnv
 
         cfg = plan.base
@@ -457,4 +456,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(distributed.run_cli(main))

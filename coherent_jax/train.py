@@ -35,6 +35,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from coherent_jax import distributed
 from coherent_jax.config import Config, ConfigError, help_text, parse_overrides, to_dict
 from coherent_jax.runs import (
     CHECKPOINT,
@@ -156,7 +157,7 @@ def train(
     from flax import serialization
     from tqdm.auto import tqdm
 
-    from coherent_jax import parallel
+    from coherent_jax import distributed, parallel
     from coherent_jax.agents import make_trainer
 
     t_start = time.perf_counter()
@@ -170,7 +171,7 @@ def train(
         state, shardings = parallel.init_state(trainer, init_key, num_devices, cfg.num_envs)
     else:  # the state's structure from tracing init, its values from the checkpoint
         template = jax.eval_shape(trainer.init, init_key)
-        state = restore_state(template, resume.state_bytes, run_dir / CHECKPOINT)
+        state = restore_state(template, resume.state_bytes, Path(cfg.resume or run_dir or ".") / CHECKPOINT)
         state, shardings = parallel.shard_state(state, num_devices, cfg.num_envs)
         loop, start = resume.loop, resume.iteration
         key = jnp.asarray(loop.eval_key, dtype=jnp.uint32)
@@ -201,11 +202,16 @@ def train(
     def save_checkpoint(done: int) -> None:
         loop.eval_key = [int(w) for w in jax.device_get(key)]
         loop.elapsed_s = elapsed_before + time.perf_counter() - t_start
-        state_bytes = state_to_bytes(state)
+        state_bytes = state_to_bytes(state)  # every process: the state is gathered from all
+        if not run_dir:
+            return
         blob = encode_checkpoint(cfg, done, done * cfg.steps_per_iteration, loop, state_bytes)
         atomic_write(run_dir / CHECKPOINT, blob)
         if writer is not None:
             writer.flush()
+
+    # Several processes: only process 0 has the run directory, but all gather the state.
+    checkpoints = distributed.from_writer(run_dir is not None)
 
     elapsed_before = loop.elapsed_s
     metrics_file = writer = None
@@ -266,8 +272,10 @@ def train(
                 done = i + 1
                 if progress_fn:
                     progress_fn(i + 1, metrics)
+                # A signal to one process stops all of them at the same iteration.
+                stopper.signum = distributed.largest(stopper.signum or 0) or None
                 every = cfg.checkpoint_every > 0 and done % cfg.checkpoint_every == 0
-                if run_dir and (last or every or stopper.signum is not None):
+                if checkpoints and (last or every or stopper.signum is not None):
                     save_checkpoint(done)
                     saved = done
                 bar.update(cfg.steps_per_iteration)
@@ -316,9 +324,9 @@ def train(
             flush=True,
         )
         return summary
+    payload = distributed.to_host(trainer.export_params(state))
     if run_dir:
-        payload = trainer.export_params(state)
-        atomic_write(run_dir / "params.msgpack", serialization.to_bytes(jax.device_get(payload)))
+        atomic_write(run_dir / "params.msgpack", serialization.to_bytes(payload))
         atomic_write(run_dir / "summary.json", json.dumps(summary, indent=2).encode())
     final = summary["final_eval_return"]
     print(
@@ -396,13 +404,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if resume_args and resume_args[-1].split("=", 1)[1].strip():
             cfg, run_dir = _resume_config(resume_args[-1].split("=", 1)[1].strip(), rest)
-            check_devices(cfg)
+            if supervised(cfg):
+                return distributed.supervise("coherent_jax.train", argv)
+            # Several hosts: every process reads the checkpoint, only process 0 writes.
+            is_writer = check_devices(cfg)
             checkpoint = decode_checkpoint(run_dir / CHECKPOINT, cfg)
             if checkpoint.iteration >= cfg.num_iterations and (run_dir / "summary.json").exists():
                 print(f"[coherent_jax] {run_dir} is already complete ({checkpoint.iteration} iterations)")
                 return 0
+            run_dir = run_dir if is_writer else None
         else:
             cfg = parse_overrides(argv)
+            if supervised(cfg):
+                return distributed.supervise("coherent_jax.train", argv)
             is_writer = check_devices(cfg)  # several hosts: only process 0 writes
             run_dir = prepare_run_dir(cfg) if is_writer else None
     except (ConfigError, CheckpointError) as exc:
@@ -414,7 +428,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if run_dir:
             atomic_write(run_dir / CONFIG, OmegaConf.to_yaml(to_dict(cfg)).encode())
             atomic_write(run_dir / VERSIONS, json.dumps(package_versions(), indent=2).encode())
-    else:
+    elif run_dir:
         versions = package_versions()
         stored = json.loads((run_dir / VERSIONS).read_text()) if (run_dir / VERSIONS).exists() else {}
         if {k: v for k, v in versions.items() if k != "platform"} != {
@@ -435,6 +449,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
+def supervised(cfg: Config) -> bool:
+    """Whether this command line should run the work in a supervised child (`distributed.supervise`)."""
+    return cfg.distributed and not distributed.is_worker()
+
+
 def check_devices(cfg: Config, split_envs: bool = True) -> bool:
     """Initialises multi-host JAX if asked and checks the device split before anything is written.
 
@@ -446,10 +465,9 @@ def check_devices(cfg: Config, split_envs: bool = True) -> bool:
     num_devices = parallel.resolve_num_devices(cfg.num_devices)
     if split_envs:
         parallel.check_env_split(cfg.num_envs, num_devices)
-    import jax
-
-    return jax.process_index() == 0
+        distributed.check_device_split(num_devices)
+    return distributed.is_writer()
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(distributed.run_cli(main))
