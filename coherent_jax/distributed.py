@@ -122,21 +122,24 @@ class _NativeLog:
     def summary(self) -> str:
         """One line: why the runtime stopped this process."""
         text = "".join(self.held)
-        dead = re.search(r"tasks are unhealthy[^\n]*\n\s*([\d, ]+)", text)
-        if self.collective:
-            cause = f"a collective with another process failed ({self.collective})"
-        elif "RegisterTask" in text or "Connect()" in text:
+        if not self.collective and ("RegisterTask" in text or "Connect()" in text):
             address = os.environ.get("JAX_COORDINATOR_ADDRESS", "the cluster's")
-            cause = (
-                f"could not join the coordinator ({address}) within "
+            return (
+                f"error: {_process_label()}: could not join the coordinator ({address}) within "
                 f"{_timeout(INIT_TIMEOUT_ENV, DEFAULT_INIT_TIMEOUT_S)} s (are all processes started, "
                 "with the same coordinator address and process count?)"
             )
+        dead = re.search(r"tasks are unhealthy[^\n]*\n\s*([\d, ]+)", text)
+        if self.collective:
+            cause = f"a collective with another process failed ({self.collective})"
         elif dead:
             cause = f"process {dead.group(1).strip()} of the run stopped"
         else:
             cause = "another process of the run stopped or the coordinator became unreachable"
-        return f"error: {_process_label()}: {cause}; every process stops (resume with the same command)"
+        return (
+            f"error: {_process_label()}: {cause}; every process stops (resume from the last checkpoint "
+            "with the same command on every process)"
+        )
 
 
 def supervise(module: str, argv: Sequence[str]) -> int:
