@@ -271,7 +271,7 @@ def run_sweep(plan: SweepPlan, out_dir: Path | None, env=None, eval_env=None) ->
     bar = tqdm(
         total=cfg.num_iterations,
         unit="it",
-        disable=not cfg.progress,
+        disable=not cfg.progress or not distributed.is_writer(),  # one progress bar per run
         dynamic_ncols=True,
         mininterval=1.0,
     )

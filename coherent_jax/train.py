@@ -229,7 +229,7 @@ def train(
         total=cfg.num_iterations * cfg.steps_per_iteration,
         initial=start * cfg.steps_per_iteration,
         unit="step",
-        disable=not cfg.progress,
+        disable=not cfg.progress or not distributed.is_writer(),  # one progress bar per run
         dynamic_ncols=True,
         mininterval=1.0,
     )
