@@ -229,3 +229,48 @@ def test_unreachable_coordinator_and_missing_peer_stop_in_one_line(tmp_path):
     # Nothing written: the run directory comes after joining.
     assert not (tmp_path / "r0").exists() and not (tmp_path / "r1").exists()
     assert elapsed < 120 + INIT_S, elapsed
+
+
+def test_native_log_filter_holds_runtime_entries_and_names_the_cause(monkeypatch):
+    """The supervisor passes other lines on, holds the runtime's log entries, and sums a fatal one up."""
+    import io
+
+    from coherent_jax.distributed import _NativeLog
+
+    monkeypatch.setenv("JAX_PROCESS_ID", "0")
+    monkeypatch.setenv("JAX_NUM_PROCESSES", "2")
+    out = io.StringIO()
+    log = _NativeLog(out)
+    lines = [
+        "[Gloo] Rank 0 is connected to 1 peer ranks.\n",
+        "E1123 16:51:47.687327   17880 coordination_service.cc:1681] Use error polling to propagate the "
+        "following error to all tasks: UNAVAILABLE: The following tasks are unhealthy "
+        "(stopped sending heartbeats):\n",
+        "1\n",
+        "The tasks have crashed.\n",
+        "F1123 16:51:47.687970   17891 client.h:80] Terminating process because the JAX distributed service "
+        "detected fatal errors.\n",
+        "*** Check failure stack trace: ***\n",
+        "    @     0x7f31ac16afa4  absl::log_internal::LogMessage::SendToLog()\n",
+    ]
+    for line in lines:
+        log.feed(line)
+    assert out.getvalue() == lines[0]
+    assert log.fatal
+    summary = log.summary()
+    assert "\n" not in summary
+    assert summary.startswith("error: process 0 of 2: process 1 of the run stopped; every process stops")
+
+    # A worker's own report of a failed collective wins over the runtime's guess.
+    log = _NativeLog(io.StringIO())
+    log.feed("coherent_jax: collective failed: Gloo all-reduce failed: Connection closed by peer\n")
+    assert not log.fatal and "a collective with another process failed (Gloo all-reduce" in log.summary()
+
+    # Entries of a process the runtime did not abort are written out at the end, unchanged.
+    out = io.StringIO()
+    log = _NativeLog(out)
+    log.feed("W1123 16:51:47.000000   1 some.cc:1] a warning\n")
+    log.feed("  its second line\n")
+    assert out.getvalue() == "" and not log.fatal
+    log.release()
+    assert out.getvalue() == "W1123 16:51:47.000000   1 some.cc:1] a warning\n  its second line\n"
