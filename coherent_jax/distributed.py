@@ -57,7 +57,7 @@ _COLLECTIVE_FAILED = "coherent_jax: collective failed: "
 # A line of the runtime's native (glog / absl) log: severity, date, time, thread, file:line.
 _NATIVE_LOG = re.compile(r"^[IWEF]\d{4} \d\d:\d\d:\d\d\.\d+\s+\d+\s+\S+:\d+\]")
 # Messages of a failed collective or coordination call (a peer closed its connection).
-_PEER_FAILURE = re.compile(r"gloo|connection closed|connection reset|unavailable|socket closed", re.I)
+_PEER_FAILURE = re.compile(r"gloo|connection closed by peer|connection reset by peer|socket closed", re.I)
 
 
 def _timeout(name: str, default: int) -> int:
@@ -224,8 +224,10 @@ def run_cli(main: Callable[[], int]) -> int:
     try:
         status = main()
     except Exception as exc:  # noqa: BLE001 - every failure must end the process, not wait
+        if not _multi_process():
+            raise
         first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-        if _multi_process() and _PEER_FAILURE.search(str(exc)):
+        if _PEER_FAILURE.search(str(exc)):
             os.write(2, f"{_COLLECTIVE_FAILED}{first[:300]}\n".encode())
             _leave(EXIT_PEER_FAILED)
         import traceback
