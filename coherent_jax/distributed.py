@@ -147,9 +147,9 @@ def supervise(module: str, argv: Sequence[str]) -> int:
 
     The child's stdout and its own stderr messages reach the terminal unchanged; its
     native runtime log goes through `_NativeLog`. SIGINT and SIGTERM are passed on
-    to the child once (it stops after the current iteration, as a single process
-    does); the child runs in its own session so that a terminal's Ctrl-C reaches it
-    only through here, and it leaves by itself when this process is killed.
+    to the child (it stops after the current iteration, as a single process does);
+    the child runs in its own session so that a terminal's Ctrl-C reaches it only
+    through here, not twice, and it leaves by itself when this process is killed.
     """
     own_stderr = os.dup(2)
     read_fd, write_fd = os.pipe()
