@@ -272,10 +272,11 @@ def train(
                 done = i + 1
                 if progress_fn:
                     progress_fn(i + 1, metrics)
-                # A signal to one process stops all of them at the same iteration.
-                stopper.signum = distributed.largest(stopper.signum or 0) or None
+                # A signal to one process stops all of them after this same iteration; the
+                # agreed value, not the local one, decides (a signal may arrive meanwhile).
+                stopping = distributed.largest(stopper.signum or 0)
                 every = cfg.checkpoint_every > 0 and done % cfg.checkpoint_every == 0
-                if checkpoints and (last or every or stopper.signum is not None):
+                if checkpoints and (last or every or stopping):
                     save_checkpoint(done)
                     saved = done
                 bar.update(cfg.steps_per_iteration)
@@ -285,7 +286,8 @@ def train(
                     eval=f"{loop.last_eval.get('eval/episode_return', float('nan')):.1f}",
                     refresh=False,
                 )
-                if stopper.signum is not None:
+                if stopping:
+                    stopper.signum = stopper.signum or stopping
                     break
     finally:
         bar.close()
