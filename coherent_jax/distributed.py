@@ -85,6 +85,11 @@ def is_worker() -> bool:
     return WORKER_ENV in os.environ
 
 
+def needs_supervisor(enabled: bool) -> bool:
+    """Whether a command line with ``distributed=enabled`` should hand its work to `supervise`."""
+    return enabled and not is_worker()
+
+
 class _NativeLog:
     """Filters the runtime's native log: passes other lines on, holds the log's entries back.
 

@@ -41,7 +41,7 @@ from typing import Any
 from coherent_jax import distributed
 from coherent_jax.config import SWEEPABLE, Config, ConfigError, help_text, parse_overrides, to_dict
 from coherent_jax.runs import atomic_write
-from coherent_jax.train import _to_float, check_devices, prepare_run_dir, run_keys, supervised
+from coherent_jax.train import _to_float, check_devices, prepare_run_dir, run_keys
 
 # Keys that may take a list of values: the state's array hyperparameters, and seed.
 AXIS_KEYS = (*SWEEPABLE, "seed")
@@ -428,7 +428,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     try:
         plan = parse_sweep(argv)
-        if supervised(plan.base):
+        if distributed.needs_supervisor(plan.base.distributed):
             return distributed.supervise("coherent_jax.sweep", argv)
         writer = check_devices(plan.base, split_envs=False)
         from coherent_jax import parallel

@@ -406,7 +406,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if resume_args and resume_args[-1].split("=", 1)[1].strip():
             cfg, run_dir = _resume_config(resume_args[-1].split("=", 1)[1].strip(), rest)
-            if supervised(cfg):
+            if distributed.needs_supervisor(cfg.distributed):
                 return distributed.supervise("coherent_jax.train", argv)
             # Several hosts: every process reads the checkpoint, only process 0 writes.
             is_writer = check_devices(cfg)
@@ -417,7 +417,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             run_dir = run_dir if is_writer else None
         else:
             cfg = parse_overrides(argv)
-            if supervised(cfg):
+            if distributed.needs_supervisor(cfg.distributed):
                 return distributed.supervise("coherent_jax.train", argv)
             is_writer = check_devices(cfg)  # several hosts: only process 0 writes
             run_dir = prepare_run_dir(cfg) if is_writer else None
@@ -449,11 +449,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     if summary["stopped_by"] is not None:
         return 128 + int(signal.Signals[summary["stopped_by"]])
     return 0
-
-
-def supervised(cfg: Config) -> bool:
-    """Whether this command line should run the work in a supervised child (`distributed.supervise`)."""
-    return cfg.distributed and not distributed.is_worker()
 
 
 def check_devices(cfg: Config, split_envs: bool = True) -> bool:
