@@ -41,6 +41,7 @@ from coherent_jax.config import Config
 from coherent_jax.runs import (
     CHECKPOINT,
     METRICS,
+    PREFIX,
     Checkpoint,
     LoopState,
     atomic_write,
@@ -49,8 +50,6 @@ from coherent_jax.runs import (
     state_to_bytes,
     truncate_metrics,
 )
-
-PREFIX = "[coherent_jax]"
 
 
 class DivergenceError(RuntimeError):
@@ -357,7 +356,7 @@ def run_loop(
     )
 
     # Per-point loop state as arrays; a single run keeps scalars in its checkpoint.
-    last_return = np.asarray(loop.last_return, np.float64).reshape(n)
+    last_return = np.broadcast_to(np.asarray(loop.last_return, np.float64), (n,)).copy()
     last_eval = {k: np.asarray(v, np.float64).reshape(n) for k, v in loop.last_eval.items()}
     diverged = {int(k): v for k, v in loop.diverged.items()}
     elapsed_before = loop.elapsed_s

@@ -35,6 +35,7 @@ import msgpack
 
 from coherent_jax.config import Config, ConfigError, to_dict, validate
 
+PREFIX = "[coherent_jax]"  # starts every line the command-line programs print
 CHECKPOINT = "checkpoint.msgpack"
 CONFIG = "config.yaml"
 METRICS = "metrics.jsonl"
@@ -396,3 +397,32 @@ def resume_point(run_dir: Path, cfg: Config, metrics: Path | None = None) -> Che
             f"(allowed: at least the {ckpt.env_steps} env steps already done)"
         )
     return ckpt
+
+
+def record_versions(run_dir: Path, resumed_at: int | None) -> None:
+    """Writes ``versions.json``; on resume, a ``versions-resumed-N.json`` beside it if they changed."""
+    versions = package_versions()
+    if resumed_at is None:
+        atomic_write(run_dir / VERSIONS, json.dumps(versions, indent=2).encode())
+        return
+    stored = json.loads((run_dir / VERSIONS).read_text()) if (run_dir / VERSIONS).exists() else {}
+    if {k: v for k, v in versions.items() if k != "platform"} != {
+        k: v for k, v in stored.items() if k != "platform"
+    }:
+        name = f"versions-resumed-{resumed_at}.json"
+        atomic_write(run_dir / name, json.dumps(versions, indent=2).encode())
+        print(f"{PREFIX} warning: package versions differ from the run's; see {name}", flush=True)
+
+
+def write_config(run_dir: Path, cfg: Config) -> None:
+    from omegaconf import OmegaConf
+
+    atomic_write(run_dir / CONFIG, OmegaConf.to_yaml(to_dict(cfg)).encode())
+
+
+def split_resume(argv: list[str]) -> tuple[str | None, list[str]]:
+    """The ``resume=`` value (the last one; None if absent or empty) and the other arguments."""
+    resume_args = [a for a in argv if a.split("=", 1)[0].strip() == "resume"]
+    rest = [a for a in argv if a not in resume_args]
+    value = resume_args[-1].split("=", 1)[1].strip() if resume_args and "=" in resume_args[-1] else ""
+    return value or None, rest

@@ -63,8 +63,11 @@ from coherent_jax.runs import (
     CheckpointError,
     atomic_write,
     prepare_output_dir,
+    record_versions,
     resume_config,
     resume_point,
+    split_resume,
+    write_config,
 )
 
 # Keys that may take a list of values: the state's array hyperparameters, and seed.
@@ -418,7 +421,6 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _main(argv: list[str], stop: StopRequest) -> int:
     from coherent_jax.parallel import check_devices
-    from coherent_jax.train import record_versions, split_resume, write_config
 
     resume_dir, rest = split_resume(argv)
     checkpoint = None
@@ -455,7 +457,11 @@ def _main(argv: list[str], stop: StopRequest) -> int:
         print(f"{PREFIX} stopped by {stop.name} before training started", flush=True)
         return 128 + stop.signum
     quiet_imports()
-    result = run_sweep(plan, out_dir, resume=checkpoint, stop=stop)
+    try:
+        result = run_sweep(plan, out_dir, resume=checkpoint, stop=stop)
+    except CheckpointError as exc:  # a state that does not fit this grid, found on restoring it
+        print(f"error: {exc}", file=sys.stderr, flush=True)
+        return 2
     if result["stopped_by"] is not None:
         return 128 + int(signal.Signals[result["stopped_by"]])
     return EXIT_DIVERGED if result["diverged"] else 0

@@ -35,19 +35,19 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from coherent_jax.config import Config, ConfigError, help_text, parse_overrides, to_dict
+from coherent_jax.config import Config, ConfigError, help_text, parse_overrides
 from coherent_jax.loop import PREFIX, DivergenceError, Job, StopRequest, quiet_imports, run_loop, to_float
 from coherent_jax.runs import (
-    CONFIG,
-    VERSIONS,
     Checkpoint,
     CheckpointError,
     atomic_write,
     load_config,
-    package_versions,
     prepare_output_dir,
+    record_versions,
     resume_config,
     resume_point,
+    split_resume,
+    write_config,
 )
 
 EXIT_BAD_INPUT = 2
@@ -135,35 +135,6 @@ def train(
     return summary
 
 
-def record_versions(run_dir: Path, resumed_at: int | None) -> None:
-    """Writes ``versions.json``; on resume, a ``versions-resumed-N.json`` beside it if they changed."""
-    versions = package_versions()
-    if resumed_at is None:
-        atomic_write(run_dir / VERSIONS, json.dumps(versions, indent=2).encode())
-        return
-    stored = json.loads((run_dir / VERSIONS).read_text()) if (run_dir / VERSIONS).exists() else {}
-    if {k: v for k, v in versions.items() if k != "platform"} != {
-        k: v for k, v in stored.items() if k != "platform"
-    }:
-        name = f"versions-resumed-{resumed_at}.json"
-        atomic_write(run_dir / name, json.dumps(versions, indent=2).encode())
-        print(f"{PREFIX} warning: package versions differ from the run's; see {name}", flush=True)
-
-
-def write_config(run_dir: Path, cfg: Config) -> None:
-    from omegaconf import OmegaConf
-
-    atomic_write(run_dir / CONFIG, OmegaConf.to_yaml(to_dict(cfg)).encode())
-
-
-def split_resume(argv: list[str]) -> tuple[str | None, list[str]]:
-    """The ``resume=`` value (the last one; None if absent or empty) and the other arguments."""
-    resume_args = [a for a in argv if a.split("=", 1)[0].strip() == "resume"]
-    rest = [a for a in argv if a not in resume_args]
-    value = resume_args[-1].split("=", 1)[1].strip() if resume_args and "=" in resume_args[-1] else ""
-    return value or None, rest
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if any(a in ("-h", "--help", "help") for a in argv):
@@ -212,6 +183,9 @@ def _main(argv: list[str], stop: StopRequest) -> int:
     quiet_imports()
     try:
         summary = train(cfg, run_dir, resume=checkpoint, stop=stop)
+    except CheckpointError as exc:  # a state that does not fit this trainer, found on restoring it
+        print(f"error: {exc}", file=sys.stderr, flush=True)
+        return EXIT_BAD_INPUT
     except DivergenceError as exc:
         print(f"error: {exc}", file=sys.stderr, flush=True)
         return EXIT_DIVERGED
