@@ -45,6 +45,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from coherent_jax import cli
 from coherent_jax.config import (
     SWEEPABLE,
     Config,
@@ -73,6 +74,15 @@ from coherent_jax.runs import (
 # Keys that may take a list of values: the state's array hyperparameters, and seed.
 AXIS_KEYS = (*SWEEPABLE, "seed")
 GRID = "grid.json"
+# The sweep's own keys (everything else is a training-config key or an axis).
+SWEEP_KEYS = {
+    "seeds": cli.Key(
+        default=None,
+        parse=cli.int_at_least(1),
+        allowed="an integer >= 1",
+        help="runs every point with seeds seed, seed+1, ..., seed+N-1 (default: seed alone)",
+    ),
+}
 EXIT_DIVERGED = 3
 
 
@@ -119,27 +129,20 @@ def _list_items(key: str, text: str) -> list[str]:
 
 
 def parse_sweep(argv: Sequence[str]) -> SweepPlan:
-    """Splits ``key=value`` strings into the grid; raises `ConfigError` naming the bad key or value."""
+    """Splits ``key=value`` strings into the grid; raises `ConfigError` naming the bad key or value.
+
+    The axes (a sweepable key or ``seed`` given a list) are taken out first; the rest,
+    the sweep's own keys (`SWEEP_KEYS`) and single training-config values, go through
+    the command-line parser shared by every entry point (`coherent_jax.cli`).
+    """
     fields = {f.name: f for f in dataclasses.fields(Config)}
     scalars: list[str] = []
     axes: dict[str, list[str]] = {}
-    num_seeds = None
     for item in argv:
-        if "=" not in item or item.startswith("="):
-            raise ConfigError(f"malformed override {item!r}: expected key=value")
-        key, text = (s.strip() for s in item.split("=", 1))
-        if key == "seeds":
-            try:
-                num_seeds = int(text)
-            except ValueError:
-                num_seeds = 0
-            if num_seeds < 1:
-                raise ConfigError(f"invalid value for 'seeds': {text!r} (allowed: an integer >= 1)")
-        elif key in fields and _is_list(text):
-            list_field = "list" in str(fields[key].type)
-            if list_field and not text.startswith("[["):
-                scalars.append(item)  # e.g. policy_hidden=[64,64]: one value of a list setting
-                continue
+        key, text = cli.split_item(item)
+        list_field = key in fields and "list" in str(fields[key].type)
+        # policy_hidden=[64,64] is one value of a list setting; [[8],[16]] would be an axis of them.
+        if key in fields and _is_list(text) and (not list_field or text.startswith("[[")):
             if key not in AXIS_KEYS:
                 raise ConfigError(
                     f"invalid value for {key!r}: {text!r} (allowed: one value; it sets shapes or the "
@@ -149,7 +152,8 @@ def parse_sweep(argv: Sequence[str]) -> SweepPlan:
             axes[key] = _list_items(key, text)
         else:
             scalars.append(item)
-    base = parse_overrides(scalars)  # unknown keys and bad single values end here
+    parsed = cli.parse_command(scalars, SWEEP_KEYS, command="sweep")
+    base, num_seeds, scalars = parsed.config, parsed.settings["seeds"], parsed.config_items
     seed_items = axes.pop("seed", None)
     if seed_items is not None and num_seeds is not None:
         raise ConfigError(
@@ -398,8 +402,11 @@ def sweep_help() -> str:
         [
             "usage: python -m coherent_jax.sweep [key=value ...] [seeds=N] [KEY=[v1,v2,...] ...]",
             f"keys that take a list of values (the grid's axes): {', '.join(AXIS_KEYS)}",
-            "seeds=N: seeds seed, seed+1, ..., seed+N-1 for every point (default 1)",
+            "resume=SWEEP_DIR continues a stopped sweep (total_steps=N extends a finished one)",
             "run_dir: the sweep's directory (one sub-directory per point, plus sweep.csv and sweep.json)",
+            "",
+            "sweep options:",
+            *cli.help_lines(SWEEP_KEYS),
             "",
             help_text().split("\n", 1)[1],
         ]
