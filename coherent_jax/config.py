@@ -5,9 +5,12 @@ so ``key=value`` overrides on the command line (Hydra's syntax) are type-checked
 on merge. Ranges and choices are checked here, and every problem becomes a
 `ConfigError` whose one-line message names the key and what is allowed.
 
-Shape-determining settings (``num_envs``, ``unroll_length``, network sizes, ...)
-are static Python values; the scalars listed in `SWEEPABLE` become arrays inside
-the train state so that `jax.vmap` can run a grid of them as one program.
+Every field carries its metadata: its group (`GROUPS`, the sections of ``--help``),
+a one-line help and, for a sweepable scalar, a `Sweepable` saying which
+(algo, explore) pairs hold it in the train state. Shape-determining settings
+(``num_envs``, ``unroll_length``, network sizes, ...) are static Python values; the
+sweepable scalars (`SWEEPABLE`, derived from the fields) become arrays inside the
+train state so that `jax.vmap` can run a grid of them as one program.
 """
 
 from __future__ import annotations

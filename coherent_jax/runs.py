@@ -415,9 +415,11 @@ def record_versions(run_dir: Path, resumed_at: int | None) -> None:
 
 
 def write_config(run_dir: Path, cfg: Config) -> None:
+    """The run's resolved config as ``config.yaml`` (without ``resume``: it says how a session began)."""
     from omegaconf import OmegaConf
 
-    atomic_write(run_dir / CONFIG, OmegaConf.to_yaml(to_dict(cfg)).encode())
+    stored = dataclasses.replace(cfg, resume="")
+    atomic_write(run_dir / CONFIG, OmegaConf.to_yaml(to_dict(stored)).encode())
 
 
 def split_resume(argv: list[str]) -> tuple[str | None, list[str]]:

@@ -53,12 +53,10 @@ from coherent_jax.config import (
     help_text,
     parse_overrides,
     sweepable,
-    to_dict,
     validate,
 )
 from coherent_jax.loop import PREFIX, Job, StopRequest, quiet_imports, run_loop, to_float, write_params
 from coherent_jax.runs import (
-    CONFIG,
     METRICS,
     Checkpoint,
     CheckpointError,
@@ -251,7 +249,6 @@ def run_sweep(
     import contextlib
 
     import jax
-    from omegaconf import OmegaConf
 
     from coherent_jax.agents import make_trainer
     from coherent_jax.envs.vec_env import VecEnv
@@ -268,7 +265,7 @@ def run_sweep(
         for p in plan.points:
             d = out_dir / p.name
             d.mkdir(exist_ok=True)  # a resumed sweep, or one started over in its own directory
-            atomic_write(d / CONFIG, OmegaConf.to_yaml(to_dict(_point_config(p, d))).encode())
+            write_config(d, _point_config(p, d))
             point_dirs.append(d)
     job = Job(
         cfg=cfg,
