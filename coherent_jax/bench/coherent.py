@@ -30,23 +30,11 @@ import math
 import statistics
 import time
 from collections.abc import Callable, Sequence
-from pathlib import Path
 from typing import Any
 
 from coherent_jax import cli
+from coherent_jax.bench import measure
 from coherent_jax.bench.dense import dense_log_marginals, sample_segments
-from coherent_jax.bench.measure import (
-    compile_timed,
-    describe,
-    load_average,
-    machine,
-    mb,
-    memory,
-    peak,
-    print_log,
-    time_calls,
-    write_json_atomic,
-)
 from coherent_jax.config import Config, to_dict, validate
 
 _count = cli.int_at_least(1)
@@ -117,9 +105,9 @@ def _bench_training(cfg: Config, iterations: int, log) -> tuple[dict, dict]:
             state = runs["coherent"]["state"]
         else:
             state = jax.jit(trainer.init)(jax.random.PRNGKey(cfg.seed))
-        step, compile_s = compile_timed(trainer.iteration, state)
-        mem = memory(step)
-        log(f"[bench]   compiled in {compile_s:.1f} s; peak memory {mb(peak(mem))} MB")
+        step, compile_s = measure.compile_timed(trainer.iteration, state)
+        mem = measure.memory(step)
+        log(f"[bench]   compiled in {compile_s:.1f} s; peak memory {measure.peak_mb(mem)} MB")
         if remat:  # compiled only for its memory
             trainer = state = step = None
         runs[name] = {"trainer": trainer, "state": state, "step": step, "compile_s": compile_s, "memory": mem}
@@ -162,7 +150,7 @@ def _bench_training(cfg: Config, iterations: int, log) -> tuple[dict, dict]:
     results["ratio_coherent_over_action"] = (
         results["coherent"]["env_steps_per_s"] / results["action"]["env_steps_per_s"]
     )
-    peaks = {n: peak(results[n]["memory"]) for n in ("action", "coherent", "coherent_remat")}
+    peaks = {n: measure.peak(results[n]["memory"]) for n in ("action", "coherent", "coherent_remat")}
     if all(peaks.values()):
         results["memory_ratio_coherent_over_action"] = peaks["coherent"] / peaks["action"]
         results["memory_ratio_remat_over_coherent"] = peaks["coherent_remat"] / peaks["coherent"]
@@ -221,10 +209,16 @@ def _bench_filter(cfg: Config, bench: dict, log) -> dict:
         for method in ("block", "dense"):
             log(f"[bench] filter q={q} {method}: compiling forward and forward+gradient ...")
             impl = log_marginals if method == "block" else dense_log_marginals
-            fwd, fwd_compile_s = compile_timed(forward(impl), *inputs)
+            fwd, fwd_compile_s = measure.compile_timed(forward(impl), *inputs)
             grad_mode = "vmap"
-            grad, grad_compile_s = compile_timed(with_grad(impl), *grad_args)
-            tried = [{"mode": grad_mode, "peak_bytes": peak(memory(grad)), "compile_s": grad_compile_s}]
+            grad, grad_compile_s = measure.compile_timed(with_grad(impl), *grad_args)
+            tried = [
+                {
+                    "mode": grad_mode,
+                    "peak_bytes": measure.peak(measure.memory(grad)),
+                    "compile_s": grad_compile_s,
+                }
+            ]
             if method == "dense":
                 # The dense belief is p(q+1) squared per step and sequence; keeping one per
                 # step for the backward pass can exceed the machine, so checkpoint if needed.
@@ -239,11 +233,18 @@ def _bench_filter(cfg: Config, bench: dict, log) -> dict:
                 ):
                     if (tried[-1]["peak_bytes"] or 0) <= budget:
                         break
-                    log(f"[bench]   dense gradient needs {mb(tried[-1]['peak_bytes'])} MB; trying {mode}")
-                    grad, grad_compile_s = compile_timed(with_grad(impl, **kwargs), *grad_args)
+                    log(
+                        f"[bench]   dense gradient needs {measure.mb(tried[-1]['peak_bytes'])} MB; "
+                        f"trying {mode}"
+                    )
+                    grad, grad_compile_s = measure.compile_timed(with_grad(impl, **kwargs), *grad_args)
                     grad_mode = mode
                     tried.append(
-                        {"mode": mode, "peak_bytes": peak(memory(grad)), "compile_s": grad_compile_s}
+                        {
+                            "mode": mode,
+                            "peak_bytes": measure.peak(measure.memory(grad)),
+                            "compile_s": grad_compile_s,
+                        }
                     )
             # First calls (warm-up) also estimate how many repeats fit in the budget.
             t0 = time.perf_counter()
@@ -263,8 +264,8 @@ def _bench_filter(cfg: Config, bench: dict, log) -> dict:
                 fwd_times, grad_times = [fwd_first], [grad_first]
             else:
                 log(f"[bench] filter q={q} {method}: timing {repeats} x (forward, forward+gradient) ...")
-                fwd_times = time_calls(fwd, inputs, repeats)
-                grad_times = time_calls(grad, grad_args, repeats)
+                fwd_times = measure.time_calls(fwd, inputs, repeats)
+                grad_times = measure.time_calls(grad, grad_args, repeats)
             outputs[method] = (np.asarray(logp), value, [np.asarray(g) for g in grads])
             case[method] = {
                 "forward_ms": 1e3 * statistics.median(fwd_times),
@@ -277,8 +278,8 @@ def _bench_filter(cfg: Config, bench: dict, log) -> dict:
                 "compile_grad_s": grad_compile_s,
                 "grad_mode": grad_mode,
                 "grad_modes_tried": tried,
-                "memory_forward": memory(fwd),
-                "memory_grad": memory(grad),
+                "memory_forward": measure.memory(fwd),
+                "memory_grad": measure.memory(grad),
             }
             log(
                 f"[bench]   forward {case[method]['forward_ms']:.2f} ms, "
@@ -342,18 +343,18 @@ def _bench_segment_log_prob(cfg: Config, bench: dict, trainers: dict, log) -> di
 
         args = (params, hparams, carry0, obs, actions, first)
         log(f"[bench] strategy.log_prob explore={name}: {envs} envs x {num_steps} steps, compiling ...")
-        fwd, fwd_compile_s = compile_timed(forward, *args)
-        grad, grad_compile_s = compile_timed(jax.value_and_grad(loss), *args)
+        fwd, fwd_compile_s = measure.compile_timed(forward, *args)
+        grad, grad_compile_s = measure.compile_timed(jax.value_and_grad(loss), *args)
         jax.block_until_ready(fwd(*args))
         jax.block_until_ready(grad(*args))
-        fwd_times = time_calls(fwd, args, repeats)
-        grad_times = time_calls(grad, args, repeats)
+        fwd_times = measure.time_calls(fwd, args, repeats)
+        grad_times = measure.time_calls(grad, args, repeats)
         results[name] = {
             "forward_ms": 1e3 * statistics.median(fwd_times),
             "grad_ms": 1e3 * statistics.median(grad_times),
             "compile_forward_s": fwd_compile_s,
             "compile_grad_s": grad_compile_s,
-            "memory_grad": memory(grad),
+            "memory_grad": measure.memory(grad),
         }
         log(
             f"[bench]   forward {results[name]['forward_ms']:.2f} ms, "
@@ -366,32 +367,19 @@ def _bench_segment_log_prob(cfg: Config, bench: dict, trainers: dict, log) -> di
     return results
 
 
-def run(items: Sequence[str], log: Callable[[str], None] = print_log) -> dict:
+def run(items: Sequence[str], log: Callable[[str], None] = measure.print_log) -> dict:
     """Runs the suite with ``key=value`` items; writes and returns the results.
 
     Raises `ConfigError` for bad input before anything runs.
     """
     bench, cfg, _ = parse(items)
-    t_start = time.perf_counter()
-    info = machine()
-    log(f"[bench] coherent suite: {describe(info)}")
+    info, t_start = measure.start("coherent", log)
     training, trainers = _bench_training(cfg, bench["iterations"], log)
     segment = _bench_segment_log_prob(cfg, bench, trainers, log)
     del trainers
-    filt = _bench_filter(cfg, bench, log)
-    result = {
-        "suite": "coherent",
-        **info,
-        "load_average_end": load_average(),
-        "settings": {"config": to_dict(cfg), **bench},
-        "training": training,
-        "segment_log_prob": segment,
-        "filter": filt,
-        "wall_s": time.perf_counter() - t_start,
-    }
-    write_json_atomic(Path(bench["out"]), result)
-    log(f"[bench] wrote {bench['out']} ({result['wall_s']:.0f} s)")
-    return result
+    figures = {"training": training, "segment_log_prob": segment, "filter": _bench_filter(cfg, bench, log)}
+    settings = {"config": to_dict(cfg), **bench}
+    return measure.finish("coherent", info, t_start, settings, figures, bench["out"], log)
 
 
 def format_table(result: dict) -> str:
@@ -418,7 +406,9 @@ def format_table(result: dict) -> str:
         e = tr[name]
         iter_s = f"{e['iteration_s_median']:.3f}" if "iteration_s_median" in e else "-"
         sps = f"{e['env_steps_per_s']:,.0f}" if "env_steps_per_s" in e else "-"
-        lines.append(f"  {label:<22}{e['compile_s']:>10.1f}{iter_s:>10}{sps:>13}{mb(peak(e['memory'])):>11}")
+        lines.append(
+            f"  {label:<22}{e['compile_s']:>10.1f}{iter_s:>10}{sps:>13}{measure.peak_mb(e['memory']):>11}"
+        )
     ratio = f"  coherent/action: throughput {tr['ratio_coherent_over_action']:.2f}x"
     if "memory_ratio_coherent_over_action" in tr:
         ratio += (
@@ -438,7 +428,7 @@ def format_table(result: dict) -> str:
             reps = f"{e['repeats']}{'*' if e['first_call_timed'] else ''}"
             lines.append(
                 f"  {case['q']:>5} {method:<7}{e['forward_ms']:>12.2f}{e['grad_ms']:>13.2f}"
-                f"{mb(peak(e['memory_grad'])):>14}{reps:>6}  {e['grad_mode']}"
+                f"{measure.peak_mb(e['memory_grad']):>14}{reps:>6}  {e['grad_mode']}"
             )
         lines.append(
             f"  {'':>5} speedup dense/block: forward {case['speedup_forward']:.1f}x, "

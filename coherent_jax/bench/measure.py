@@ -63,6 +63,11 @@ def mb(nbytes: int | None) -> str:
     return "-" if nbytes is None else f"{nbytes / 2**20:,.1f}"
 
 
+def peak_mb(mem: dict | None) -> str:
+    """The peak of a `memory` record as MB for a table."""
+    return mb(peak(mem))
+
+
 def peak(mem: dict | None) -> int | None:
     """The peak bytes of a `memory` record (None if there is none)."""
     return None if mem is None else mem["peak_bytes"]
@@ -120,12 +125,31 @@ def machine() -> dict[str, Any]:
     }
 
 
-def describe(info: dict[str, Any]) -> str:
-    """One line naming the software, device, CPU and load of a `machine` record."""
-    return (
-        f"jax {info['jax_version']} on {info['platform']} ({info['cpu']}, {info['cpu_count']} CPUs), "
-        f"load average {info['load_average_start']}"
+def start(suite: str, log) -> tuple[dict[str, Any], float]:
+    """A suite's `machine` record and its start time; logs both."""
+    info = machine()
+    log(
+        f"[bench] {suite} suite: jax {info['jax_version']} on {info['platform']} ({info['cpu']}, "
+        f"{info['cpu_count']} CPUs), load average {info['load_average_start']}"
     )
+    return info, time.perf_counter()
+
+
+def finish(
+    suite: str, info: dict[str, Any], t_start: float, settings: dict, figures: dict, out: str, log
+) -> dict[str, Any]:
+    """A suite's result (machine, settings, figures, load at the end, wall time), written to ``out``."""
+    result = {
+        "suite": suite,
+        **info,
+        "load_average_end": load_average(),
+        "settings": settings,
+        **figures,
+        "wall_s": time.perf_counter() - t_start,
+    }
+    write_json_atomic(Path(out), result)
+    log(f"[bench] wrote {out} ({result['wall_s']:.0f} s)")
+    return result
 
 
 def _jsonable(value: Any) -> Any:

@@ -41,7 +41,7 @@ from pathlib import Path
 from typing import Any
 
 from coherent_jax import cli
-from coherent_jax.bench.measure import print_log, write_json_atomic
+from coherent_jax.bench import measure
 from coherent_jax.config import ConfigError
 from coherent_jax.envs.native import NATIVE_TASKS
 
@@ -207,7 +207,7 @@ def _run_row(settings: dict[str, Any], name: str, n: int) -> dict[str, Any]:
     return json.loads(lines[-1])
 
 
-def run(items: Sequence[str], log: Callable[[str], None] = print_log) -> dict[str, Any]:
+def run(items: Sequence[str], log: Callable[[str], None] = measure.print_log) -> dict[str, Any]:
     """Measures every (variant, env count) row, logging each as it is done; writes and returns
     the results. Raises `ConfigError` for bad input before anything runs."""
     settings = parse(items).settings
@@ -239,7 +239,7 @@ def run(items: Sequence[str], log: Callable[[str], None] = print_log) -> dict[st
         "machine": {"cpu_count": os.cpu_count(), "jax": jax.__version__, "mujoco": mujoco.__version__},
         "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
     }
-    write_json_atomic(Path(settings["out"]), result)
+    measure.write_json_atomic(Path(settings["out"]), result)
     log(f"wrote {settings['out']}")
     return result
 

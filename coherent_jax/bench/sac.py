@@ -26,21 +26,10 @@ import dataclasses
 import statistics
 import time
 from collections.abc import Callable, Sequence
-from pathlib import Path
 from typing import Any
 
 from coherent_jax import cli
-from coherent_jax.bench.measure import (
-    compile_timed,
-    describe,
-    load_average,
-    machine,
-    mb,
-    memory,
-    peak,
-    print_log,
-    write_json_atomic,
-)
+from coherent_jax.bench import measure
 from coherent_jax.config import Config, to_dict, validate
 
 KEYS: dict[str, cli.Key] = {
@@ -86,9 +75,9 @@ def _bench(cfg: Config, iterations: int, log) -> dict:
             trainer = SACTrainer(run_cfg, env=env, eval_env=env)
             state = jax.jit(trainer.init)(jax.random.PRNGKey(cfg.seed))
             log(f"[bench] compiling the SAC {mode.replace('_', ' ')}, explore={explore} ...")
-            step, compile_s = compile_timed(trainer.iteration, state)
-            mem = memory(step)
-            log(f"[bench]   compiled in {compile_s:.1f} s; peak memory {mb(peak(mem))} MB")
+            step, compile_s = measure.compile_timed(trainer.iteration, state)
+            mem = measure.memory(step)
+            log(f"[bench]   compiled in {compile_s:.1f} s; peak memory {measure.peak_mb(mem)} MB")
             t0 = time.perf_counter()
             state, _ = jax.block_until_ready(step(state))  # warm-up call, not timed
             runs[name] = {
@@ -145,26 +134,16 @@ def _bench(cfg: Config, iterations: int, log) -> dict:
     return results
 
 
-def run(items: Sequence[str], log: Callable[[str], None] = print_log) -> dict:
+def run(items: Sequence[str], log: Callable[[str], None] = measure.print_log) -> dict:
     """Runs the suite with ``key=value`` items; writes and returns the results.
 
     Raises `ConfigError` for bad input before anything runs.
     """
     bench, cfg, _ = parse(items)
-    t_start = time.perf_counter()
-    info = machine()
-    log(f"[bench] sac suite: {describe(info)}")
-    result = {
-        "suite": "sac",
-        **info,
-        "settings": {"config": to_dict(cfg), **bench},
-        "training": _bench(cfg, bench["iterations"], log),
-        "load_average_end": load_average(),
-    }
-    result["wall_s"] = time.perf_counter() - t_start
-    write_json_atomic(Path(bench["out"]), result)
-    log(f"[bench] wrote {bench['out']} ({result['wall_s']:.0f} s)")
-    return result
+    info, t_start = measure.start("sac", log)
+    figures = {"training": _bench(cfg, bench["iterations"], log)}
+    settings = {"config": to_dict(cfg), **bench}
+    return measure.finish("sac", info, t_start, settings, figures, bench["out"], log)
 
 
 def format_table(result: dict) -> str:
@@ -187,7 +166,7 @@ def format_table(result: dict) -> str:
         lines.append(
             f"  {label:<10}{e['compile_s']:>10.1f}{e['iteration_s_median']:>9.3f}"
             f"{e['env_steps_per_s']:>13,.0f}{e['gradient_updates_per_s']:>11,.0f}{e['collect_env_steps_per_s']:>22,.0f}"
-            f"{e['update_only_updates_per_s']:>19,.0f}{mb(peak(e['memory'])):>10}"
+            f"{e['update_only_updates_per_s']:>19,.0f}{measure.peak_mb(e['memory']):>10}"
         )
     lines.append(
         f"  Coherent-SAC / SAC: {tr['ratio_coherent_over_action']:.2f}x (collection alone "

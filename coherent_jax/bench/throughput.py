@@ -14,22 +14,10 @@ import dataclasses
 import statistics
 import time
 from collections.abc import Callable, Sequence
-from pathlib import Path
 from typing import Any
 
 from coherent_jax import cli
-from coherent_jax.bench.measure import (
-    compile_timed,
-    describe,
-    load_average,
-    machine,
-    mb,
-    memory,
-    peak,
-    peak_rss_bytes,
-    print_log,
-    write_json_atomic,
-)
+from coherent_jax.bench import measure
 from coherent_jax.config import Config, parse_overrides, to_dict
 
 # Rows besides the raw env; brax_ppo is Brax's own trainer.
@@ -230,7 +218,7 @@ def _brax_ppo(cfg: Config, iterations: int, log, between_epochs: Callable[[int],
     }
 
 
-def run(items: Sequence[str], log: Callable[[str], None] = print_log) -> dict:
+def run(items: Sequence[str], log: Callable[[str], None] = measure.print_log) -> dict:
     """Runs the suite with ``key=value`` items; writes and returns the results.
 
     In one process, on one task and one set of settings: the raw vectorized env
@@ -244,11 +232,9 @@ def run(items: Sequence[str], log: Callable[[str], None] = print_log) -> dict:
     from coherent_jax.agents import make_trainer
     from coherent_jax.envs.vec_env import VecEnv
 
-    t_start = time.perf_counter()
-    info = machine()
+    info, t_start = measure.start("throughput", log)
     skipped = {n: "not in rows=" for n in ROWS if n not in bench["rows"]}
     rows_wanted = list(bench["rows"])
-    log(f"[bench] throughput suite: {describe(info)}")
     steps = cfg.steps_per_iteration
     shape = f"{cfg.env}, {cfg.num_envs} envs x {cfg.unroll_length} steps"
     env = VecEnv(cfg.env, cfg.num_envs, cfg.episode_length, cfg.physics, cfg.physics_threads)
@@ -259,12 +245,12 @@ def run(items: Sequence[str], log: Callable[[str], None] = print_log) -> dict:
     key = jax.random.PRNGKey(cfg.seed)
     env_state = jax.jit(env.reset)(key)
     raw_fn = lambda s, k: rollout(s, k, cfg.unroll_length)  # noqa: E731
-    compiled, compile_s = compile_timed(raw_fn, env_state, key)
+    compiled, compile_s = measure.compile_timed(raw_fn, env_state, key)
     rows["raw_env"] = {
         "call": lambda args, c=compiled: c(*args)[:2],
         "args": (env_state, key),
         "compile_s": compile_s,
-        "memory": memory(compiled),
+        "memory": measure.memory(compiled),
     }
     log(f"[bench]   compiled in {compile_s:.1f} s")
 
@@ -273,9 +259,9 @@ def run(items: Sequence[str], log: Callable[[str], None] = print_log) -> dict:
         log(f"[bench] compiling the {run_cfg.algo} iteration, explore={run_cfg.explore} ({shape}) ...")
         trainer = make_trainer(run_cfg, env=env, eval_env=env)  # no evaluation runs here
         state = jax.jit(trainer.init)(jax.random.PRNGKey(cfg.seed))
-        compiled, compile_s = compile_timed(trainer.iteration, state)
-        mem = memory(compiled)
-        log(f"[bench]   compiled in {compile_s:.1f} s; peak memory {mb(peak(mem))} MB")
+        compiled, compile_s = measure.compile_timed(trainer.iteration, state)
+        mem = measure.memory(compiled)
+        log(f"[bench]   compiled in {compile_s:.1f} s; peak memory {measure.peak_mb(mem)} MB")
         rows[name] = {
             "call": lambda args, c=compiled: (c(*args)[0],),
             "args": (state,),
@@ -306,10 +292,10 @@ def run(items: Sequence[str], log: Callable[[str], None] = print_log) -> dict:
             + ", ".join(f"{n} {rows[n]['times'][-1]:.3f} s" for n in order if len(rows[n]["times"]) > i)
         )
 
-    rss_ours = peak_rss_bytes()  # our rows compiled and warm, before Brax
+    rss_ours = measure.peak_rss_bytes()  # our rows compiled and warm, before Brax
     brax_result = None
     if "brax_ppo" in rows_wanted:  # our rounds run between Brax's warm epochs
-        load_brax = load_average()
+        load_brax = measure.load_average()
         brax_result = _brax_ppo(cfg, bench["iterations"], log, between_epochs=timed_round)
         brax_result["load_average_start"] = load_brax
     else:
@@ -347,23 +333,17 @@ def run(items: Sequence[str], log: Callable[[str], None] = print_log) -> dict:
     ):
         if a in results and b in results:
             ratios[f"{a}_over_{b}"] = results[a]["env_steps_per_s"] / results[b]["env_steps_per_s"]
-    result = {
-        "suite": "throughput",
-        **info,
-        "load_average_end": load_average(),
-        "settings": {"config": to_dict(cfg), **bench},
+    figures = {
         "env_steps_per_iteration": steps,
         "rows": results,
         "skipped": skipped,
         "ratios": ratios,
         "targets": {"ppo_over_brax_ppo": 1.0, "training_over_raw_env": 0.6},
         "peak_rss_bytes_after_ours": rss_ours,
-        "peak_rss_bytes_end": peak_rss_bytes(),
-        "wall_s": time.perf_counter() - t_start,
+        "peak_rss_bytes_end": measure.peak_rss_bytes(),
     }
-    write_json_atomic(Path(bench["out"]), result)
-    log(f"[bench] wrote {bench['out']} ({result['wall_s']:.0f} s)")
-    return result
+    settings = {"config": to_dict(cfg), **bench}
+    return measure.finish("throughput", info, t_start, settings, figures, bench["out"], log)
 
 
 _ROW_LABELS = {
@@ -397,7 +377,7 @@ def format_table(result: dict) -> str:
             lines.append(f"  {label:<27}  skipped: {result['skipped'].get(name, '')}")
             continue
         e = rows[name]
-        mem = mb(peak(e.get("memory"))) if e.get("memory") else "-"
+        mem = measure.peak_mb(e.get("memory"))
         lines.append(
             f"  {label:<27}{e['compile_s']:>10.1f}{e['iteration_s_median']:>9.3f}"
             f"{e['env_steps_per_s']:>13,.0f}{e['env_steps_per_s'] / raw:>7.2f}"
@@ -413,8 +393,8 @@ def format_table(result: dict) -> str:
         lines.append(f"  {labels[a]} / {labels.get(b, b)}: {value:.2f}x{target}")
     lines.append(
         f"  peak memory: XLA estimate per compiled program (ours); process peak RSS "
-        f"{mb(result['peak_rss_bytes_after_ours'])} MB after compiling our rows, "
-        f"{mb(result['peak_rss_bytes_end'])} MB at the end"
+        f"{measure.mb(result['peak_rss_bytes_after_ours'])} MB after compiling our rows, "
+        f"{measure.mb(result['peak_rss_bytes_end'])} MB at the end"
     )
     if "brax_ppo" in rows:
         b = rows["brax_ppo"]
