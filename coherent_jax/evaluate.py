@@ -3,14 +3,10 @@
 Loads ``RUN_DIR/checkpoint.msgpack`` (verified as in `coherent_jax.runs`), runs
 ``episodes`` deterministic (mean-action) episodes in parallel with the trainer's own
 ``evaluate`` and prints the mean and standard deviation of their returns. With
-``video=true`` it also renders the first episode with MuJoCo's offscreen renderer
-(headless: ``MUJOCO_GL=egl`` by default, or ``osmesa``) and writes an animated GIF
-(``RUN_DIR/videos/eval-it<iteration>-s<seed>.gif`` unless ``video_path`` is given).
-
-The physics states are taken from inside the jitted evaluation by a host callback
-on the evaluation environment's step, so any trainer's ``evaluate`` is used
-unchanged and the video shows exactly the episodes whose returns are printed.
-`pointmass` has no MuJoCo model and refuses ``video=true``.
+``video=true`` it also renders the first episode (`coherent_jax.video`; headless:
+``MUJOCO_GL=egl`` by default, or ``osmesa``) to
+``RUN_DIR/videos/eval-it<iteration>-s<seed>.mp4`` (``.gif`` without ffmpeg) unless
+``video_path`` is given. `pointmass` has no MuJoCo model and refuses ``video=true``.
 """
 
 from __future__ import annotations
@@ -23,6 +19,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from coherent_jax import video
 from coherent_jax.config import ConfigError
 from coherent_jax.runs import CHECKPOINT, CheckpointError, decode_checkpoint, load_config
 
@@ -44,9 +41,9 @@ class EvalConfig:
 
 EVAL_HELP = {
     "episodes": "deterministic episodes, run in parallel",
-    "video": "render the first episode to a GIF (MuJoCo tasks only)",
+    "video": "render the first episode to a video (MuJoCo tasks only)",
     "seed": "PRNG seed of the evaluation episodes",
-    "video_path": "where to write the GIF; default RUN_DIR/videos/eval-it<iteration>-s<seed>.gif",
+    "video_path": "a .mp4 (needs ffmpeg) or .gif path; default RUN_DIR/videos/eval-it<iteration>-s<seed>.*",
     "width": "video width in pixels (at most 640)",
     "height": "video height in pixels (at most 480)",
     "max_frames": "at most this many frames",
@@ -86,91 +83,14 @@ def parse_eval_args(argv: Sequence[str]) -> tuple[Path, EvalConfig]:
     for key, ok, allowed in checks:
         if not ok:
             raise ConfigError(f"invalid value for {key!r}: {getattr(cfg, key)!r} (allowed: {allowed})")
+    if cfg.video_path:
+        try:
+            video.check_path(cfg.video_path)
+        except ValueError:
+            raise ConfigError(
+                f"invalid value for 'video_path': {cfg.video_path!r} (allowed: {video.PATH_ALLOWED})"
+            ) from None
     return Path(positional[0]), cfg
-
-
-class _Recorder:
-    """Host-side sink of (qpos, done) of evaluation env 0, step by step, until its episode ends."""
-
-    def __init__(self, max_frames: int) -> None:
-        self.qpos: list[Any] = []
-        self.max_frames = max_frames
-        self.ended = False
-
-    def __call__(self, qpos: Any, done: Any) -> None:
-        import numpy as np
-
-        if not self.ended and len(self.qpos) < self.max_frames:
-            self.qpos.append(np.array(qpos, dtype=np.float64))
-        self.ended = self.ended or bool(done)
-
-
-def recording_env(
-    task: str,
-    num_envs: int,
-    episode_length: int,
-    recorder: _Recorder,
-    physics: str = "auto",
-    threads: int = 1,
-):
-    """A `VecEnv` whose ``step`` also sends env 0's generalized positions to `recorder`."""
-    import jax
-
-    from coherent_jax.envs.vec_env import VecEnv
-
-    class RecordingVecEnv(VecEnv):
-        def step(self, state, action):
-            if hasattr(state.physics, "kin"):  # native MuJoCo physics
-                qpos = state.physics.kin.qpos
-            else:
-                physics = state.physics.pipeline_state
-                qpos = physics.qpos if hasattr(physics, "qpos") else physics.q
-            new_state, outcome = super().step(state, action)
-            jax.debug.callback(recorder, qpos[0], outcome.done[0], ordered=True)
-            return new_state, outcome
-
-    return RecordingVecEnv(task, num_envs, episode_length, physics, threads)
-
-
-def render_frames(mj_model: Any, qpos: Sequence[Any], width: int, height: int) -> list[Any]:
-    """RGB frames [height, width, 3] of the model at each configuration in `qpos`.
-
-    The free camera is placed by MuJoCo's default for the model and follows the
-    first body below the world, so a running agent stays in view.
-    """
-    import mujoco
-
-    data = mujoco.MjData(mj_model)
-    camera = mujoco.MjvCamera()
-    mujoco.mjv_defaultFreeCamera(mj_model, camera)
-    track = 1 if mj_model.nbody > 1 else 0
-    frames = []
-    with mujoco.Renderer(mj_model, height=height, width=width) as renderer:
-        for q in qpos:
-            data.qpos[:] = q
-            mujoco.mj_forward(mj_model, data)
-            camera.lookat[:] = data.xpos[track]
-            renderer.update_scene(data, camera=camera)
-            frames.append(renderer.render().copy())
-    return frames
-
-
-def write_gif(path: Path, frames: Sequence[Any], fps: float) -> None:
-    """An animated GIF of `frames`, written through a temporary file and a rename."""
-    from PIL import Image
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    images = [Image.fromarray(f) for f in frames]
-    tmp = path.with_name(path.name + ".tmp")
-    images[0].save(
-        tmp,
-        format="GIF",
-        save_all=True,
-        append_images=images[1:],
-        duration=max(20, int(round(1000.0 / fps))),
-        loop=0,
-    )
-    os.replace(tmp, path)
 
 
 def evaluate_run(run_dir: Path, opts: EvalConfig) -> dict[str, Any]:
@@ -184,9 +104,9 @@ def evaluate_run(run_dir: Path, opts: EvalConfig) -> dict[str, Any]:
     cfg = load_config(run_dir)
     ckpt = decode_checkpoint(run_dir / CHECKPOINT, cfg)
     cfg = dataclasses.replace(cfg, eval_episodes=opts.episodes)
-    recorder = _Recorder(opts.max_frames)
+    recorder = video.Recorder(opts.max_frames)
     if opts.video:
-        eval_env = recording_env(
+        eval_env = video.recording_env(
             cfg.env, opts.episodes, cfg.episode_length, recorder, cfg.physics, cfg.physics_threads
         )
     else:
@@ -207,16 +127,12 @@ def evaluate_run(run_dir: Path, opts: EvalConfig) -> dict[str, Any]:
     }
     if opts.video:
         jax.effects_barrier()
-        if hasattr(eval_env.env, "sys"):
-            mj_model = eval_env.env.sys.mj_model
-        else:  # native physics: the same MJCF, with the task's solver options
-            from coherent_jax.envs.native import mujoco_model
-
-            mj_model = mujoco_model(cfg.env)[0]
-        frames = render_frames(mj_model, recorder.qpos, opts.width, opts.height)
-        default = run_dir / "videos" / f"eval-it{ckpt.iteration}-s{opts.seed}.gif"
-        path = Path(opts.video_path) if opts.video_path else default
-        write_gif(path, frames, fps=1.0 / eval_env.dt)
+        frames = video.render_frames(
+            video.mujoco_model_of(eval_env, cfg.env), recorder.qpos, opts.width, opts.height
+        )
+        name = f"eval-it{ckpt.iteration}-s{opts.seed}{video.default_suffix()}"
+        path = Path(opts.video_path) if opts.video_path else run_dir / "videos" / name
+        video.write_video(path, frames, fps=1.0 / eval_env.dt)
         result.update({"video": str(path), "frames": len(frames)})
     return result
 
