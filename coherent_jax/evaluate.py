@@ -19,78 +19,52 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from coherent_jax import video
+from coherent_jax import cli, video
 from coherent_jax.config import ConfigError
 from coherent_jax.runs import CHECKPOINT, CheckpointError, decode_checkpoint, load_config
 
-EXIT_BAD_INPUT = 2
-
-
-@dataclasses.dataclass
-class EvalConfig:
-    """Options of ``python -m coherent_jax.evaluate RUN_DIR [key=value ...]``."""
-
-    episodes: int = 10
-    video: bool = False
-    seed: int = 0
-    video_path: str = ""
-    width: int = 320
-    height: int = 240
-    max_frames: int = 1000
-
-
-EVAL_HELP = {
-    "episodes": "deterministic episodes, run in parallel",
-    "video": "render the first episode to a video (MuJoCo tasks only)",
-    "seed": "PRNG seed of the evaluation episodes",
-    "video_path": "a .mp4 (needs ffmpeg) or .gif path; default RUN_DIR/videos/eval-it<iteration>-s<seed>.*",
-    "width": "video width in pixels (at most 640)",
-    "height": "video height in pixels (at most 480)",
-    "max_frames": "at most this many frames",
+KEYS: dict[str, cli.Key] = {
+    "episodes": cli.Key(
+        10, cli.int_at_least(1), "an integer >= 1", "deterministic episodes, run in parallel"
+    ),
+    "video": cli.Key(False, cli.boolean, "true or false", "render the first episode (MuJoCo tasks only)"),
+    "seed": cli.Key(0, cli.int_at_least(0), "an integer >= 0", "PRNG seed of the evaluation episodes"),
+    "video_path": cli.Key(
+        "",
+        video.check_path,
+        video.PATH_ALLOWED,
+        "where the video goes; default RUN_DIR/videos/eval-it<iteration>-s<seed>.mp4 (.gif without ffmpeg)",
+    ),
+    "width": cli.Key(320, cli.int_between(16, 640), "an integer in [16, 640]", "video width in pixels"),
+    "height": cli.Key(240, cli.int_between(16, 480), "an integer in [16, 480]", "video height in pixels"),
+    "max_frames": cli.Key(1000, cli.int_at_least(2), "an integer >= 2", "at most this many frames"),
 }
 
 
-def parse_eval_args(argv: Sequence[str]) -> tuple[Path, EvalConfig]:
-    """``RUN_DIR`` then ``key=value`` overrides; raises `ConfigError` in one line."""
-    from omegaconf import OmegaConf
-    from omegaconf.errors import OmegaConfBaseException
+@dataclasses.dataclass(frozen=True)
+class EvalConfig:
+    """Settings of ``python -m coherent_jax.evaluate RUN_DIR [key=value ...]`` (defaults: `KEYS`)."""
 
+    episodes: int
+    video: bool
+    seed: int
+    video_path: str
+    width: int
+    height: int
+    max_frames: int
+
+
+def parse_eval_args(argv: Sequence[str]) -> tuple[Path, EvalConfig]:
+    """``RUN_DIR`` then ``key=value`` settings; raises `ConfigError` in one line."""
     positional = [a for a in argv if "=" not in a]
-    overrides = [a for a in argv if "=" in a]
     if len(positional) != 1:
         raise ConfigError(
             f"expected one run directory, got {len(positional)}: {positional!r} "
             "(usage: python -m coherent_jax.evaluate RUN_DIR [episodes=10] [video=true] ...)"
         )
-    known = {f.name for f in dataclasses.fields(EvalConfig)}
-    for item in overrides:
-        key = item.split("=", 1)[0].strip()
-        if key not in known:
-            raise ConfigError(f"unknown key {key!r}; valid keys: {', '.join(sorted(known))}")
-    try:
-        merged = OmegaConf.merge(OmegaConf.structured(EvalConfig()), OmegaConf.from_dotlist(overrides))
-        cfg: EvalConfig = OmegaConf.to_object(merged)
-    except OmegaConfBaseException as exc:
-        key = getattr(exc, "full_key", None) or "?"
-        raise ConfigError(f"invalid value for {key!r}: {str(exc).splitlines()[0]}") from None
-    checks = [
-        ("episodes", cfg.episodes >= 1, "an integer >= 1"),
-        ("seed", cfg.seed >= 0, "an integer >= 0"),
-        ("width", 16 <= cfg.width <= 640, "an integer in [16, 640]"),
-        ("height", 16 <= cfg.height <= 480, "an integer in [16, 480]"),
-        ("max_frames", cfg.max_frames >= 2, "an integer >= 2"),
-    ]
-    for key, ok, allowed in checks:
-        if not ok:
-            raise ConfigError(f"invalid value for {key!r}: {getattr(cfg, key)!r} (allowed: {allowed})")
-    if cfg.video_path:
-        try:
-            video.check_path(cfg.video_path)
-        except ValueError:
-            raise ConfigError(
-                f"invalid value for 'video_path': {cfg.video_path!r} (allowed: {video.PATH_ALLOWED})"
-            ) from None
-    return Path(positional[0]), cfg
+    items = [a for a in argv if "=" in a]
+    settings = cli.parse_command(items, KEYS, command="evaluate", config=False).settings
+    return Path(positional[0]), EvalConfig(**settings)
 
 
 def evaluate_run(run_dir: Path, opts: EvalConfig) -> dict[str, Any]:
@@ -141,8 +115,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if any(a in ("-h", "--help", "help") for a in argv):
         print("usage: python -m coherent_jax.evaluate RUN_DIR [key=value ...]\n\noptions (key=default):")
-        for f in dataclasses.fields(EvalConfig):
-            print(f"  {f.name}={f.default}".ljust(24) + f"  {EVAL_HELP[f.name]}")
+        print("\n".join(cli.help_lines(KEYS)))
         return 0
     # Headless rendering; must be chosen before mujoco is first imported.
     os.environ.setdefault("MUJOCO_GL", "egl")
@@ -163,7 +136,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
     except (ConfigError, CheckpointError) as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return cli.EXIT_BAD_INPUT
     print(f"[coherent_jax] evaluating {run_dir} ({opts.episodes} episodes)", flush=True)
     result = evaluate_run(run_dir, opts)
     print(
