@@ -120,17 +120,7 @@ def _bench_training(cfg: Config, iterations: int, log) -> tuple[dict, dict]:
         run["state"], _ = jax.block_until_ready(run["step"](run["state"]))
         run["warmup_s"] = time.perf_counter() - t0
         run["times"] = []
-    for i in range(iterations):
-        order = timed if i % 2 == 0 else timed[::-1]
-        for name in order:
-            run = runs[name]
-            t0 = time.perf_counter()
-            run["state"], _ = jax.block_until_ready(run["step"](run["state"]))
-            run["times"].append(time.perf_counter() - t0)
-        log(
-            f"[bench] iteration {i + 1}/{iterations}: "
-            + ", ".join(f"{n} {runs[n]['times'][-1]:.3f} s" for n in order)
-        )
+    measure.time_interleaved(runs, timed, iterations, log)
 
     steps = cfg.num_envs * cfg.unroll_length
     results: dict[str, Any] = {}
@@ -392,8 +382,7 @@ def format_table(result: dict) -> str:
         f"{cfg['algo']} {cfg['num_epochs']} epochs x {cfg['num_minibatches']} minibatches, "
         f"policy [{hidden}], beta={cfg['beta']}"
         + (f", coherent_inference={cfg['coherent_inference']}" if "coherent_inference" in cfg else ""),
-        f"jax {result['jax_version']} on {result['device']} ({result['cpu']}, {result['cpu_count']} CPUs); "
-        f"load average {result['load_average_start']} -> {result['load_average_end']}",
+        measure.machine_line(result),
         "",
         f"1. PPO iteration (median of {len(tr['action']['iteration_s'])}, interleaved)",
         f"  {'explore':<22}{'compile s':>10}{'iter s':>10}{'env steps/s':>13}{'peak MB':>11}",

@@ -8,6 +8,7 @@ import json
 import math
 import os
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -56,6 +57,38 @@ def time_calls(compiled, args, repeats: int) -> list[float]:
         jax.block_until_ready(compiled(*args))
         times.append(time.perf_counter() - t0)
     return times
+
+
+def time_interleaved(runs: dict[str, dict], names: Sequence[str], rounds: int, log, on_metrics=None) -> None:
+    """Times ``rounds`` calls of each run's compiled ``step`` on its ``state``, in alternating order.
+
+    The order flips every round (A B, B A, ...) so that a change of load on a shared
+    machine hits every run alike. Each call's seconds go to ``run["times"]`` and its
+    new state to ``run["state"]``; ``on_metrics(name, metrics)`` sees its metrics.
+    """
+    import jax
+
+    for i in range(rounds):
+        order = list(names) if i % 2 == 0 else list(names)[::-1]
+        for name in order:
+            run = runs[name]
+            t0 = time.perf_counter()
+            run["state"], metrics = jax.block_until_ready(run["step"](run["state"]))
+            run["times"].append(time.perf_counter() - t0)
+            if on_metrics is not None:
+                on_metrics(name, metrics)
+        log(
+            f"[bench] round {i + 1}/{rounds}: "
+            + ", ".join(f"{n} {runs[n]['times'][-1]:.3f} s" for n in order)
+        )
+
+
+def machine_line(result: dict[str, Any]) -> str:
+    """The software, device, CPU and load of a suite's result, for its table."""
+    return (
+        f"jax {result['jax_version']} on {result['device']} ({result['cpu']}, {result['cpu_count']} CPUs); "
+        f"load average {result['load_average_start']} -> {result['load_average_end']}"
+    )
 
 
 def mb(nbytes: int | None) -> str:

@@ -88,20 +88,12 @@ def _bench(cfg: Config, iterations: int, log) -> dict:
                 "warmup_call_s": time.perf_counter() - t0,
                 "times": [],
             }
-    names = list(runs)
-    for i in range(iterations):
-        order = names if i % 2 == 0 else names[::-1]
-        for name in order:
-            run = runs[name]
-            t0 = time.perf_counter()
-            run["state"], metrics = jax.block_until_ready(run["step"](run["state"]))
-            run["times"].append(time.perf_counter() - t0)
-            if name.endswith("/iteration"):
-                run.setdefault("updates_applied", []).append(float(metrics["train/updates_applied"]))
-        log(
-            f"[bench] round {i + 1}/{iterations}: "
-            + ", ".join(f"{n} {runs[n]['times'][-1]:.3f} s" for n in order)
-        )
+
+    def count_updates(name: str, metrics: dict) -> None:
+        if name.endswith("/iteration"):
+            runs[name].setdefault("updates_applied", []).append(float(metrics["train/updates_applied"]))
+
+    measure.time_interleaved(runs, list(runs), iterations, log, count_updates)
 
     steps, updates = cfg.steps_per_iteration, cfg.updates_per_iteration
     results: dict[str, Any] = {"env_steps_per_iteration": steps, "updates_per_iteration": updates}
@@ -154,8 +146,7 @@ def format_table(result: dict) -> str:
         f"sac bench: {cfg['env']}, {cfg['num_envs']} envs x {cfg['unroll_length']} steps = "
         f"{tr['env_steps_per_iteration']} env steps and {tr['updates_per_iteration']} updates "
         f"(batch {cfg['batch_size']}) per iteration, networks [{hidden}], beta={cfg['beta']}",
-        f"jax {result['jax_version']} on {result['device']} ({result['cpu']}, {result['cpu_count']} CPUs); "
-        f"load average {result['load_average_start']} -> {result['load_average_end']}",
+        measure.machine_line(result),
         f"median of {len(tr['action']['iteration_s'])} interleaved iterations",
         "",
         f"  {'':<10}{'compile s':>10}{'iter s':>9}{'env steps/s':>13}{'updates/s':>11}"

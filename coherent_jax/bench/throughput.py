@@ -365,8 +365,7 @@ def format_table(result: dict) -> str:
         f"throughput bench: {cfg['env']}, {cfg['num_envs']} envs x {cfg['unroll_length']} steps "
         f"({result['env_steps_per_iteration']} env steps per iteration), PPO {cfg['num_epochs']} epochs x "
         f"{cfg['num_minibatches']} minibatches, policy/value [{hidden}] {cfg['activation']}",
-        f"jax {result['jax_version']} on {result['device']} ({result['cpu']}, {result['cpu_count']} CPUs); "
-        f"load average {result['load_average_start']} -> {result['load_average_end']}",
+        measure.machine_line(result),
         "",
         f"  {'row':<27}{'compile s':>10}{'iter s':>9}{'env steps/s':>13}{'x raw':>7}{'best':>9}"
         f"{'peak MB':>10}",
