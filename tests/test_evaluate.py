@@ -173,12 +173,14 @@ def test_missing_or_foreign_run_dir_or_broken_checkpoint_is_refused(tmp_path, ca
 
 
 FRAMING = """
-import json, sys
+import importlib.util, json, os
 import mujoco, numpy as np
 from coherent_jax import video
-from coherent_jax.envs.native import mujoco_model
 
-model = video.lit_model(mujoco_model("halfcheetah")[0])
+# Brax's halfcheetah MJCF, loaded without importing JAX (the test stays a few seconds).
+brax_dir = importlib.util.find_spec("brax").submodule_search_locations[0]
+xml = os.path.join(brax_dir, "envs", "assets", "half_cheetah.xml")
+model = video.lit_model(mujoco.MjModel.from_xml_path(xml))
 data = mujoco.MjData(model)
 data.qpos[0] = 25.0  # far from the start: a tracking camera keeps the body in view
 mujoco.mj_forward(model, data)
