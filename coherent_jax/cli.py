@@ -75,6 +75,18 @@ def int_at_least(low: int) -> Callable[[str], int]:
     return parse
 
 
+def int_between(low: int, high: int) -> Callable[[str], int]:
+    """Parser of an integer in [``low``, ``high``]."""
+
+    def parse(text: str) -> int:
+        value = int(text)
+        if not low <= value <= high:
+            raise ValueError(text)
+        return value
+
+    return parse
+
+
 def positive_float(text: str) -> float:
     """Parser of a finite number > 0."""
     value = _yaml(text)
@@ -272,5 +284,7 @@ def help_lines(keys: Mapping[str, Key]) -> list[str]:
         default = spec.default
         if isinstance(default, list):
             default = "[" + ",".join(str(v) for v in default) + "]"
+        elif isinstance(default, bool):
+            default = str(default).lower()  # as it is written on the command line
         lines.append(f"  {name}={default}".ljust(34) + f"  {spec.help} (allowed: {spec.allowed})")
     return lines

@@ -12,6 +12,7 @@ KEYS = {
     "rows": cli.Key(["a", "b"], cli.choice_list(("a", "b", "c")), "a non-empty list of a, b, c", "rows"),
     "mode": cli.Key("a", cli.choice(("a", "b")), "a or b", "mode"),
     "flag": cli.Key(False, cli.boolean, "true or false", "flag"),
+    "width": cli.Key(320, cli.int_between(16, 640), "an integer in [16, 640]", "pixels"),
 }
 
 
@@ -32,6 +33,7 @@ def test_defaults_own_keys_and_config_pass_through():
         "rows": ["a", "c"],  # in the table's order
         "mode": "a",
         "flag": True,
+        "width": 320,
     }
     assert got.config.lr == pytest.approx(1e-3)
     assert (got.config.coherent.layers, got.config.coherent.integration) == ("all", "mc")
@@ -75,6 +77,8 @@ BAD = [
     ("rows=[a,z]", r"'rows'.*\(allowed: a non-empty list of a, b, c\)"),
     ("mode=c", "'mode'"),
     ("flag=maybe", "'flag'"),
+    ("width=15", r"'width': '15' \(allowed: an integer in \[16, 640\]\)"),
+    ("width=641", "'width'"),
     ("lr=abc", "'lr'"),
     ("policy_hidden=[64,", "'policy_hidden'.*not valid YAML"),
     ("lr={a", "'lr'.*not valid YAML"),
@@ -108,3 +112,4 @@ def test_output_paths_checked_before_any_work(tmp_path):
 def test_help_lines_show_defaults_and_allowed():
     lines = cli.help_lines(KEYS)
     assert any(ln.strip().startswith("sizes=[16]") and "a list of integers" in ln for ln in lines)
+    assert any(ln.strip().startswith("flag=false ") for ln in lines)
