@@ -31,7 +31,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from coherent_jax.config import ConfigError, parse_overrides
+from coherent_jax import cli
+from coherent_jax.config import ConfigError
 from coherent_jax.runs import atomic_write
 
 DEFAULTS = [
@@ -45,6 +46,15 @@ DEFAULTS = [
     "tensorboard=false",
 ]
 WAIT_S = 3600  # bound on one launch
+KEYS = {
+    "processes": cli.Key(2, cli.int_at_least(2), "an integer >= 2", "processes of one device each (N)"),
+    "repeats": cli.Key(
+        1, cli.int_at_least(1), "an integer >= 1", "pairs of runs, alternating which goes first"
+    ),
+    "out": cli.Key("bench_results/distributed.json", cli.output_file, "a writable file path", "the JSON"),
+}
+# Set per launch by the benchmark.
+FIXED = {"run_dir": None, "distributed": None, "resume": None}
 
 
 def _free_port() -> int:
@@ -85,26 +95,16 @@ def _launch(args: list[str], run_dir: Path, processes: int, devices: int) -> dic
 
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    settings = {"processes": "2", "repeats": "1", "out": "bench_results/distributed.json"}
-    train_args = list(DEFAULTS)
-    for item in argv:
-        key, _, value = item.partition("=")
-        if key.strip() in settings:
-            settings[key.strip()] = value.strip()
-        else:
-            train_args.append(item)
     try:
-        for key in ("processes", "repeats"):
-            if not settings[key].isdigit() or int(settings[key]) < (2 if key == "processes" else 1):
-                raise ConfigError(
-                    f"invalid value for {key!r}: {settings[key]!r} (allowed: an integer >= 2 for "
-                    "processes, >= 1 for repeats)"
-                )
-        cfg = parse_overrides(train_args)  # a bad key or value: one line, before any launch
+        parsed = cli.parse_command(
+            argv, KEYS, command="bench_distributed", fixed=FIXED, config_defaults=DEFAULTS
+        )
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return 2
-    n, repeats = int(settings["processes"]), int(settings["repeats"])
+        return cli.EXIT_BAD_INPUT
+    settings, cfg = parsed.settings, parsed.config
+    train_args = [*DEFAULTS, *parsed.config_items]
+    n, repeats = settings["processes"], settings["repeats"]
     load_before = os.getloadavg()
     rates: dict[str, list[float]] = {"one_process": [], "processes": []}
     with tempfile.TemporaryDirectory() as tmp:
