@@ -21,7 +21,16 @@ Variants (`VARIANTS`):
 * ``native``: native MuJoCo through ``jax.pure_callback`` (``physics=native``, with its
   default `DEFAULT_THREADS` MuJoCo threads); ``native_all``: the same on every core;
 * ``native_raw``: ``mujoco.batch.Batch`` with the default thread count stepped from a
-  Python loop with no JAX at all, the ceiling the callback path can approach.
+  Python loop with no JAX at all, the ceiling the callback path can approach;
+* ``envpool``: EnvPool (C++ threads, ``pip install -e .[bench]``) stepping the same
+  Gymnasium task with `DEFAULT_THREADS` threads from a Python loop; ``envpool_all``: on
+  every core. Only for Gymnasium's tasks.
+
+``python -m coherent_jax.bench_physics standard [tasks=[...]] [envs=[64]] [steps=...]
+[repeats=3] [out=bench_results/physics_standard.json]`` measures, for each standard task
+at 1 thread and at every core, our vectorized env of the Gymnasium task (native), its
+Brax re-creation (``brax-*``, on the physics ``auto`` picks) and EnvPool, the same envs
+and threads, as rows of the same kind (`standard_tasks`).
 
 A bad key or value is one line on stderr and exit status 2, before anything runs.
 The JSON is written atomically once every row is measured.
@@ -48,6 +57,8 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "native": {"physics": "native"},
     "native_all": {"physics": "native", "nthread": 0},
     "native_raw": {"physics": "raw"},
+    "envpool": {"physics": "envpool"},
+    "envpool_all": {"physics": "envpool", "nthread": 0},
 }
 DEFAULTS: dict[str, Any] = {
     "env": "halfcheetah",
@@ -58,7 +69,7 @@ DEFAULTS: dict[str, Any] = {
     "out": "bench_results/physics.json",
 }
 # Rough env steps/s used only to size a timed call when steps=0.
-_GUESS = {"mjx": 3000, "native": 30000, "raw": 30000}
+_GUESS = {"mjx": 3000, "native": 30000, "raw": 30000, "envpool": 20000, "generalized": 3000}
 
 
 class BenchError(ValueError):
@@ -155,7 +166,43 @@ def _measure_raw(task: str, n: int, steps: int, repeats: int) -> dict[str, Any]:
     return {"compile_s": 0.0, "call_s": _timed(run, repeats)}
 
 
+def _measure_envpool(task: str, n: int, steps: int, repeats: int, nthread: int) -> dict[str, Any]:
+    call, threads = _prepare_envpool(task, n, steps, nthread)
+    return {"compile_s": 0.0, "call_s": _timed(call, repeats), "physics": "envpool", "threads": threads}
+
+
+def _prepare_envpool(task: str, n: int, steps: int, nthread: int):
+    """EnvPool's own vectorized env of the same Gymnasium task: a warm call of `steps` random-action
+    steps of all `n` envs, and the thread count."""
+    import envpool
+    import numpy as np
+
+    from coherent_jax.envs.registry import check_task
+
+    gym_id = check_task(task).gymnasium_id
+    if not gym_id:
+        raise ValueError(f"EnvPool runs Gymnasium's tasks only, not {task!r}")
+    threads = min(nthread or os.cpu_count() or 1, n)
+    env = envpool.make_gymnasium(gym_id, num_envs=n, batch_size=n, num_threads=threads, seed=0)
+    env.reset()
+    low, high = env.action_space.low, env.action_space.high
+    actions = np.random.default_rng(0).uniform(low, high, (steps, n, len(low)))
+
+    def run():
+        for t in range(steps):
+            env.step(actions[t])
+
+    run()
+    return run, threads
+
+
 def _measure_jax(task: str, n: int, steps: int, repeats: int, variant: dict[str, Any]) -> dict[str, Any]:
+    call, compile_s, physics = _prepare_jax(task, n, steps, variant)
+    return {"compile_s": compile_s, "call_s": _timed(call, repeats), "physics": physics}
+
+
+def _prepare_jax(task: str, n: int, steps: int, variant: dict[str, Any]):
+    """A warm call of `steps` jitted VecEnv steps of `n` envs, its compile seconds and the physics."""
     import jax
     import jax.numpy as jnp
 
@@ -203,13 +250,55 @@ def _measure_jax(task: str, n: int, steps: int, repeats: int, variant: dict[str,
         if not bool(jnp.all(jnp.isfinite(total))):
             raise FloatingPointError("non-finite reward")
 
-    return {"compile_s": compile_s, "call_s": _timed(call, repeats), "physics": env.physics}
+    return call, compile_s, env.physics
+
+
+def _side_by_side(spec: dict[str, Any]) -> dict[str, Any]:
+    """Several (kind, env, variant) rows in one process, timed round-robin so that they share the load."""
+    from coherent_jax.envs.native import DEFAULT_THREADS
+
+    calls, rows = {}, {}
+    for kind, env, name in spec["plan"]:
+        variant = VARIANTS[name]
+        try:
+            if variant["physics"] == "envpool":
+                calls[kind], threads = _prepare_envpool(
+                    env, spec["n"], spec["steps"], variant.get("nthread", DEFAULT_THREADS)
+                )
+                rows[kind] = {"compile_s": 0.0, "physics": "envpool", "threads": threads}
+            else:
+                calls[kind], compile_s, physics = _prepare_jax(env, spec["n"], spec["steps"], variant)
+                rows[kind] = {"compile_s": compile_s, "physics": physics}
+        except Exception as exc:  # a row that cannot run (e.g. EnvPool not installed) is reported, not fatal
+            rows[kind] = {"error": f"{type(exc).__name__}: {exc}".splitlines()[0]}
+        rows[kind].update({"kind": kind, "env": env, "variant": name})
+    # Wall time, and the process's CPU time (every thread): on a loaded machine the scheduler
+    # shares CPU unevenly between a thread pool that sleeps between calls and one that spins.
+    times: dict[str, list[tuple[float, float]]] = {kind: [] for kind in calls}
+    for _ in range(spec["repeats"]):
+        for kind, call in calls.items():
+            t0, c0 = time.perf_counter(), time.process_time()
+            call()
+            times[kind].append((time.perf_counter() - t0, time.process_time() - c0))
+    for kind, ts in times.items():
+        rows[kind]["call_s"] = statistics.median(t for t, _ in ts)
+        rows[kind]["cpu_s"] = statistics.median(c for _, c in ts)
+        rows[kind]["env_steps_per_s"] = spec["n"] * spec["steps"] / rows[kind]["call_s"]
+        rows[kind]["env_steps_per_cpu_s"] = spec["n"] * spec["steps"] / max(rows[kind]["cpu_s"], 1e-9)
+    return {**spec, "rows": list(rows.values()), "load_average": os.getloadavg()}
 
 
 def _worker(spec: dict[str, Any]) -> dict[str, Any]:
+    if "plan" in spec:
+        return _side_by_side(spec)
     variant = VARIANTS[spec["variant"]]
     if variant["physics"] == "raw":
         out = _measure_raw(spec["env"], spec["n"], spec["steps"], spec["repeats"])
+    elif variant["physics"] == "envpool":
+        from coherent_jax.envs.native import DEFAULT_THREADS
+
+        nthread = variant.get("nthread", DEFAULT_THREADS)
+        out = _measure_envpool(spec["env"], spec["n"], spec["steps"], spec["repeats"], nthread)
     else:
         out = _measure_jax(spec["env"], spec["n"], spec["steps"], spec["repeats"], variant)
     out["env_steps_per_s"] = spec["n"] * spec["steps"] / out["call_s"]
@@ -220,8 +309,12 @@ def _run_row(settings: dict[str, Any], name: str, n: int) -> dict[str, Any]:
     variant = VARIANTS[name]
     steps = settings["steps"] or max(10, int(_GUESS[variant["physics"]] / n))
     spec = {"variant": name, "env": settings["env"], "n": n, "steps": steps, "repeats": settings["repeats"]}
+    return _spawn(spec, variant.get("xla_flags"))
+
+
+def _spawn(spec: dict[str, Any], flags: str | None = None) -> dict[str, Any]:
+    """Runs one worker `spec` in a fresh process (XLA flags are fixed when JAX starts)."""
     env = dict(os.environ)
-    flags = variant.get("xla_flags")
     if flags:
         env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " " + flags).strip()
     proc = subprocess.run(
@@ -290,10 +383,144 @@ def format_table(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+# ------------------------------------------------------------------ standard tasks vs Brax vs EnvPool
+STANDARD_DEFAULTS: dict[str, Any] = {
+    "tasks": ["halfcheetah", "hopper", "walker2d", "ant", "humanoid"],
+    "envs": [64],
+    "steps": 0,
+    "repeats": 3,
+    "out": "bench_results/physics_standard.json",
+}
+
+
+def parse_standard(argv: Sequence[str]) -> dict[str, Any]:
+    """``key=value`` settings of the ``standard`` suite; raises `BenchError` naming the bad key or value."""
+    from coherent_jax.envs.gym_v5 import SHORT_NAMES
+
+    settings = dict(STANDARD_DEFAULTS)
+    for item in argv:
+        if "=" not in item or item.startswith("="):
+            raise BenchError(f"malformed setting {item!r}: expected key=value")
+        key, text = (s.strip() for s in item.split("=", 1))
+        if key not in STANDARD_DEFAULTS:
+            raise BenchError(f"unknown key {key!r}; valid keys: {', '.join(STANDARD_DEFAULTS)}")
+        if key == "tasks":
+            names = [s.strip() for s in text.strip().strip("[]").split(",") if s.strip()]
+            if not names or any(n not in SHORT_NAMES for n in names):
+                raise BenchError(f"invalid value for 'tasks': {text!r} (allowed: {', '.join(SHORT_NAMES)})")
+            settings[key] = names
+        elif key == "envs":
+            settings[key] = _int_list(key, text)
+        elif key in ("steps", "repeats"):
+            low = 0 if key == "steps" else 1
+            if not text.isdigit() or int(text) < low:
+                raise BenchError(f"invalid value for {key!r}: {text!r} (allowed: an integer >= {low})")
+            settings[key] = int(text)
+        else:  # out
+            if not text or Path(text).is_dir():
+                raise BenchError(f"invalid value for 'out': {text!r} (allowed: a file path)")
+            settings[key] = text
+    return settings
+
+
+def standard_tasks(settings: dict[str, Any]) -> dict[str, Any]:
+    """Env steps/s of each standard task (Gymnasium's, native), its Brax re-creation and EnvPool.
+
+    One process per task, env count and thread count (1, then every core), timing the
+    three round-robin so that they share the machine's load: our ``VecEnv`` of the
+    Gymnasium task (``native``/``native_all``), EnvPool on the same task with the same
+    threads (``envpool``/``envpool_all``), and the Brax re-creation (``brax-*``) on the
+    physics ``physics=auto`` picks for it here (native MuJoCo for six of Brax's tasks,
+    with the same threads; else MJX, whose threads XLA chooses, measured at 1 only).
+    """
+    import jax
+    import mujoco
+
+    from coherent_jax.envs.native import resolve_physics
+
+    rows = []
+    for task in settings["tasks"]:
+        brax = f"brax-{task}"
+        brax_native = resolve_physics(brax, "auto") == "native"
+        for n in settings["envs"]:
+            for threads, suffix in ((1, ""), (0, "_all")):
+                plan = [("standard", task, "native" + suffix), ("envpool", task, "envpool" + suffix)]
+                if brax_native or not suffix:
+                    plan.append(("brax", brax, ("native" if brax_native else "mjx") + suffix))
+                steps = settings["steps"] or max(10, 10000 // n)
+                spec = {"plan": plan, "n": n, "steps": steps, "repeats": settings["repeats"]}
+                t0 = time.perf_counter()
+                result = _spawn(spec)
+                took = time.perf_counter() - t0
+                if "error" in result:
+                    result["rows"] = [{"kind": kind, "error": result["error"]} for kind, _, _ in plan]
+                for row in result["rows"]:
+                    rows.append({**row, "task": task, "n": n, "threads": threads})
+                    status = row.get("error") or f"{row['env_steps_per_s']:,.0f} env steps/s"
+                    print(f"  {task:<12} {row['kind']:<8} {n:>5} envs, threads {threads or 'all'}: {status}")
+                print(f"  ({took:.0f} s, load average {result.get('load_average')})", flush=True)
+    return {
+        "suite": "physics_standard",
+        "settings": settings,
+        "rows": rows,
+        "load_average": os.getloadavg(),
+        "machine": {"cpu_count": os.cpu_count(), "jax": jax.__version__, "mujoco": mujoco.__version__},
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+    }
+
+
+def format_standard(result: dict[str, Any]) -> str:
+    """Per task, env count and thread count: standard, Brax re-creation and EnvPool, in env steps per
+    wall-clock second and per CPU-second of the process."""
+    lines = [
+        f"standard tasks on {result['machine']['cpu_count']} CPUs (load average at the end "
+        + ", ".join(f"{x:.1f}" for x in result["load_average"])
+        + ")"
+    ]
+
+    def fmt(x):
+        return f"{x:>11,.0f}" if x else f"{'-':>11}"
+
+    for key, title in (("env_steps_per_s", "env steps/s"), ("env_steps_per_cpu_s", "env steps per CPU-s")):
+        rates = {(r["task"], r["n"], r["threads"], r["kind"]): r.get(key) for r in result["rows"]}
+        lines.append(
+            f"  {title:<22}{'envs':>6}{'threads':>8}"
+            f"{'standard':>11}{'brax':>11}{'envpool':>11}{'std/pool':>10}"
+        )
+        for task, n, threads in dict.fromkeys((t, n, th) for t, n, th, _ in rates):
+            std, pool = rates.get((task, n, threads, "standard")), rates.get((task, n, threads, "envpool"))
+            # An MJX re-creation is measured once (XLA picks its threads): shown on both lines.
+            brax = rates.get((task, n, threads, "brax")) or rates.get((task, n, 1, "brax"))
+            ratio = f"{std / pool:>9.2f}x" if std and pool else f"{'-':>10}"
+            lines.append(
+                f"  {task:<22}{n:>6}{threads or os.cpu_count():>8}{fmt(std)}{fmt(brax)}{fmt(pool)}{ratio}"
+            )
+    return "\n".join(lines)
+
+
+def _write(result: dict[str, Any], path: str) -> None:
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".tmp")
+    tmp.write_text(json.dumps(result, indent=2))
+    os.replace(tmp, out)
+    print(f"wrote {out}")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["--worker"]:
         print(json.dumps(_worker(json.loads(argv[1]))), flush=True)
+        return 0
+    if argv[:1] == ["standard"]:
+        try:
+            settings = parse_standard(argv[1:])
+        except BenchError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        result = standard_tasks(settings)
+        print(format_standard(result))
+        _write(result, settings["out"])
         return 0
     try:
         settings = parse_settings(argv)
