@@ -4,6 +4,8 @@ Native physics compiles in about a second per task, so each case runs a few hund
 steps in one jitted scan and Gymnasium's own env beside it.
 """
 
+import os
+
 import jax
 import numpy as np
 import pytest
@@ -15,7 +17,8 @@ from coherent_jax.envs.native import NativePhysics, PhysicsError, resolve_physic
 
 gym = pytest.importorskip("gymnasium")
 
-STEPS = 300
+# COHERENT_GYM_STEPS=1000 compares whole 1000-step episodes (the README's figures).
+STEPS = int(os.environ.get("COHERENT_GYM_STEPS", "300"))
 # Observation slices holding the contact forces (cfrc_ext of every body but the world).
 CONTACT_SLICE = {"Ant-v5": slice(27, 105), "Humanoid-v5": slice(270, 348)}
 
