@@ -186,6 +186,7 @@ def _brax_task(name, reset_noise, observe, reward_done, scale_action=False) -> N
         observe=observe,
         reward_done=reward_done,
         scale_action=scale_action,  # Brax's inverted_pendulum maps [-1, 1] onto its ctrlrange
+        brax_scaling=True,
         normalize_quaternions=True,
         source="Brax 0.14.2",
     )
@@ -391,6 +392,7 @@ class NativePhysics:
         self.action_size = int(model.nu)
         self.init_q = jnp.asarray(init_q)
         low, high = np.asarray(model.actuator_ctrlrange, np.float32).T
+        self.ctrl_low, self.ctrl_high = low, high
         # ctrl = centre + a * half-width: exactly a * high for the symmetric ranges of every task.
         self.ctrl_centre, self.ctrl_half = (high + low) / 2, (high - low) / 2
         self._field_shapes = self.host.shapes()
@@ -432,7 +434,9 @@ class NativePhysics:
         n = state.integration.shape[0]
         chex.assert_shape(action, (n, self.action_size))
         ctrl = action.astype(jnp.float32)
-        if self.spec.scale_action:
+        if self.spec.scale_action and self.spec.brax_scaling:
+            ctrl = (ctrl + 1.0) * (self.ctrl_high - self.ctrl_low) * 0.5 + self.ctrl_low
+        elif self.spec.scale_action:
             ctrl = self.ctrl_centre + ctrl * self.ctrl_half
         rows, *arrays = jax.pure_callback(
             self.host.step, self._shapes(n), state.integration, ctrl, vmap_method="broadcast_all"

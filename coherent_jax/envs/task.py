@@ -85,6 +85,9 @@ class NativeTask:
       reward_done: (kin before, kin after, ctrl, dt) -> (reward, done); ``ctrl`` is the
         control applied (the action mapped to the actuators' range where `scale_action`).
       scale_action: map the action from [-1, 1] affinely onto the actuators' ctrlrange.
+      brax_scaling: compute that map as Brax does, ``(a + 1) (high - low) / 2 + low``, rather
+        than as ``centre + a * half-width`` (exactly ``a * high`` on a symmetric range, the
+        action Gymnasium's env receives); the two round differently.
       normalize_quaternions: normalise free and ball joints' quaternions of a fresh
         state before its first forward pass (as MJX does to Brax's noisy poses; Gymnasium
         keeps them as drawn).
@@ -97,6 +100,7 @@ class NativeTask:
     observe: Callable[[Kinematics], jax.Array]
     reward_done: Callable[..., tuple[jax.Array, jax.Array]]
     scale_action: bool = False
+    brax_scaling: bool = False
     normalize_quaternions: bool = False
     source: str = ""
 
