@@ -47,8 +47,15 @@ def load_model(xml: str, frame_skip: int) -> NativeModel:
 
     from coherent_jax.envs.registry import _quiet_stdio
 
-    with _quiet_stdio(force=True):  # the compiler prints deprecation notes (humanoid's settotalmass)
-        model = mujoco.MjModel.from_xml_path(os.path.join(_assets_dir(), xml))
+    # The compiler warns that settotalmass (half_cheetah.xml, humanoid.xml) is deprecated, on
+    # stdout and, unless a handler is set, into MUJOCO_LOG.TXT in the working directory.
+    previous = mujoco.get_mju_user_warning()
+    mujoco.set_mju_user_warning(lambda message: None)
+    try:
+        with _quiet_stdio(force=True):
+            model = mujoco.MjModel.from_xml_path(os.path.join(_assets_dir(), xml))
+    finally:
+        mujoco.set_mju_user_warning(previous)
     init_q = np.asarray(mujoco.MjData(model).qpos, np.float32)
     return NativeModel(model, int(frame_skip), float(model.opt.timestep * frame_skip), init_q)
 
