@@ -273,7 +273,7 @@ class Config:
     physics_threads: int = _field(
         "physics",
         DEFAULT_THREADS,
-        "native physics: MuJoCo threads per step call, 0 = every core (see bench_physics)",
+        "native physics: MuJoCo threads per step call, 0 = every core (see python -m coherent_jax.bench physics)",
     )
     # --- exploration strategies and ablations
     coherent: CoherentOptions = dataclasses.field(
