@@ -273,7 +273,7 @@ class Config:
     physics_threads: int = _field(
         "physics",
         DEFAULT_THREADS,
-        "native physics: MuJoCo threads per step call, 0 = every core (see python -m coherent_jax.bench physics)",
+        "native physics: MuJoCo threads per step call, 0 = every core (see the bench physics suite)",
     )
     # --- exploration strategies and ablations
     coherent: CoherentOptions = dataclasses.field(
