@@ -23,7 +23,7 @@ from typing import Any
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from coherent_jax.envs.native import DEFAULT_THREADS, NATIVE_TASKS, PHYSICS
+from coherent_jax.envs.native import DEFAULT_THREADS, NATIVE_TASKS, PHYSICS, PhysicsError, resolve_physics
 from coherent_jax.envs.registry import TASKS
 
 ALGOS = ("ppo", "a2c", "sac")
@@ -158,7 +158,11 @@ class Config:
     # --- collection
     num_envs: int = _field("collection", 64, "parallel environments")
     unroll_length: int = _field("collection", 64, "steps per env per iteration (segment length T)")
-    episode_length: int = _field("collection", 1000, "time limit in env steps (truncation is bootstrapped)")
+    episode_length: int = _field(
+        "collection",
+        0,
+        "time limit in env steps (truncation is bootstrapped); 0 = the task's own (1000; reacher 50)",
+    )
     # --- optimisation
     lr: float = _field("optimisation", 3e-4, "Adam learning rate (policy and value)", _sweep(_EVERY))
     gamma: float = _field("optimisation", 0.99, "discount factor", _sweep(_EVERY))
@@ -344,6 +348,8 @@ def _check(cond: bool, key: str, value: Any, allowed: str) -> None:
 def validate(cfg: Config) -> Config:
     """Checks ranges and choices; raises `ConfigError` naming the first bad key."""
     _check(cfg.env in TASKS, "env", cfg.env, ", ".join(TASKS))
+    if cfg.episode_length == 0:  # the task's registered time limit, written into the resolved config
+        cfg = dataclasses.replace(cfg, episode_length=TASKS[cfg.env].episode_length)
     _check(cfg.algo in ALGOS, "algo", cfg.algo, ", ".join(ALGOS))
     _check(cfg.explore in EXPLORES, "explore", cfg.explore, ", ".join(EXPLORES))
     supported = SUPPORTED_ALGOS[cfg.explore]
@@ -435,6 +441,13 @@ def validate(cfg: Config) -> Config:
         cfg.env,
         "with physics=native: " + ", ".join(NATIVE_TASKS),
     )
+    if cfg.physics == "mjx":
+        try:
+            resolve_physics(cfg.env, cfg.physics)
+        except PhysicsError as exc:
+            raise ConfigError(
+                f"invalid value for 'physics': 'mjx' with env={cfg.env} ({exc}) (allowed: auto, native)"
+            ) from None
     _check(cfg.eval_every >= 0, "eval_every", cfg.eval_every, "an integer >= 0")
     _check(cfg.eval_episodes >= 1, "eval_episodes", cfg.eval_episodes, "an integer >= 1")
     _check(cfg.checkpoint_every >= 0, "checkpoint_every", cfg.checkpoint_every, "an integer >= 0")

@@ -120,6 +120,16 @@ TASKS: Mapping[str, TaskSpec] = {
 }
 
 
+def brax_counterpart(name: str) -> str:
+    """The Brax environment closest to task ``name``: itself, or for a Gymnasium task its
+    Brax re-creation (``halfcheetah`` and ``HalfCheetah-v5`` -> ``brax-halfcheetah``)."""
+    spec = check_task(name)
+    if not spec.gymnasium_id:
+        return name
+    short = next(k for k, v in SHORT_NAMES.items() if v == spec.gymnasium_id)
+    return f"brax-{short}"
+
+
 class UnknownTaskError(ValueError):
     """Raised for a task name that is not in the registry."""
 
