@@ -136,18 +136,27 @@ def refiltered_marginals(
         segment; H may be 0.
       x, a, first: [T, q], [T, p], [T] the segment.
       mu, w_std, action_std, beta: as `chained_marginals`.
-      block: steps per block, a divisor of H + T; default `block_size(H + T)`.
+      block: steps per block, a divisor of H + T; by default blocks of `MAX_BLOCK` steps,
+        the front padded with one-step episodes to a whole number of blocks.
 
     Returns:
       (logp [T], predictive variances s [T, p]) of the segment's steps.
     """
     chex.assert_rank([history_x, history_a, history_first, x, a, first], [2, 2, 1, 2, 2, 1])
     num_steps = x.shape[0]
-    all_x = jnp.concatenate([jnp.asarray(history_x, x.dtype), x])
-    all_a = jnp.concatenate([jnp.asarray(history_a, a.dtype), a])
-    all_first = jnp.concatenate([jnp.asarray(history_first, bool), jnp.asarray(first, bool)])
     # The chain starts at the window's first step whatever its flag says (4.33).
-    all_first = all_first.at[0].set(True)
+    history_first = jnp.asarray(history_first, bool)
+    first = jnp.asarray(first, bool)
+    if history_x.shape[0]:
+        history_first = history_first.at[0].set(True)
+    else:
+        first = first.at[0].set(True)
+    # Without a given block size, pad the front to whole blocks of MAX_BLOCK steps: each
+    # padding step is an episode of its own (first = True), so it changes nothing after it.
+    pad = 0 if block is not None else -(history_x.shape[0] + num_steps) % MAX_BLOCK
+    all_x = jnp.concatenate([jnp.zeros((pad, x.shape[1]), x.dtype), jnp.asarray(history_x, x.dtype), x])
+    all_a = jnp.concatenate([jnp.zeros((pad, a.shape[1]), a.dtype), jnp.asarray(history_a, a.dtype), a])
+    all_first = jnp.concatenate([jnp.ones((pad,), bool), history_first, first])
     logp, _, pred_var = chained_marginals(
         prior_belief(mu, w_std), all_x, all_a, all_first, mu, w_std, action_std, beta, block
     )
