@@ -38,6 +38,7 @@ def make_exploration(cfg, action_size: int) -> Exploration:
             learn_action_std=cfg.learn_action_std,
             remat=cfg.remat,
             inference=cfg.coherent_inference,
+            gradient=cfg.coherent.gradient,
             sigma_init=cfg.sigma_init,
             sigma_delta=cfg.sigma_delta,
             sigma_alpha=cfg.sigma_alpha,

@@ -549,11 +549,14 @@ class CoherentCarry(NamedTuple):
       z: [p, q+1] standardised weights z_{t-1} used at the previous step.
       mean: [p, q+1] mean of alpha(z_t), the belief before a_t.
       cov: [p, q+1, q+1] covariance of alpha(z_t).
+      restart: bool, the chain starts afresh at the next step even if its episode
+        goes on (``gradient="exact"``: set at the end of every segment).
     """
 
     z: chex.Array
     mean: chex.Array
     cov: chex.Array
+    restart: chex.Array
 
 
 def _to_weights(carry: CoherentCarry, mu: chex.Array, w_std: chex.Array) -> Belief:
@@ -582,7 +585,23 @@ class CoherentExploration(Exploration):
     scores the whole segment at once from its joint Gaussian and stores the belief
     that starts the next one; with ``"filter"`` `act` runs the filter step by step.
     `log_prob` recomputes the marginals of a stored segment under the current
-    parameters, from the belief stored at its start, in the same form.
+    parameters in the same form; segments longer than `coherent_exact.MAX_BLOCK` are
+    scored as blocks of the joint form chained by differentiable beliefs.
+
+    ``gradient`` chooses what a segment's first step conditions on:
+
+    * ``"exact"`` (default): the chain restarts at the first step of every segment,
+      as Algorithm 5 samples w_0 at t = 0 of every buffer (steps 4-5), besides every
+      episode start. Every segment is then scored from the prior, each log p(a_t | ...)
+      conditions on all that the chain has seen, re-inferred under the current
+      parameters, and the loss's gradient is the thesis's estimator (4.14) of the
+      process actually run. The chain's correlations span at most ``unroll_length``
+      steps: ``unroll_length = episode_length`` keeps them over whole episodes.
+    * ``"stored"``: the chain runs on across segments, and a segment that starts
+      mid-episode starts from the belief stored when it was collected, a constant of
+      the data mapped onto the current mu and w_std: the right values (the ratio is 1
+      at the collection parameters) but not the thesis's gradient (see
+      ``coherent_jax.bench_gradient``). Kept for the ablation.
     """
 
     name = "coherent"
@@ -598,12 +617,15 @@ class CoherentExploration(Exploration):
         learn_action_std: bool = False,
         remat: bool = False,
         inference: str = "joint",
+        gradient: str = "exact",
         sigma_init: float = 0.1,
         sigma_delta: float = 0.1,
         sigma_alpha: float = 1.01,
     ):
         if inference not in ("joint", "filter"):
             raise ValueError(f"inference must be 'joint' or 'filter', got {inference!r}")
+        if gradient not in ("exact", "stored"):
+            raise ValueError(f"gradient must be 'exact' or 'stored', got {gradient!r}")
         self.action_size = int(action_size)
         self.feature_size = int(hidden[-1])
         self.trunk = MLP(tuple(hidden), activation)
@@ -613,6 +635,7 @@ class CoherentExploration(Exploration):
         self.learn_action_std = bool(learn_action_std)
         self.remat = bool(remat)
         self.inference = inference
+        self.gradient = gradient
         self.sigma_init = float(sigma_init)
         self.sigma_delta = float(sigma_delta)
         self.sigma_alpha = float(sigma_alpha)
@@ -652,6 +675,7 @@ class CoherentExploration(Exploration):
             z=jnp.zeros((num_envs, p, n), jnp.float32),
             mean=jnp.zeros((num_envs, p, n), jnp.float32),
             cov=jnp.broadcast_to(jnp.eye(n, dtype=jnp.float32), (num_envs, p, n, n)),
+            restart=jnp.zeros((num_envs,), bool),
         )
 
     # ------------------------------------------------------------ collection
@@ -662,10 +686,13 @@ class CoherentExploration(Exploration):
         x = self.trunk.apply(params["trunk"], obs)  # [n, q]
         num_envs = x.shape[0]
         k_w, k_a = jax.random.split(key)
-        # z chain (4.1-4.4) in standard coordinates; a fresh draw at episode start (4.5).
+        # z chain (4.1-4.4) in standard coordinates; a fresh draw (4.5) at an episode
+        # start or a restart.
+        first = jnp.logical_or(first, carry.restart)
         eps = jax.random.normal(k_w, carry.z.shape, carry.z.dtype)
         z_next = (1.0 - beta) * carry.z + _innovation_std(beta) * eps
         z = jnp.where(first[:, None, None], eps, z_next)
+        carry = carry._replace(restart=jnp.zeros_like(carry.restart))
         w = mu + w_std * z  # [n, p, q+1]
         xh = _augment(x)
         mean_action = jnp.einsum("npk,nk->np", w, xh)
@@ -682,16 +709,34 @@ class CoherentExploration(Exploration):
 
         (mean, cov), logp = jax.vmap(filt)(carry, x, action, first)
         chex.assert_shape(logp, (num_envs,))
-        return ActOutput(action, logp, CoherentCarry(z=z, mean=mean, cov=cov))
+        return ActOutput(action, logp, carry._replace(z=z, mean=mean, cov=cov))
+
+    def _segment_first(self, first: chex.Array, restart: chex.Array) -> chex.Array:
+        """Where the chain starts afresh in a segment: its episode starts, and its first
+        step if the chain restarted there."""
+        return first.at[0].set(jnp.logical_or(first[0], restart))
+
+    def _score(self, belief0, x, a, first, mu, w_std, action_std, beta):
+        """The segment's marginals in the configured form; (logp, end belief, variances)."""
+        if self.inference == "filter":
+            return segment_marginals(belief0, x, a, first, mu, w_std, action_std, beta, remat=self.remat)
+        from coherent_jax.exploration.coherent_exact import MAX_BLOCK, chained_marginals
+
+        if x.shape[0] > MAX_BLOCK:
+            return chained_marginals(belief0, x, a, first, mu, w_std, action_std, beta)
+        return segment_marginals_joint(belief0, x, a, first, mu, w_std, action_std, beta)
 
     def end_segment(self, params, hparams, carry0, carry, data_obs, data_actions, data_first, data_log_prob):
+        # With the exact gradient the next segment restarts the chain (Algorithm 5, steps 4-5).
+        carry = carry._replace(restart=jnp.full_like(carry.restart, self.gradient == "exact"))
         if self.inference == "filter":
             return data_log_prob, carry
         mu, w_std, action_std = self._head(params, hparams)
         x = self.trunk.apply(params["trunk"], data_obs)  # [T, n, q]
 
         def score(c0, x_e, a_e, f_e):
-            logp, belief, _ = segment_marginals_joint(
+            f_e = self._segment_first(f_e, c0.restart)
+            logp, belief, _ = self._score(
                 _to_weights(c0, mu, w_std), x_e, a_e, f_e, mu, w_std, action_std, hparams["beta"]
             )
             return logp, _to_standard(belief, mu, w_std)
@@ -699,6 +744,8 @@ class CoherentExploration(Exploration):
         logp, (mean, cov) = jax.vmap(score, in_axes=(0, 1, 1, 1), out_axes=(1, 0))(
             carry0, x, data_actions, data_first
         )
+        if self.gradient == "exact":
+            return logp, carry  # the next segment starts from the prior: no belief to keep
         return logp, carry._replace(mean=mean, cov=cov)
 
     # ------------------------------------------------------------------ loss
@@ -708,16 +755,12 @@ class CoherentExploration(Exploration):
         x = self.trunk.apply(params["trunk"], obs)
         # The stored belief is a constant of the data (like a stored RNN state); its
         # mapping onto the current mu and w_std is not.
+        # With gradient="exact" a segment's chain starts at its first step, so the
+        # stored belief is never used and nothing is held constant.
         carry0 = jax.tree.map(jax.lax.stop_gradient, carry0)
+        first = self._segment_first(first, carry0.restart)
         belief0 = _to_weights(carry0, mu, w_std)
-        if self.inference == "joint":
-            logp, _, pred_var = segment_marginals_joint(
-                belief0, x, actions, first, mu, w_std, action_std, hparams["beta"]
-            )
-        else:
-            logp, _, pred_var = segment_marginals(
-                belief0, x, actions, first, mu, w_std, action_std, hparams["beta"], remat=self.remat
-            )
+        logp, _, pred_var = self._score(belief0, x, actions, first, mu, w_std, action_std, hparams["beta"])
         return SegmentLogProb(logp, predictive_entropy(pred_var))
 
     def mean_action(self, params, obs):
