@@ -153,6 +153,12 @@ def _chained_8(x, a, first, mu, w_std, action_std, beta):
     return E.chained_marginals(C.prior_belief(mu, w_std), x, a, first, mu, w_std, action_std, beta, 8)[0]
 
 
+def _chained_8_from_prior(x, a, first, mu, w_std, action_std, beta):
+    # A belief of junk: with from_prior it must not be read.
+    junk = C.Belief(jnp.full_like(mu, jnp.nan), jnp.full(mu.shape + mu.shape[-1:], jnp.nan, mu.dtype))
+    return E.chained_marginals(junk, x, a, first, mu, w_std, action_std, beta, 8, from_prior=True)[0]
+
+
 def _refiltered_20_4(x, a, first, mu, w_std, action_std, beta):
     h = 20
     return E.refiltered_marginals(
@@ -161,6 +167,7 @@ def _refiltered_20_4(x, a, first, mu, w_std, action_std, beta):
 
 
 chained_loss = _weighted(_chained_8)
+chained_from_prior_loss = _weighted(_chained_8_from_prior)
 refiltered_loss = _weighted(_refiltered_20_4)
 reference_loss = _weighted(reference_log_marginals)
 
@@ -172,10 +179,11 @@ def test_chained_blocks_equal_dense_episode_reference(x64, beta, resets):
     params, obs, a, first = problem(1, 24, resets=resets, beta=beta)
     weights = jnp.asarray(np.random.default_rng(2).normal(size=24))
     for point in (params, perturb(params, 3)):
-        (_, logp), grad = chained_loss(point, obs, a, first, weights, beta)
         (_, ref), grad_ref = reference_loss(point, obs, a, first, weights, beta)
-        np.testing.assert_allclose(logp, ref, rtol=1e-10, atol=1e-10)
-        assert_trees_close(grad, grad_ref, rtol=1e-8, atol=1e-10)
+        for loss in (chained_loss, chained_from_prior_loss):
+            (_, logp), grad = loss(point, obs, a, first, weights, beta)
+            np.testing.assert_allclose(logp, ref, rtol=1e-10, atol=1e-10)
+            assert_trees_close(grad, grad_ref, rtol=1e-8, atol=1e-10)
 
 
 @pytest.mark.parametrize("beta", [0.0, 0.01, 0.3])

@@ -449,6 +449,7 @@ def segment_marginals_joint(
     w_std: chex.Array,
     action_std: chex.Array,
     beta: chex.Array,
+    from_prior: bool = False,
 ) -> tuple[chex.Array, Belief, chex.Array]:
     """`segment_marginals` computed from the joint Gaussian of the segment's actions.
 
@@ -474,11 +475,17 @@ def segment_marginals_joint(
     of magnitude faster than the scan for segments of tens of steps, but memory grows
     as T^2, so the filter remains the form for long segments.
 
+    With ``from_prior`` (static) the segment starts an episode whatever ``first[0]``
+    says: c = 0, ``belief0`` is not read, and the P0 terms, about half the work, are
+    never formed.
+
     Args and returns: as `segment_marginals`.
     """
     belief0, x, a, first, mu, w_std, action_std, beta = _segment_inputs(
         belief0, x, a, first, mu, w_std, action_std, beta
     )
+    if from_prior:
+        first = first.at[0].set(True)
     num_steps = x.shape[0]
     m0, p0 = belief0.mean, belief0.cov
     dtype = x.dtype
@@ -497,19 +504,18 @@ def segment_marginals_joint(
     chain = jnp.where(same_episode, powers[lag], 0.0)  # [T, T]
 
     xd = xh[None, :, :] * var_w[:, None, :]  # [p, T, n]  D_i xh_s
-    xp0 = jnp.einsum("ikl,sl->isk", p0, xh)  # [p, T, n]  P0_i xh_s
     gram_d = jnp.einsum("isk,tk->ist", xd, xh)  # xh_s' D_i xh_t
-    gram_p = jnp.einsum("isk,tk->ist", xp0, xh) - gram_d  # xh_s' (P0_i - D_i) xh_t
     eye = jnp.eye(num_steps, dtype=dtype)
-    cov_a = (
-        chain[None] * gram_d
-        + (c[:, None] * c[None, :])[None] * gram_p
-        + jnp.square(action_std)[:, None, None] * eye[None]
-    )
+    cov_a = chain[None] * gram_d + jnp.square(action_std)[:, None, None] * eye[None]
+    mean_a = xh @ mu.T  # [T, p]
+    if not from_prior:
+        xp0 = jnp.einsum("ikl,sl->isk", p0, xh)  # [p, T, n]  P0_i xh_s
+        gram_p = jnp.einsum("isk,tk->ist", xp0, xh) - gram_d  # xh_s' (P0_i - D_i) xh_t
+        cov_a = cov_a + (c[:, None] * c[None, :])[None] * gram_p
+        mean_a = mean_a + c[:, None] * (xh @ (m0 - mu).T)
     cov_a = 0.5 * (cov_a + jnp.swapaxes(cov_a, -1, -2))
     chol = jnp.linalg.cholesky(cov_a)  # [p, T, T]
 
-    mean_a = xh @ mu.T + c[:, None] * (xh @ (m0 - mu).T)  # [T, p]
     resid = (a - mean_a).T  # [p, T]
     white = jax.scipy.linalg.solve_triangular(chol, resid[..., None], lower=True)[..., 0]
     diag = jnp.diagonal(chol, axis1=-2, axis2=-1)  # [p, T]
@@ -520,10 +526,15 @@ def segment_marginals_joint(
     last = episode == episode[-1]
     c_end = jnp.where(episode[-1] == 0, powers[num_steps], 0.0)
     g = jnp.where(last, powers[num_steps - steps], 0.0)  # [T]
-    cross = c_end * c[None, :, None] * (xp0 - xd) + g[None, :, None] * xd  # [p, T, n]
+    cross = g[None, :, None] * xd  # [p, T, n]
+    mean_end = mu
+    prior_cov_end = jax.vmap(jnp.diag)(var_w)
+    if not from_prior:
+        cross = cross + c_end * c[None, :, None] * (xp0 - xd)
+        mean_end = mean_end + c_end * (m0 - mu)
+        prior_cov_end = c_end**2 * p0 + (1.0 - c_end**2) * prior_cov_end
     proj = jax.scipy.linalg.solve_triangular(chol, cross, lower=True)  # [p, T, n]
-    mean_end = mu + c_end * (m0 - mu) + jnp.einsum("itk,it->ik", proj, white)
-    prior_cov_end = c_end**2 * p0 + (1.0 - c_end**2) * jax.vmap(jnp.diag)(var_w)
+    mean_end = mean_end + jnp.einsum("itk,it->ik", proj, white)
     cov_end = prior_cov_end - jnp.einsum("itk,itl->ikl", proj, proj)
     cov_end = 0.5 * (cov_end + jnp.swapaxes(cov_end, -1, -2))
     return logp, Belief(mean=mean_end, cov=cov_end), pred_var
@@ -722,9 +733,12 @@ class CoherentExploration(Exploration):
             return segment_marginals(belief0, x, a, first, mu, w_std, action_std, beta, remat=self.remat)
         from coherent_jax.exploration.coherent_exact import MAX_BLOCK, chained_marginals
 
+        # With the exact gradient every segment starts the chain: the stored belief's
+        # terms are zero and need not be formed.
+        from_prior = self.gradient == "exact"
         if x.shape[0] > MAX_BLOCK:
-            return chained_marginals(belief0, x, a, first, mu, w_std, action_std, beta)
-        return segment_marginals_joint(belief0, x, a, first, mu, w_std, action_std, beta)
+            return chained_marginals(belief0, x, a, first, mu, w_std, action_std, beta, from_prior=from_prior)
+        return segment_marginals_joint(belief0, x, a, first, mu, w_std, action_std, beta, from_prior)
 
     def end_segment(self, params, hparams, carry0, carry, data_obs, data_actions, data_first, data_log_prob):
         # With the exact gradient the next segment restarts the chain (Algorithm 5, steps 4-5).

@@ -53,6 +53,7 @@ def chained_marginals(
     action_std: chex.Array,
     beta: chex.Array,
     block: int | None = None,
+    from_prior: bool = False,
 ) -> tuple[chex.Array, Belief, chex.Array]:
     """`coherent.segment_marginals` over T steps, as blocks of the joint form chained by beliefs.
 
@@ -79,6 +80,8 @@ def chained_marginals(
       action_std: [p] action noise standard deviation.
       beta: scalar in [0, 1].
       block: steps per block, a divisor of T; default `block_size(T)`.
+      from_prior: the segment starts an episode (``belief0`` unused); the first block
+        then skips the stored belief's terms (`segment_marginals_joint`).
 
     Returns:
       (logp [T], the belief over w_T before a_T, the predictive variances s [T, p]).
@@ -89,11 +92,15 @@ def chained_marginals(
     if num_steps % block:
         raise ValueError(f"block={block} does not divide the segment length {num_steps}")
     num_blocks = num_steps // block
+    head = segment_marginals_joint(
+        belief0, x[:block], a[:block], first[:block], mu, w_std, action_std, beta, from_prior
+    )
     if num_blocks == 1:
-        return segment_marginals_joint(belief0, x, a, first, mu, w_std, action_std, beta)
+        return head
+    logp0, belief1, pred_var0 = head
 
     def split(v):
-        return v.reshape((num_blocks, block) + v.shape[1:])
+        return v[block:].reshape((num_blocks - 1, block) + v.shape[1:])
 
     def body(belief, inputs):
         x_k, a_k, first_k = inputs
@@ -104,8 +111,9 @@ def chained_marginals(
 
     # The belief is the only state passed between blocks; the backward pass recomputes
     # each block's [p, B, B] factor from it instead of keeping all of them.
-    final, (logp, pred_var) = jax.lax.scan(jax.checkpoint(body), belief0, (split(x), split(a), split(first)))
-    return logp.reshape(num_steps), final, pred_var.reshape(num_steps, -1)
+    final, (logp, pred_var) = jax.lax.scan(jax.checkpoint(body), belief1, (split(x), split(a), split(first)))
+    logp = jnp.concatenate([logp0, logp.reshape(-1)])
+    return logp, final, jnp.concatenate([pred_var0, pred_var.reshape(-1, pred_var0.shape[-1])])
 
 
 def refiltered_marginals(
