@@ -310,7 +310,7 @@ def _check_segment_against_reference(strategy, hp, params, carry_start, data, se
 def test_exact_mode_behaviour_and_loss_follow_the_process_across_an_update():
     """coherent.gradient=exact (the default): the chain restarts at each segment start.
 
-    Two segments of 130 steps (chained blocks of 26) in episodes of 50 steps, the
+    Two segments of 72 steps (chained blocks of 36) in episodes of 30 steps, the
     policy updated in between. Checked: the chain really restarts (at beta = 0 the
     sampled z of an env whose episode goes on changes at the segment start); in each
     segment the behaviour log-probabilities equal the dense reference of the process
@@ -322,9 +322,9 @@ def test_exact_mode_behaviour_and_loss_follow_the_process_across_an_update():
     from coherent_jax.config import parse_overrides
     from coherent_jax.envs import VecEnv
 
-    env = VecEnv("pointmass", num_envs=2, episode_length=50)
+    env = VecEnv("pointmass", num_envs=2, episode_length=30)
     cfg = parse_overrides(
-        ["env=pointmass", "num_envs=2", "num_minibatches=1", "unroll_length=130", "explore=coherent"]
+        ["env=pointmass", "num_envs=2", "num_minibatches=1", "unroll_length=72", "explore=coherent"]
         + ["beta=0", "w_std_init=0.5", "policy_hidden=[8]"]
     )
     assert cfg.coherent.gradient == "exact"
@@ -335,11 +335,11 @@ def test_exact_mode_behaviour_and_loss_follow_the_process_across_an_update():
     keys = jax.random.split(jax.random.PRNGKey(1), 3)
 
     params0 = state.params.policy
-    env_state, carry1, data0 = collect(params0, state.env_state, state.carry, keys[0], 130)
+    env_state, carry1, data0 = collect(params0, state.env_state, state.carry, keys[0], 72)
     _check_segment_against_reference(strategy, hp, params0, state.carry, data0, 0)
 
     params1 = perturb(params0, 9, scale=0.1)
-    _, carry2, data1 = collect(params1, env_state, carry1, keys[1], 130)
+    _, carry2, data1 = collect(params1, env_state, carry1, keys[1], 72)
     assert not np.asarray(data1.first)[0].all(), "the second segment should start mid-episode"
     _check_segment_against_reference(strategy, hp, params1, carry1, data1, 1)
 
