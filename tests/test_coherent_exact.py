@@ -347,3 +347,38 @@ def test_exact_mode_behaviour_and_loss_follow_the_process_across_an_update():
     going_on = ~np.asarray(env_state.first)
     assert going_on.any()
     assert not np.allclose(np.asarray(carry_step.z)[going_on], np.asarray(carry1.z)[going_on])
+
+
+def test_float32_loss_stays_finite_and_accurate_at_extreme_weight_to_noise_ratios():
+    """w_std / action_std = 1e4, segments of 128 steps (two blocks, each longer than q + 1).
+
+    The strategy bounds the ratio at `MAX_W_STD_RATIO` by raising the action noise
+    (in collection and loss alike); its float32 log-probabilities then stay finite and
+    within 0.01 nats of the same computation in float64, at beta = 0, 0.01 and 1.
+    """
+    from coherent_jax.exploration.coherent import MAX_W_STD_RATIO, CoherentExploration
+
+    strategy = CoherentExploration(2, (16,), "tanh", 0.0, w_std_init=100.0, action_std=0.01)
+    params = strategy.init(jax.random.PRNGKey(0), 5)
+    hp = strategy.init_hparams()
+    _, _, action_std = strategy._head(params, hp)
+    np.testing.assert_allclose(action_std, 100.0 / MAX_W_STD_RATIO, rtol=1e-6)
+    carry = jax.tree.map(lambda v: v[0], strategy.init_carry(jax.random.PRNGKey(1), params, hp, 1))
+    rng = np.random.default_rng(0)
+    obs = np.cumsum(rng.normal(size=(128, 5)), axis=0) * 0.2
+    x = np.asarray(strategy.trunk.apply(params["trunk"], jnp.asarray(obs, jnp.float32)), np.float64)
+    xh = np.concatenate([x, np.ones((128, 1))], axis=1)
+    w = np.asarray(params["mu"]) + 100.0 * rng.normal(size=(2, 17))
+    actions = xh @ w.T + 10.0 * rng.normal(size=(128, 2))
+    first = jnp.zeros(128, bool).at[0].set(True)
+    log_prob = jax.jit(lambda prm, h, o, a: strategy.log_prob(prm, h, carry, o, a, first).log_prob)
+    for beta in (0.0, 0.01, 1.0):
+        hp32 = {**hp, "beta": jnp.asarray(beta, jnp.float32)}
+        logp32 = log_prob(params, hp32, jnp.asarray(obs, jnp.float32), jnp.asarray(actions, jnp.float32))
+        with x64_enabled():
+            as64 = lambda v: jnp.asarray(v, jnp.float64)  # noqa: E731
+            logp64 = np.asarray(
+                log_prob(jax.tree.map(as64, params), jax.tree.map(as64, hp32), as64(obs), as64(actions))
+            )
+        assert logp32.dtype == jnp.float32 and np.isfinite(np.asarray(logp32)).all()
+        np.testing.assert_allclose(logp32, logp64, atol=1e-2)

@@ -39,6 +39,9 @@ from coherent_jax.exploration.base import ActOutput, Exploration, SegmentLogProb
 from coherent_jax.networks import MLP, squash
 
 _LOG_2PI = math.log(2.0 * math.pi)
+#: largest w_std / action_std per action dimension that the strategy runs with (see
+#: `CoherentExploration._head`)
+MAX_W_STD_RATIO = 10.0
 
 
 class Belief(NamedTuple):
@@ -678,6 +681,12 @@ class CoherentExploration(Exploration):
             action_std = jnp.exp(params["log_action_std"])
         else:
             action_std = hparams["action_std"]
+        # The covariance-form marginals keep float32 within about 0.005 nats per step
+        # only while the weights' spread is within MAX_W_STD_RATIO of the action noise
+        # (beta = 0, 1000-step segments; at 300 they lose every digit and turn NaN).
+        # Beyond it the action noise is raised, in collection and in the loss alike, so
+        # the process run is still the process scored.
+        action_std = jnp.maximum(action_std, jnp.max(w_std, axis=-1) / MAX_W_STD_RATIO)
         return params["mu"], w_std, action_std
 
     def init_carry(self, key, params, hparams, num_envs):
