@@ -5,9 +5,12 @@ so ``key=value`` overrides on the command line (Hydra's syntax) are type-checked
 on merge. Ranges and choices are checked here, and every problem becomes a
 `ConfigError` whose one-line message names the key and what is allowed.
 
-Shape-determining settings (``num_envs``, ``unroll_length``, network sizes, ...)
-are static Python values; the scalars listed in `SWEEPABLE` become arrays inside
-the train state so that `jax.vmap` can run a grid of them as one program.
+Every field carries its metadata: its group (`GROUPS`, the sections of ``--help``),
+a one-line help and, for a sweepable scalar, a `Sweepable` saying which
+(algo, explore) pairs hold it in the train state. Shape-determining settings
+(``num_envs``, ``unroll_length``, network sizes, ...) are static Python values; the
+sweepable scalars (`SWEEPABLE`, derived from the fields) become arrays inside the
+train state so that `jax.vmap` can run a grid of them as one program.
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ ALGOS = ("ppo", "a2c", "sac")
 ON_POLICY = ("ppo", "a2c")
 EXPLORES = ("action", "coherent", "noisynet", "psne", "gsde", "pink")
 # Which algorithms each strategy runs with; any other pair is refused at start-up,
-# with the reason in REFUSED (issue 5).
+# with the reason in REFUSED.
 SUPPORTED_ALGOS: dict[str, tuple[str, ...]] = {
     "action": ALGOS,
     "coherent": ALGOS,
@@ -97,10 +100,56 @@ class CoherentOptions:
         return "{" + ",".join(f"{f.name}={getattr(self, f.name)}" for f in dataclasses.fields(self)) + "}"
 
 
-def _field(default: Any, help: str, **kw: Any) -> Any:
+# Option groups, in the order `help_text` prints them; every field names its group.
+GROUPS = (
+    "run",
+    "collection",
+    "optimisation",
+    "networks",
+    "exploration",
+    "sac",
+    "output",
+    "physics",
+    "devices",
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class Sweepable:
+    """Marks a scalar that lives in the train state as an array, so a vmapped sweep may vary it.
+
+    Attributes:
+      reads: the (algos, explores) pairs whose train state holds it; a sweep axis
+        for any other pair would run identical points and is refused.
+      hparam: its name in the state's hyperparameters when that is not the key's own.
+    """
+
+    reads: tuple[tuple[tuple[str, ...], tuple[str, ...]], ...]
+    hparam: str | None = None
+
+    def read_by(self, algo: str, explore: str) -> bool:
+        return any(algo in algos and explore in explores for algos, explores in self.reads)
+
+
+def _field(group: str, default: Any, help: str, sweep: Sweepable | None = None, **kw: Any) -> Any:
+    """A config field with its group, its one-line help and, if sweepable, who reads it."""
+    metadata = {"group": group, "help": help}
+    if sweep is not None:
+        metadata["sweep"] = sweep
     if isinstance(default, list):
-        return dataclasses.field(default_factory=lambda: list(default), metadata={"help": help}, **kw)
-    return dataclasses.field(default=default, metadata={"help": help}, **kw)
+        return dataclasses.field(default_factory=lambda: list(default), metadata=metadata, **kw)
+    return dataclasses.field(default=default, metadata=metadata, **kw)
+
+
+def _sweep(*reads: tuple[tuple[str, ...], tuple[str, ...]], hparam: str | None = None) -> Sweepable:
+    return Sweepable(reads=tuple(reads), hparam=hparam)
+
+
+_EVERY = (ALGOS, EXPLORES)
+_ON_POLICY = (ON_POLICY, EXPLORES)
+_SAC = (("sac",), EXPLORES)
+# The adaptive-sigma rule (4.50)-(4.51): PSNE everywhere, Coherent-SAC (its chain's scale).
+_SIGMA_RULE = ((("sac",), ("coherent", "psne")), (ON_POLICY, ("psne",)))
 
 
 @dataclasses.dataclass
@@ -108,107 +157,164 @@ class Config:
     """Everything that defines a training run (see ``--help``)."""
 
     # --- what to run
-    env: str = _field("halfcheetah", "task name: " + ", ".join(TASKS))
+    env: str = _field("run", "halfcheetah", "task name: " + ", ".join(TASKS))
     algo: str = _field(
-        "ppo", "algorithm: " + ", ".join(ALGOS) + " (sac changes some defaults: see ALGO_DEFAULTS)"
+        "run", "ppo", "algorithm: " + ", ".join(ALGOS) + " (sac changes some defaults: see ALGO_DEFAULTS)"
     )
-    explore: str = _field("action", "exploration strategy: " + ", ".join(EXPLORES))
-    seed: int = _field(0, "PRNG seed; the same seed gives the same run")
-    total_steps: int = _field(2_000_000, "environment steps to train for")
+    explore: str = _field("run", "action", "exploration strategy: " + ", ".join(EXPLORES))
+    seed: int = _field("run", 0, "PRNG seed; the same seed gives the same run")
+    total_steps: int = _field("run", 2_000_000, "environment steps to train for")
     # --- collection
-    num_envs: int = _field(64, "parallel environments")
-    unroll_length: int = _field(64, "steps per env per iteration (segment length T)")
-    episode_length: int = _field(1000, "time limit in env steps (truncation is bootstrapped)")
+    num_envs: int = _field("collection", 64, "parallel environments")
+    unroll_length: int = _field("collection", 64, "steps per env per iteration (segment length T)")
+    episode_length: int = _field("collection", 1000, "time limit in env steps (truncation is bootstrapped)")
     # --- optimisation
-    lr: float = _field(3e-4, "Adam learning rate (policy and value)")
-    gamma: float = _field(0.99, "discount factor")
-    gae_lambda: float = _field(0.95, "GAE lambda (eq. 2.30)")
-    num_epochs: int = _field(10, "PPO epochs per iteration (A2C: 1 gradient step)")
-    num_minibatches: int = _field(8, "minibatches per epoch; they split envs, never time")
-    clip_eps: float = _field(0.2, "PPO clipping epsilon (eq. 2.41)")
-    target_kl: float = _field(0.0, "stop the epochs once approx KL > 1.5 * target_kl; 0 = never")
-    vf_coef: float = _field(0.5, "weight of the value loss")
-    ent_coef: float = _field(0.0, "weight of the entropy bonus")
-    max_grad_norm: float = _field(0.5, "global gradient-norm clip")
-    normalize_advantages: bool = _field(True, "standardise advantages per minibatch")
-    normalize_obs: bool = _field(True, "running mean/std observation normalisation")
+    lr: float = _field("optimisation", 3e-4, "Adam learning rate (policy and value)", _sweep(_EVERY))
+    gamma: float = _field("optimisation", 0.99, "discount factor", _sweep(_EVERY))
+    gae_lambda: float = _field("optimisation", 0.95, "GAE lambda (eq. 2.30)", _sweep(_ON_POLICY))
+    num_epochs: int = _field("optimisation", 10, "PPO epochs per iteration (A2C: 1 gradient step)")
+    num_minibatches: int = _field("optimisation", 8, "minibatches per epoch; they split envs, never time")
+    clip_eps: float = _field("optimisation", 0.2, "PPO clipping epsilon (eq. 2.41)", _sweep(_ON_POLICY))
+    target_kl: float = _field(
+        "optimisation",
+        0.0,
+        "stop the epochs once approx KL > 1.5 * target_kl; 0 = never",
+        _sweep(_ON_POLICY),
+    )
+    vf_coef: float = _field("optimisation", 0.5, "weight of the value loss", _sweep(_ON_POLICY))
+    ent_coef: float = _field("optimisation", 0.0, "weight of the entropy bonus", _sweep(_ON_POLICY))
+    max_grad_norm: float = _field("optimisation", 0.5, "global gradient-norm clip")
+    normalize_advantages: bool = _field("optimisation", True, "standardise advantages per minibatch")
+    normalize_obs: bool = _field("optimisation", True, "running mean/std observation normalisation")
     # --- networks
-    policy_hidden: list[int] = _field([64, 64], "policy trunk layer sizes")
-    value_hidden: list[int] = _field([64, 64], "value network layer sizes")
-    activation: str = _field("tanh", "hidden activation: " + ", ".join(ACTIVATIONS))
+    policy_hidden: list[int] = _field("networks", [64, 64], "policy trunk layer sizes")
+    value_hidden: list[int] = _field("networks", [64, 64], "value network layer sizes")
+    activation: str = _field("networks", "tanh", "hidden activation: " + ", ".join(ACTIVATIONS))
     # --- exploration
-    init_std: float = _field(0.5, "action noise: initial std of the Gaussian policy")
-    beta: float = _field(0.01, "coherent: chain coefficient, 1 = step-based, 0 = trajectory-based")
+    init_std: float = _field("exploration", 0.5, "action noise: initial std of the Gaussian policy")
+    beta: float = _field(
+        "exploration",
+        0.01,
+        "coherent: chain coefficient, 1 = step-based, 0 = trajectory-based",
+        _sweep((ALGOS, ("coherent",))),
+    )
     w_std_init: float = _field(
+        "exploration",
         0.1,
         "coherent: initial std of the last-layer weights (Lambda^-1/2); "
         "0.1 gives an initial action std of about 0.45",
     )
-    action_std: float = _field(0.1, "coherent: std of the action given the weights (Lambda_a^-1/2)")
-    learn_action_std: bool = _field(False, "coherent: learn action_std (thesis: fixed)")
+    action_std: float = _field(
+        "exploration", 0.1, "coherent: std of the action given the weights (Lambda_a^-1/2)"
+    )
+    learn_action_std: bool = _field("exploration", False, "coherent: learn action_std (thesis: fixed)")
     coherent_inference: str = _field(
+        "exploration",
         "joint",
         "coherent: how w is integrated out: joint (Cholesky of each segment's joint "
         "Gaussian, fast up to a few hundred steps per segment) or filter (sequential scan)",
     )
-    remat: bool = _field(False, "coherent: rematerialise the filter scan in the backward pass")
+    remat: bool = _field("exploration", False, "coherent: rematerialise the filter scan in the backward pass")
     # --- off-policy (SAC, thesis Algorithm 3 and §4.3)
-    buffer_size: int = _field(1_000_000, "sac: replay capacity in transitions (a ring buffer in the state)")
-    batch_size: int = _field(256, "sac: transitions per gradient update")
+    buffer_size: int = _field(
+        "sac", 1_000_000, "sac: replay capacity in transitions (a ring buffer in the state)"
+    )
+    batch_size: int = _field("sac", 256, "sac: transitions per gradient update")
     utd_ratio: float = _field(
-        1.0, "sac: gradient updates per env step (per iteration: utd_ratio * num_envs * unroll_length)"
+        "sac", 1.0, "sac: gradient updates per env step (per iteration: utd_ratio * num_envs * unroll_length)"
     )
-    warmup_steps: int = _field(5000, "sac: env steps of uniform random actions before updates start")
-    tau: float = _field(0.005, "sac: Polyak step, target <- (1 - tau) target + tau online (rho = 1 - tau)")
-    temperature: float = _field(0.2, "sac: entropy temperature alpha (initial value if auto_temperature)")
-    auto_temperature: bool = _field(False, "sac: adapt alpha towards target_entropy (thesis: fixed)")
-    target_entropy: float | None = _field(None, "sac: auto_temperature's entropy target; null = -action_size")
-    sigma_init: float = _field(0.1, "coherent-sac: initial parameter-noise scale sigma (w_std = sigma)")
-    sigma_delta: float = _field(0.1, "coherent-sac: distance threshold delta of the sigma rule (4.51)")
-    sigma_alpha: float = _field(1.01, "coherent-sac: scaling factor alpha > 1 of the sigma rule (4.51)")
+    warmup_steps: int = _field("sac", 5000, "sac: env steps of uniform random actions before updates start")
+    tau: float = _field(
+        "sac",
+        0.005,
+        "sac: Polyak step, target <- (1 - tau) target + tau online (rho = 1 - tau)",
+        _sweep(_SAC),
+    )
+    temperature: float = _field(
+        "sac", 0.2, "sac: entropy temperature alpha (initial value if auto_temperature)", _sweep(_SAC)
+    )
+    auto_temperature: bool = _field("sac", False, "sac: adapt alpha towards target_entropy (thesis: fixed)")
+    target_entropy: float | None = _field(
+        "sac", None, "sac: auto_temperature's entropy target; null = -action_size"
+    )
+    sigma_init: float = _field(
+        "sac",
+        0.1,
+        "coherent-sac and psne: initial parameter-noise scale sigma (w_std = sigma)",
+        _sweep(_SIGMA_RULE[0], hparam="sigma"),
+    )
+    sigma_delta: float = _field(
+        "sac",
+        0.1,
+        "coherent-sac and psne: distance threshold delta of the sigma rule (4.51)",
+        _sweep(*_SIGMA_RULE),
+    )
+    sigma_alpha: float = _field(
+        "sac",
+        1.01,
+        "coherent-sac and psne: scaling factor alpha > 1 of the sigma rule (4.51)",
+        _sweep(*_SIGMA_RULE),
+    )
     # --- evaluation and output
-    eval_every: int = _field(10, "iterations between deterministic evaluations; 0 = only at the end")
-    eval_episodes: int = _field(8, "episodes per evaluation (run in parallel)")
-    run_dir: str = _field("", "output directory; default runs/<env>-<algo>-<explore>-s<seed>-<time>")
-    progress: bool = _field(True, "show a progress bar")
-    # --- long runs (issue 7): checkpoints, resume, TensorBoard
-    checkpoint_every: int = _field(
-        10, "iterations between checkpoints (atomic; one also at the end and on SIGINT/SIGTERM)"
+    eval_every: int = _field(
+        "output", 10, "iterations between deterministic evaluations; 0 = only at the end"
     )
-    resume: str = _field("", "continue the run in this directory from its checkpoint, with its config")
-    tensorboard: bool = _field(True, "write TensorBoard event files to <run_dir>/tb")
-    # --- physics backend (issue 6, part 4: fast physics on CPU)
+    eval_episodes: int = _field("output", 8, "episodes per evaluation (run in parallel)")
+    run_dir: str = _field(
+        "output", "", "output directory; default runs/<env>-<algo>-<explore>-s<seed>-<time>"
+    )
+    progress: bool = _field("output", True, "show a progress bar")
+    # --- long runs: checkpoints, resume, TensorBoard
+    checkpoint_every: int = _field(
+        "output", 10, "iterations between checkpoints (atomic; one also at the end and on SIGINT/SIGTERM)"
+    )
+    resume: str = _field(
+        "output", "", "continue the run in this directory from its checkpoint, with its config"
+    )
+    tensorboard: bool = _field("output", True, "write TensorBoard event files to <run_dir>/tb")
+    # --- physics backend
     physics: str = _field(
+        "physics",
         "auto",
         "physics engine: " + ", ".join(PHYSICS) + " (auto = native MuJoCo on CPU for the envs that have it, "
         "else MJX; native envs: " + ", ".join(NATIVE_TASKS) + ")",
     )
     physics_threads: int = _field(
-        DEFAULT_THREADS, "native physics: MuJoCo threads per step call, 0 = every core (see bench_physics)"
+        "physics",
+        DEFAULT_THREADS,
+        "native physics: MuJoCo threads per step call, 0 = every core (see bench_physics)",
     )
-    # --- exploration strategies and ablations (issue 5)
+    # --- exploration strategies and ablations
     coherent: CoherentOptions = dataclasses.field(
         default_factory=CoherentOptions,
         metadata={
+            "group": "exploration",
             "help": "coherent ablations: coherent.integration=analytic|mc coherent.layers=last|all "
-            "coherent.gradient=exact|stored"
+            "coherent.gradient=exact|stored",
         },
     )
     noisynet_sigma0: float = _field(
-        0.5, "noisynet: initial noise scale sigma_0; each layer's sigma starts at sigma_0 / sqrt(fan_in)"
+        "exploration",
+        0.5,
+        "noisynet: initial noise scale sigma_0; each layer's sigma starts at sigma_0 / sqrt(fan_in)",
     )
     gsde_resample_every: int = _field(
-        4, "gsde: steps between redraws of the noise matrix (also redrawn at each episode start)"
+        "exploration",
+        4,
+        "gsde: steps between redraws of the noise matrix (also redrawn at each episode start)",
     )
-    pink_exponent: float = _field(1.0, "pink: noise spectrum ~ 1/f^exponent (0 white, 1 pink, 2 red)")
-    # --- devices (issue 6, parts 1-2: sharding over JAX devices, several hosts)
+    pink_exponent: float = _field(
+        "exploration", 1.0, "pink: noise spectrum ~ 1/f^exponent (0 white, 1 pink, 2 red)"
+    )
+    # --- devices: sharding over JAX devices, several hosts
     num_devices: int = _field(
+        "devices",
         0,
         "JAX devices to spread the envs (train) or the sweep points (sweep) over; 0 = all. "
         "num_envs must be a multiple of it",
     )
     distributed: bool = _field(
-        False, "call jax.distributed.initialize() first (several hosts; see README, Devices)"
+        "devices", False, "call jax.distributed.initialize() first (several hosts; see README, Devices)"
     )
 
     # --- derived (not settable)
@@ -226,23 +332,14 @@ class Config:
         return max(1, math.ceil(self.total_steps / self.steps_per_iteration))
 
 
-# Scalars that may differ across the points of one vmapped sweep.
-SWEEPABLE = (
-    "lr",
-    "gamma",
-    "gae_lambda",
-    "clip_eps",
-    "target_kl",
-    "vf_coef",
-    "ent_coef",
-    "beta",
-    # SAC and Coherent-SAC
-    "tau",
-    "temperature",
-    "sigma_init",
-    "sigma_delta",
-    "sigma_alpha",
-)
+# Scalars that may differ across the points of one vmapped sweep: declared on their fields.
+SWEEPABLE = tuple(f.name for f in dataclasses.fields(Config) if "sweep" in f.metadata)
+
+
+def sweepable(key: str) -> Sweepable | None:
+    """The `Sweepable` declaration of config key `key`, or None for a key a sweep cannot vary."""
+    field = next((f for f in dataclasses.fields(Config) if f.name == key), None)
+    return None if field is None else field.metadata.get("sweep")
 
 
 class ConfigError(ValueError):
@@ -356,7 +453,7 @@ def validate(cfg: Config) -> Config:
 
 
 def _validate_strategies(cfg: Config) -> None:
-    """Checks the settings of issue 5's strategies and ablations, and the pairs they refuse."""
+    """Checks the settings of the strategies and ablations, and the pairs they refuse."""
     co = cfg.coherent
     _check(
         co.integration in COHERENT_INTEGRATION,
@@ -442,6 +539,7 @@ def parse_overrides(overrides: Sequence[str], base: Config | None = None) -> Con
         key = item.split("=", 1)[0].strip()
         if key not in known:
             raise ConfigError(f"unknown key {key!r}; valid keys: {', '.join(sorted(known))}")
+        _check_yaml(key, item.split("=", 1)[1])
         if key == "algo":
             algo = item.split("=", 1)[1].strip()
     base = base if base is not None else Config()
@@ -461,9 +559,39 @@ def parse_overrides(overrides: Sequence[str], base: Config | None = None) -> Con
         name = name.rsplit(".", 1)[-1]
         field = next((f for f in dataclasses.fields(owner) if f.name == name), None)
         expected = _type_name(field.type) if field is not None else "a valid value"
+        if key in _choices():
+            expected = ", ".join(_choices()[key])
         msg = str(exc).splitlines()[0]
         raise ConfigError(f"invalid value for {key!r}: {msg} (allowed: {expected})") from None
     return validate(cfg)
+
+
+def _check_yaml(key: str, text: str) -> None:
+    """Raises `ConfigError` naming `key` if its value is not valid YAML (``[64,64``, ``{``)."""
+    import yaml
+
+    try:
+        yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        problem = getattr(exc, "problem", None) or "malformed"
+        raise ConfigError(
+            f"invalid value for {key!r}: {text.strip()!r} is not valid YAML ({problem}) "
+            f"(allowed: a YAML scalar or a list such as [64,64])"
+        ) from None
+
+
+def _choices() -> dict[str, tuple[str, ...]]:
+    """The keys whose value is one name of a list, and that list (an error message shows it)."""
+    return {
+        "env": tuple(TASKS),
+        "algo": ALGOS,
+        "explore": EXPLORES,
+        "activation": ACTIVATIONS,
+        "coherent_inference": COHERENT_INFERENCE,
+        "physics": tuple(PHYSICS),
+        "coherent.integration": COHERENT_INTEGRATION,
+        "coherent.layers": COHERENT_LAYERS,
+    }
 
 
 def _type_name(tp: Any) -> str:
@@ -478,21 +606,26 @@ def to_dict(cfg: Config) -> dict[str, Any]:
 
 
 def help_text() -> str:
-    """Every option with its default and a one-line description."""
-    lines = ["usage: python -m coherent_jax.train [key=value ...]", "", "options (key=default):"]
+    """Every option with its default and a one-line description, grouped."""
+    lines = ["usage: python -m coherent_jax.train [key=value ...]", ""]
     for algo, defaults in ALGO_DEFAULTS.items():
         flat = {}
         for k, v in defaults.items():
             flat.update({f"{k}.{g}": w for g, w in v.items()} if isinstance(v, dict) else {k: v})
         changed = " ".join(f"{k}={v}".replace(" ", "") for k, v in flat.items())
-        lines.insert(2, f"algo={algo} changes these defaults: {changed}")
-    for f in dataclasses.fields(Config):
-        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
-        if isinstance(default, list):
-            default = "[" + ",".join(str(v) for v in default) + "]"
-        lines.append(f"  {f.name}={default}".ljust(34) + f"  {f.metadata.get('help', '')}")
-        if dataclasses.is_dataclass(default):
-            for g in dataclasses.fields(default):
-                value = getattr(default, g.name)
-                lines.append(f"  {f.name}.{g.name}={value}".ljust(34) + f"  {g.metadata.get('help', '')}")
+        lines.append(f"algo={algo} changes these defaults: {changed}")
+    lines.append(f"sweepable (a list runs a grid with coherent_jax.sweep): {', '.join(SWEEPABLE)}")
+    for group in GROUPS:
+        lines += ["", f"{group}:"]
+        for f in dataclasses.fields(Config):
+            if f.metadata.get("group") != group:
+                continue
+            default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+            if isinstance(default, list):
+                default = "[" + ",".join(str(v) for v in default) + "]"
+            lines.append(f"  {f.name}={default}".ljust(34) + f"  {f.metadata.get('help', '')}")
+            if dataclasses.is_dataclass(default):
+                for g in dataclasses.fields(default):
+                    value = getattr(default, g.name)
+                    lines.append(f"  {f.name}.{g.name}={value}".ljust(34) + f"  {g.metadata.get('help', '')}")
     return "\n".join(lines)

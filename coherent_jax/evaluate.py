@@ -3,14 +3,10 @@
 Loads ``RUN_DIR/checkpoint.msgpack`` (verified as in `coherent_jax.runs`), runs
 ``episodes`` deterministic (mean-action) episodes in parallel with the trainer's own
 ``evaluate`` and prints the mean and standard deviation of their returns. With
-``video=true`` it also renders the first episode with MuJoCo's offscreen renderer
-(headless: ``MUJOCO_GL=egl`` by default, or ``osmesa``) and writes an animated GIF
-(``RUN_DIR/videos/eval-it<iteration>-s<seed>.gif`` unless ``video_path`` is given).
-
-The physics states are taken from inside the jitted evaluation by a host callback
-on the evaluation environment's step, so any trainer's ``evaluate`` is used
-unchanged and the video shows exactly the episodes whose returns are printed.
-`pointmass` has no MuJoCo model and refuses ``video=true``.
+``video=true`` it also renders the first episode (`coherent_jax.video`; headless:
+``MUJOCO_GL=egl`` by default, or ``osmesa``) to
+``RUN_DIR/videos/eval-it<iteration>-s<seed>.mp4`` (``.gif`` without ffmpeg) unless
+``video_path`` is given. `pointmass` has no MuJoCo model and refuses ``video=true``.
 """
 
 from __future__ import annotations
@@ -23,154 +19,52 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from coherent_jax import cli, video
 from coherent_jax.config import ConfigError
 from coherent_jax.runs import CHECKPOINT, CheckpointError, decode_checkpoint, load_config
 
-EXIT_BAD_INPUT = 2
-
-
-@dataclasses.dataclass
-class EvalConfig:
-    """Options of ``python -m coherent_jax.evaluate RUN_DIR [key=value ...]``."""
-
-    episodes: int = 10
-    video: bool = False
-    seed: int = 0
-    video_path: str = ""
-    width: int = 320
-    height: int = 240
-    max_frames: int = 1000
-
-
-EVAL_HELP = {
-    "episodes": "deterministic episodes, run in parallel",
-    "video": "render the first episode to a GIF (MuJoCo tasks only)",
-    "seed": "PRNG seed of the evaluation episodes",
-    "video_path": "where to write the GIF; default RUN_DIR/videos/eval-it<iteration>-s<seed>.gif",
-    "width": "video width in pixels (at most 640)",
-    "height": "video height in pixels (at most 480)",
-    "max_frames": "at most this many frames",
+KEYS: dict[str, cli.Key] = {
+    "episodes": cli.Key(
+        10, cli.int_at_least(1), "an integer >= 1", "deterministic episodes, run in parallel"
+    ),
+    "video": cli.Key(False, cli.boolean, "true or false", "render the first episode (MuJoCo tasks only)"),
+    "seed": cli.Key(0, cli.int_at_least(0), "an integer >= 0", "PRNG seed of the evaluation episodes"),
+    "video_path": cli.Key(
+        "",
+        video.check_path,
+        video.PATH_ALLOWED,
+        "where the video goes; default RUN_DIR/videos/eval-it<iteration>-s<seed>.mp4 (.gif without ffmpeg)",
+    ),
+    "width": cli.Key(320, cli.int_between(16, 640), "an integer in [16, 640]", "video width in pixels"),
+    "height": cli.Key(240, cli.int_between(16, 480), "an integer in [16, 480]", "video height in pixels"),
+    "max_frames": cli.Key(1000, cli.int_at_least(2), "an integer >= 2", "at most this many frames"),
 }
 
 
-def parse_eval_args(argv: Sequence[str]) -> tuple[Path, EvalConfig]:
-    """``RUN_DIR`` then ``key=value`` overrides; raises `ConfigError` in one line."""
-    from omegaconf import OmegaConf
-    from omegaconf.errors import OmegaConfBaseException
+@dataclasses.dataclass(frozen=True)
+class EvalConfig:
+    """Settings of ``python -m coherent_jax.evaluate RUN_DIR [key=value ...]`` (defaults: `KEYS`)."""
 
+    episodes: int
+    video: bool
+    seed: int
+    video_path: str
+    width: int
+    height: int
+    max_frames: int
+
+
+def parse_eval_args(argv: Sequence[str]) -> tuple[Path, EvalConfig]:
+    """``RUN_DIR`` then ``key=value`` settings; raises `ConfigError` in one line."""
     positional = [a for a in argv if "=" not in a]
-    overrides = [a for a in argv if "=" in a]
     if len(positional) != 1:
         raise ConfigError(
             f"expected one run directory, got {len(positional)}: {positional!r} "
             "(usage: python -m coherent_jax.evaluate RUN_DIR [episodes=10] [video=true] ...)"
         )
-    known = {f.name for f in dataclasses.fields(EvalConfig)}
-    for item in overrides:
-        key = item.split("=", 1)[0].strip()
-        if key not in known:
-            raise ConfigError(f"unknown key {key!r}; valid keys: {', '.join(sorted(known))}")
-    try:
-        merged = OmegaConf.merge(OmegaConf.structured(EvalConfig()), OmegaConf.from_dotlist(overrides))
-        cfg: EvalConfig = OmegaConf.to_object(merged)
-    except OmegaConfBaseException as exc:
-        key = getattr(exc, "full_key", None) or "?"
-        raise ConfigError(f"invalid value for {key!r}: {str(exc).splitlines()[0]}") from None
-    checks = [
-        ("episodes", cfg.episodes >= 1, "an integer >= 1"),
-        ("seed", cfg.seed >= 0, "an integer >= 0"),
-        ("width", 16 <= cfg.width <= 640, "an integer in [16, 640]"),
-        ("height", 16 <= cfg.height <= 480, "an integer in [16, 480]"),
-        ("max_frames", cfg.max_frames >= 2, "an integer >= 2"),
-    ]
-    for key, ok, allowed in checks:
-        if not ok:
-            raise ConfigError(f"invalid value for {key!r}: {getattr(cfg, key)!r} (allowed: {allowed})")
-    return Path(positional[0]), cfg
-
-
-class _Recorder:
-    """Host-side sink of (qpos, done) of evaluation env 0, step by step, until its episode ends."""
-
-    def __init__(self, max_frames: int) -> None:
-        self.qpos: list[Any] = []
-        self.max_frames = max_frames
-        self.ended = False
-
-    def __call__(self, qpos: Any, done: Any) -> None:
-        import numpy as np
-
-        if not self.ended and len(self.qpos) < self.max_frames:
-            self.qpos.append(np.array(qpos, dtype=np.float64))
-        self.ended = self.ended or bool(done)
-
-
-def recording_env(
-    task: str,
-    num_envs: int,
-    episode_length: int,
-    recorder: _Recorder,
-    physics: str = "auto",
-    threads: int = 1,
-):
-    """A `VecEnv` whose ``step`` also sends env 0's generalized positions to `recorder`."""
-    import jax
-
-    from coherent_jax.envs.vec_env import VecEnv
-
-    class RecordingVecEnv(VecEnv):
-        def step(self, state, action):
-            if hasattr(state.physics, "kin"):  # native MuJoCo physics
-                qpos = state.physics.kin.qpos
-            else:
-                physics = state.physics.pipeline_state
-                qpos = physics.qpos if hasattr(physics, "qpos") else physics.q
-            new_state, outcome = super().step(state, action)
-            jax.debug.callback(recorder, qpos[0], outcome.done[0], ordered=True)
-            return new_state, outcome
-
-    return RecordingVecEnv(task, num_envs, episode_length, physics, threads)
-
-
-def render_frames(mj_model: Any, qpos: Sequence[Any], width: int, height: int) -> list[Any]:
-    """RGB frames [height, width, 3] of the model at each configuration in `qpos`.
-
-    The free camera is placed by MuJoCo's default for the model and follows the
-    first body below the world, so a running agent stays in view.
-    """
-    import mujoco
-
-    data = mujoco.MjData(mj_model)
-    camera = mujoco.MjvCamera()
-    mujoco.mjv_defaultFreeCamera(mj_model, camera)
-    track = 1 if mj_model.nbody > 1 else 0
-    frames = []
-    with mujoco.Renderer(mj_model, height=height, width=width) as renderer:
-        for q in qpos:
-            data.qpos[:] = q
-            mujoco.mj_forward(mj_model, data)
-            camera.lookat[:] = data.xpos[track]
-            renderer.update_scene(data, camera=camera)
-            frames.append(renderer.render().copy())
-    return frames
-
-
-def write_gif(path: Path, frames: Sequence[Any], fps: float) -> None:
-    """An animated GIF of `frames`, written through a temporary file and a rename."""
-    from PIL import Image
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    images = [Image.fromarray(f) for f in frames]
-    tmp = path.with_name(path.name + ".tmp")
-    images[0].save(
-        tmp,
-        format="GIF",
-        save_all=True,
-        append_images=images[1:],
-        duration=max(20, int(round(1000.0 / fps))),
-        loop=0,
-    )
-    os.replace(tmp, path)
+    items = [a for a in argv if "=" in a]
+    settings = cli.parse_command(items, KEYS, command="evaluate", config=False).settings
+    return Path(positional[0]), EvalConfig(**settings)
 
 
 def evaluate_run(run_dir: Path, opts: EvalConfig) -> dict[str, Any]:
@@ -184,9 +78,9 @@ def evaluate_run(run_dir: Path, opts: EvalConfig) -> dict[str, Any]:
     cfg = load_config(run_dir)
     ckpt = decode_checkpoint(run_dir / CHECKPOINT, cfg)
     cfg = dataclasses.replace(cfg, eval_episodes=opts.episodes)
-    recorder = _Recorder(opts.max_frames)
+    recorder = video.Recorder(opts.max_frames)
     if opts.video:
-        eval_env = recording_env(
+        eval_env = video.recording_env(
             cfg.env, opts.episodes, cfg.episode_length, recorder, cfg.physics, cfg.physics_threads
         )
     else:
@@ -207,16 +101,12 @@ def evaluate_run(run_dir: Path, opts: EvalConfig) -> dict[str, Any]:
     }
     if opts.video:
         jax.effects_barrier()
-        if hasattr(eval_env.env, "sys"):
-            mj_model = eval_env.env.sys.mj_model
-        else:  # native physics: the same MJCF, with the task's solver options
-            from coherent_jax.envs.native import mujoco_model
-
-            mj_model = mujoco_model(cfg.env)[0]
-        frames = render_frames(mj_model, recorder.qpos, opts.width, opts.height)
-        default = run_dir / "videos" / f"eval-it{ckpt.iteration}-s{opts.seed}.gif"
-        path = Path(opts.video_path) if opts.video_path else default
-        write_gif(path, frames, fps=1.0 / eval_env.dt)
+        frames = video.render_frames(
+            video.mujoco_model_of(eval_env, cfg.env), recorder.qpos, opts.width, opts.height
+        )
+        name = f"eval-it{ckpt.iteration}-s{opts.seed}{video.default_suffix()}"
+        path = Path(opts.video_path) if opts.video_path else run_dir / "videos" / name
+        video.write_video(path, frames, fps=1.0 / eval_env.dt)
         result.update({"video": str(path), "frames": len(frames)})
     return result
 
@@ -225,8 +115,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if any(a in ("-h", "--help", "help") for a in argv):
         print("usage: python -m coherent_jax.evaluate RUN_DIR [key=value ...]\n\noptions (key=default):")
-        for f in dataclasses.fields(EvalConfig):
-            print(f"  {f.name}={f.default}".ljust(24) + f"  {EVAL_HELP[f.name]}")
+        print("\n".join(cli.help_lines(KEYS)))
         return 0
     # Headless rendering; must be chosen before mujoco is first imported.
     os.environ.setdefault("MUJOCO_GL", "egl")
@@ -247,7 +136,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
     except (ConfigError, CheckpointError) as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return cli.EXIT_BAD_INPUT
     print(f"[coherent_jax] evaluating {run_dir} ({opts.episodes} episodes)", flush=True)
     result = evaluate_run(run_dir, opts)
     print(

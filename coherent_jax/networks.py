@@ -43,6 +43,30 @@ class MLP(nn.Module):
         return x
 
 
+class MeanHead(nn.Module):
+    """The trunk x = f_theta(s), then the linear mean head W x + b of a Gaussian policy (eq. 2.1).
+
+    The head starts small (orthogonal, gain 0.01, as in CleanRL/SB3) so that initial
+    actions are near zero. Returns (x [..., q], mean [..., p]): strategies whose noise
+    is a function of the features (gSDE) need x as well.
+    """
+
+    hidden: tuple[int, ...]
+    activation: str
+    action_size: int
+    layer_norm: bool = False
+
+    @nn.compact
+    def __call__(self, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
+        x = MLP(self.hidden, self.activation, layer_norm=self.layer_norm)(obs)
+        return x, nn.Dense(self.action_size, kernel_init=nn.initializers.orthogonal(0.01))(x)
+
+
+def augment(x: jax.Array) -> jax.Array:
+    """xh = [x; 1] along the last axis: the last layer's input with the bias folded in."""
+    return jnp.concatenate([x, jnp.ones(x.shape[:-1] + (1,), x.dtype)], axis=-1)
+
+
 class ValueNetwork(nn.Module):
     """V_phi(s): an MLP and a scalar head."""
 
@@ -161,8 +185,7 @@ class SquashedGaussianActor:
         the batch dims of x in front ([..., p, q+1], one head per env).
         """
         mu = params["mu"] if mu is None else mu
-        xh = jnp.concatenate([x, jnp.ones(x.shape[:-1] + (1,), x.dtype)], axis=-1)
-        mean = jnp.einsum("...pk,...k->...p", mu, xh)
+        mean = jnp.einsum("...pk,...k->...p", mu, augment(x))
         raw = jnp.tanh(self.log_std_head.apply(params["log_std"], x))
         log_std = LOG_STD_MIN + 0.5 * (LOG_STD_MAX - LOG_STD_MIN) * (raw + 1.0)
         return ActorDist(mean, log_std)

@@ -134,22 +134,61 @@ def shard_state(state: Any, num_devices: int, num_envs: int):
     return jax.device_put(state, shardings), shardings
 
 
-def compile_iteration(trainer: Any, state: Any, shardings: Any = None):
+def point_device_count(num_points: int, available: int) -> int:
+    """The largest device count up to `available` that divides the points (each device runs whole points)."""
+    return max(d for d in range(1, available + 1) if num_points % d == 0)
+
+
+def init_points(trainer: Any, init_keys: jax.Array, hparams: Any, num_devices: int):
+    """The stacked initial states of a sweep's points, ``vmap(trainer.init)``, split over the devices.
+
+    Returns:
+      (states, shardings): ``shardings`` is None on one device, else `point_shardings`.
+    """
+    init = jax.vmap(trainer.init)
+    if num_devices == 1:
+        return jax.jit(init)(init_keys, hparams), None
+    mesh = make_mesh(num_devices, POINT_AXIS)
+    shardings = point_shardings(jax.eval_shape(init, init_keys, hparams), mesh)
+    return jax.jit(init, out_shardings=shardings)(init_keys, hparams), shardings
+
+
+def shard_points(states: Any, num_devices: int):
+    """Stacked sweep states (e.g. restored from a checkpoint) placed as `init_points` places new ones."""
+    if num_devices == 1:
+        return states, None
+    shardings = point_shardings(states, make_mesh(num_devices, POINT_AXIS))
+    return jax.device_put(states, shardings), shardings
+
+
+def compile_iteration(trainer: Any, state: Any, shardings: Any = None, points: bool = False):
     """``iteration(state) -> (state, metrics)`` compiled; the state's buffers are donated.
 
-    With ``shardings`` (from `init_state`) the state keeps them in and out and the
-    metrics are replicated; XLA's SPMD partitioner splits the work over the devices.
+    With ``points`` the state is a sweep's stack of states and the iteration is
+    ``vmap(trainer.iteration)``. With ``shardings`` (from `init_state` or
+    `init_points`) the state keeps them in and out; a run's metrics are replicated, a
+    sweep's split like its points. XLA's SPMD partitioner splits the work over the
+    devices.
     """
+    step = jax.vmap(trainer.iteration) if points else trainer.iteration
     if shardings is None:
-        return jax.jit(trainer.iteration, donate_argnums=0).lower(state).compile()
+        return jax.jit(step, donate_argnums=0).lower(state).compile()
     mesh = jax.tree.leaves(shardings)[0].mesh
-    iteration = jax.jit(
-        trainer.iteration,
-        in_shardings=(shardings,),
-        out_shardings=(shardings, replicated(mesh)),
-        donate_argnums=0,
-    )
+    metrics = NamedSharding(mesh, PartitionSpec(POINT_AXIS)) if points else replicated(mesh)
+    iteration = jax.jit(step, in_shardings=(shardings,), out_shardings=(shardings, metrics), donate_argnums=0)
     return iteration.lower(state).compile()
+
+
+def check_devices(cfg: Any, split_envs: bool = True) -> bool:
+    """Initialises multi-host JAX if asked and checks the device split before anything is written.
+
+    Returns whether this process writes the outputs (process 0 of a distributed run).
+    """
+    maybe_initialize_distributed(cfg.distributed)
+    num_devices = resolve_num_devices(cfg.num_devices)
+    if split_envs:
+        check_env_split(cfg.num_envs, num_devices)
+    return jax.process_index() == 0
 
 
 def maybe_initialize_distributed(enabled: bool) -> None:

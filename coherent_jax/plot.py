@@ -1,12 +1,19 @@
 """Learning curves and aggregate scores: ``python -m coherent_jax.plot RUN_DIR... [out=plots]``.
 
 Each argument is a run directory (``config.yaml`` + ``metrics.jsonl``) or a folder
-whose sub-directories are runs. Runs are grouped by task and, within a task, by
-exploration strategy (with the algorithm in the label when a task has several).
+whose sub-directories are runs (a sweep's ``p003-beta=0.1-seed=1/`` points too).
 
-* ``learning_curves.png``: one panel per task, one line per strategy: the mean of
-  ``metric`` over seeds against env steps, and a 95% Student-t interval
-  ``mean +- t_{0.975, n-1} s / sqrt(n)`` (n seeds, s their sample std) as a band.
+* Runs are averaged only with runs of the same resolved config but for the seed
+  (and the settings that do not change what is computed: `NOT_COMPARED`); each such
+  group is one line, labelled by the settings in which the groups differ.
+* ``learning_curves.png``: one panel per task, one line per group: the mean of
+  ``metric`` over seeds against env steps, with a 95% percentile-bootstrap interval
+  of that mean as a band (`mean_and_interval`) and the seed count n in the legend.
+  A bootstrap interval of a mean never leaves the range of the seeds' values, which
+  suits the 2-10 seeds of RL runs (a Student-t interval with n = 2 is 12.7 standard
+  errors wide, often far wider than the data). Seeds that logged at different env
+  steps are linearly interpolated onto the steps any of them logged within the range
+  all of them cover; a group whose runs share no range is drawn run by run.
 * With two or more tasks, ``aggregate.png`` and ``aggregate.json``: the interquartile
   mean (IQM) of normalised final scores across all runs and tasks, with 95%
   stratified-bootstrap confidence intervals (Agarwal et al. 2021, computed with
@@ -19,7 +26,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import os
 import sys
 from collections import defaultdict
@@ -29,20 +35,21 @@ from typing import Any
 
 import numpy as np
 
-from coherent_jax.config import ConfigError
+from coherent_jax import cli
+from coherent_jax.config import ConfigError, to_dict
 from coherent_jax.runs import CONFIG, METRICS, load_config, read_metrics
 
-EXIT_BAD_INPUT = 2
-
-
-@dataclasses.dataclass
-class PlotConfig:
-    """Options of ``python -m coherent_jax.plot RUN_DIR... [key=value ...]``."""
-
-    out: str = "plots"
-    metric: str = "eval/episode_return"
-    reps: int = 5000
-    seed: int = 0
+KEYS: dict[str, cli.Key] = {
+    "out": cli.Key("plots", cli.output_dir, "a directory that can be written", "where the figures go"),
+    "metric": cli.Key("eval/episode_return", cli.text_value, "a metric of metrics.jsonl", "the y axis"),
+    "reps": cli.Key(5000, cli.int_at_least(100), "an integer >= 100", "bootstrap resamples"),
+    "seed": cli.Key(0, cli.int_at_least(0), "an integer >= 0", "seed of the bootstrap resamples"),
+}
+# Settings that do not change what a run computes: runs differing only in these
+# (and the seed) are seeds of one experiment.
+NOT_COMPARED = ("seed", "run_dir", "resume", "progress", "tensorboard", "checkpoint_every")
+# Settings shown as bare values in a label (``ppo coherent``), the others as key=value.
+_BARE = ("algo", "explore")
 
 
 @dataclasses.dataclass
@@ -56,35 +63,45 @@ class Run:
     seed: int
     steps: np.ndarray
     values: np.ndarray
+    settings: dict[str, Any]  # the flattened resolved config, `NOT_COMPARED` left out
 
 
-def parse_plot_args(argv: Sequence[str]) -> tuple[list[Path], PlotConfig]:
-    """Run directories then ``key=value`` options; raises `ConfigError` in one line."""
-    paths = [Path(a) for a in argv if "=" not in a]
-    options = [a for a in argv if "=" in a]
+@dataclasses.dataclass
+class Curves:
+    """One line of a panel: env steps and the seeds' values there, [seeds, steps].
+
+    ``interpolated`` says whether seeds logged at different steps were interpolated;
+    ``runs`` are the seeds' runs (drawn one by one when they share no steps: then
+    ``steps`` is empty).
+    """
+
+    steps: np.ndarray
+    values: np.ndarray
+    interpolated: bool
+    runs: list[Run]
+
+
+def split_args(argv: Sequence[str]) -> tuple[list[Path], list[str]]:
+    """Run directories and ``key=value`` options: an existing path is a directory even
+    with ``=`` in its name (a sweep's points), anything else with ``=`` is an option."""
+    paths, options = [], []
+    for arg in argv:
+        if "=" in arg and not Path(arg).exists():
+            options.append(arg)
+        else:
+            paths.append(Path(arg))
+    return paths, options
+
+
+def parse_plot_args(argv: Sequence[str]) -> tuple[list[Path], dict[str, Any]]:
+    """Run directories and the settings of `KEYS`; raises `ConfigError` in one line."""
+    paths, options = split_args(argv)
+    settings = cli.parse_command(options, KEYS, command="plot", config=False).settings
     if not paths:
         raise ConfigError(
             "expected at least one run directory (usage: python -m coherent_jax.plot RUN_DIR...)"
         )
-    known = {f.name: f for f in dataclasses.fields(PlotConfig)}
-    values: dict[str, Any] = {}
-    for item in options:
-        key, value = (s.strip() for s in item.split("=", 1))
-        if key not in known:
-            raise ConfigError(f"unknown key {key!r}; valid keys: {', '.join(sorted(known))}")
-        if known[key].type in ("int", int):
-            try:
-                values[key] = int(value)
-            except ValueError:
-                raise ConfigError(f"invalid value for {key!r}: {value!r} (allowed: an integer)") from None
-        else:
-            values[key] = value
-    opts = PlotConfig(**values)
-    if opts.reps < 100:
-        raise ConfigError(f"invalid value for 'reps': {opts.reps} (allowed: an integer >= 100)")
-    if opts.seed < 0:
-        raise ConfigError(f"invalid value for 'seed': {opts.seed} (allowed: an integer >= 0)")
-    return paths, opts
+    return paths, settings
 
 
 def find_runs(paths: Sequence[Path]) -> list[Path]:
@@ -106,6 +123,16 @@ def find_runs(paths: Sequence[Path]) -> list[Path]:
     return runs
 
 
+def _flatten(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    flat: dict[str, Any] = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            flat.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = tuple(value) if isinstance(value, list) else value
+    return flat
+
+
 def load_run(path: Path, metric: str) -> Run:
     """The curve of `metric` in one run; refuses a run that never logged it."""
     cfg = load_config(path)
@@ -117,48 +144,91 @@ def load_run(path: Path, metric: str) -> Run:
         )
     steps = np.array([r["env_steps"] for r in rows], dtype=np.int64)
     values = np.array([r[metric] for r in rows], dtype=np.float64)
-    return Run(path, cfg.env, cfg.algo, cfg.explore, cfg.seed, steps, values)
+    order = np.argsort(steps, kind="stable")
+    settings = {k: v for k, v in _flatten(to_dict(cfg)).items() if k not in NOT_COMPARED}
+    return Run(path, cfg.env, cfg.algo, cfg.explore, cfg.seed, steps[order], values[order], settings)
 
 
 def labels(runs: Sequence[Run]) -> dict[int, str]:
-    """Legend label of each run: its strategy, with the algorithm if a task has several."""
-    algos: dict[str, set[str]] = defaultdict(set)
-    for r in runs:
-        algos[r.env].add(r.algo)
-    return {id(r): (f"{r.algo} {r.explore}" if len(algos[r.env]) > 1 else r.explore) for r in runs}
+    """Legend label of each run: the settings (task aside) in which its group differs from others.
 
-
-def mean_and_interval(curves: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean over seeds and the half-width of the 95% Student-t interval, curves [n, T].
-
-    ``t_{0.975, n-1} * s / sqrt(n)`` with s the sample std (ddof 1); 0 for one seed.
+    Runs with equal labels have equal settings but for the seed, so a label names one
+    group, and the same group on several tasks has the same label (the aggregate
+    pairs them). Algorithm and strategy are shown bare (``ppo coherent``), other
+    settings as ``key=value``; with one group per task the label is the strategy.
     """
-    from scipy import stats
+    keys = sorted({k for r in runs for k in r.settings} - {"env"})
+    differing = [k for k in keys if len({repr(r.settings.get(k)) for r in runs}) > 1]
+    if not differing:
+        return {id(r): r.explore for r in runs}
+    ordered = [k for k in _BARE if k in differing] + [k for k in differing if k not in _BARE]
 
+    def label(r: Run) -> str:
+        parts = []
+        for k in ordered:
+            value = r.settings.get(k)
+            value = "[" + ",".join(map(str, value)) + "]" if isinstance(value, tuple) else value
+            parts.append(str(value) if k in _BARE else f"{k}={value}")
+        return " ".join(parts)
+
+    return {id(r): label(r) for r in runs}
+
+
+def mean_and_interval(
+    curves: np.ndarray, reps: int = 5000, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean over seeds and its 95% percentile-bootstrap interval, curves [n, T].
+
+    Resamples the n seeds with replacement ``reps`` times (the same resamples at
+    every step, so the band follows the curves), and takes the 2.5% and 97.5%
+    quantiles of the resampled means: (mean, low, high), each [T]. Every resampled
+    mean lies between the seeds' smallest and largest value, so the band never
+    leaves the data's range (with n = 2 and 3 it is that range); with one seed it is
+    the curve itself.
+    """
     n = curves.shape[0]
     mean = curves.mean(axis=0)
     if n < 2:
-        return mean, np.zeros_like(mean)
-    half = stats.t.ppf(0.975, n - 1) * curves.std(axis=0, ddof=1) / math.sqrt(n)
-    return mean, half
+        return mean, mean.copy(), mean.copy()
+    idx = np.random.default_rng(seed).integers(0, n, size=(reps, n))
+    means = curves[idx].mean(axis=1)  # [reps, T]
+    low, high = np.quantile(means, [0.025, 0.975], axis=0)
+    return mean, low, high
 
 
-def group_curves(runs: Sequence[Run]) -> dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
-    """task -> label -> (env steps logged by every seed, curves [seeds, steps])."""
+def common_curves(members: Sequence[Run]) -> Curves:
+    """The seeds of one group on shared env steps.
+
+    Where every seed logged the same steps these are exactly the logged values.
+    Otherwise the grid is every step any seed logged inside the range all of them
+    cover, and each seed is linearly interpolated there (never extrapolated). Seeds
+    with no common range give an empty grid; the plot draws them one by one.
+    """
+    members = sorted(members, key=lambda r: r.seed)
+    lo = max(int(r.steps[0]) for r in members)
+    hi = min(int(r.steps[-1]) for r in members)
+    union = np.unique(np.concatenate([r.steps for r in members]))
+    grid = union[(union >= lo) & (union <= hi)]
+    if grid.size == 0:
+        return Curves(grid, np.zeros((len(members), 0)), False, list(members))
+    exact = all(np.array_equal(np.intersect1d(r.steps, grid), grid) for r in members)
+    if exact:
+        values = np.stack([r.values[np.searchsorted(r.steps, grid)] for r in members])
+    else:
+        values = np.stack([np.interp(grid, r.steps, r.values) for r in members])
+    return Curves(grid, values, not exact, list(members))
+
+
+def group_curves(runs: Sequence[Run]) -> dict[str, dict[str, Curves]]:
+    """task -> label -> that group's `Curves`."""
     label = labels(runs)
     groups: dict[str, dict[str, list[Run]]] = defaultdict(lambda: defaultdict(list))
     for r in runs:
         groups[r.env][label[id(r)]].append(r)
-    out: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
-    for env, by_label in groups.items():
-        out[env] = {}
-        for name, members in sorted(by_label.items()):
-            common = members[0].steps
-            for r in members[1:]:
-                common = np.intersect1d(common, r.steps)
-            curves = np.stack([r.values[np.searchsorted(r.steps, common)] for r in members])
-            out[env][name] = (common, curves)
-    return out
+    return {
+        env: {name: common_curves(members) for name, members in sorted(by_label.items())}
+        for env, by_label in groups.items()
+    }
 
 
 def normalized_final_scores(runs: Sequence[Run]) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -214,9 +284,8 @@ def _save(fig: Any, path: Path) -> None:
     os.replace(tmp, path)
 
 
-def plot_curves(
-    grouped: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]], metric: str, path: Path
-) -> None:
+def plot_curves(grouped: dict[str, dict[str, Curves]], metric: str, path: Path, reps: int, seed: int) -> None:
+    """One panel per task, one line and band per group (`mean_and_interval`)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -225,16 +294,22 @@ def plot_curves(
     envs = sorted(grouped)
     fig, axes = plt.subplots(1, len(envs), figsize=(5.0 * len(envs), 3.6), squeeze=False)
     for ax, env in zip(axes[0], envs, strict=True):
-        for name, (steps, curves) in grouped[env].items():
-            mean, half = mean_and_interval(curves)
-            (line,) = ax.plot(steps, mean, label=f"{name} (n={curves.shape[0]})")
-            ax.fill_between(steps, mean - half, mean + half, color=line.get_color(), alpha=0.25, linewidth=0)
+        for name, c in grouped[env].items():
+            if c.steps.size == 0:  # seeds with no common range of env steps: one line each
+                for r in c.runs:
+                    ax.plot(r.steps, r.values, linewidth=1.0, label=f"{name} (seed {r.seed}, no overlap)")
+                continue
+            mean, low, high = mean_and_interval(c.values, reps, seed)
+            note = ", interpolated" if c.interpolated else ""
+            marker = "o" if c.steps.size == 1 else None
+            (line,) = ax.plot(c.steps, mean, marker=marker, label=f"{name} (n={c.values.shape[0]}{note})")
+            ax.fill_between(c.steps, low, high, color=line.get_color(), alpha=0.25, linewidth=0)
         ax.set_title(env)
         ax.set_xlabel("env steps")
         ax.set_ylabel(metric)
         ax.grid(alpha=0.3)
         ax.legend(fontsize="small")
-    fig.suptitle("mean and 95% t-interval over seeds", fontsize="small")
+    fig.suptitle("mean over seeds and its 95% bootstrap interval", fontsize="small")
     _save(fig, path)
     plt.close(fig)
 
@@ -260,36 +335,45 @@ def plot_aggregate(result: dict[str, dict[str, float]], tasks: Sequence[str], pa
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Writes the figures; returns the exit status (2 for bad input, before anything is written)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     if any(a in ("-h", "--help", "help") for a in argv):
         print(__doc__)
+        print("options (key=default):", *cli.help_lines(KEYS), sep="\n")
         return 0
     try:
         paths, opts = parse_plot_args(argv)
-        runs = [load_run(p, opts.metric) for p in find_runs(paths)]
+        runs = [load_run(p, opts["metric"]) for p in find_runs(paths)]
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    out = Path(opts.out)
+        return cli.EXIT_BAD_INPUT
+    out = Path(opts["out"])
     out.mkdir(parents=True, exist_ok=True)
     grouped = group_curves(runs)
-    plot_curves(grouped, opts.metric, out / "learning_curves.png")
+    plot_curves(grouped, opts["metric"], out / "learning_curves.png", opts["reps"], opts["seed"])
     print(f"[coherent_jax] {len(runs)} runs, {len(grouped)} task(s): {out / 'learning_curves.png'}")
     for env, by_label in sorted(grouped.items()):
-        for name, (steps, curves) in by_label.items():
-            mean, half = mean_and_interval(curves)
+        for name, c in by_label.items():
+            if c.steps.size == 0:
+                print(
+                    f"  {env:<18} {name:<22} n={len(c.runs)}  "
+                    "no env steps shared by all seeds: drawn one by one"
+                )
+                continue
+            mean, low, high = mean_and_interval(c.values, opts["reps"], opts["seed"])
             print(
-                f"  {env:<18} {name:<22} n={curves.shape[0]}  final {opts.metric} at {steps[-1]} steps: "
-                f"{mean[-1]:.2f} +- {half[-1]:.2f}"
+                f"  {env:<18} {name:<22} n={c.values.shape[0]}  {opts['metric']} at {c.steps[-1]} steps: "
+                f"{mean[-1]:.2f}, 95% bootstrap CI [{low[-1]:.2f}, {high[-1]:.2f}]"
+                + ("  (seeds interpolated onto shared steps)" if c.interpolated else "")
             )
     if len(grouped) >= 2:
         scores, norm = normalized_final_scores(runs)
         if not scores:
-            print("[coherent_jax] no strategy was run on every task: no aggregate", flush=True)
+            print("[coherent_jax] no group was run on every task: no aggregate", flush=True)
             return 0
-        result = aggregate_iqm(scores, opts.reps, opts.seed)
+        result = aggregate_iqm(scores, opts["reps"], opts["seed"])
         plot_aggregate(result, norm["tasks"], out / "aggregate.png")
-        report = {"metric": opts.metric, "reps": opts.reps, "seed": opts.seed, **norm, "iqm": result}
+        report = {"metric": opts["metric"], "reps": opts["reps"], "seed": opts["seed"], **norm, "iqm": result}
         tmp = out / "aggregate.json.tmp"
         tmp.write_text(json.dumps(report, indent=2))
         os.replace(tmp, out / "aggregate.json")

@@ -13,7 +13,9 @@ It is a msgpack map (flax serialisation, never pickle) of
 
 The fingerprint is a hash of every config field that changes what a run computes
 (all but `RESUMABLE_KEYS`); resuming with a different config or from another run's
-directory is refused, naming the first key that differs.
+directory is refused, naming the first key that differs. ``total_steps`` is not
+part of it: a run (or a sweep) may be resumed with a larger budget to extend it.
+A checkpoint holds one state pytree, a single run's or a sweep's stacked one.
 """
 
 from __future__ import annotations
@@ -33,14 +35,18 @@ import msgpack
 
 from coherent_jax.config import Config, ConfigError, to_dict, validate
 
+PREFIX = "[coherent_jax]"  # starts every line the command-line programs print
 CHECKPOINT = "checkpoint.msgpack"
 CONFIG = "config.yaml"
 METRICS = "metrics.jsonl"
 VERSIONS = "versions.json"
 FORMAT = "coherent_jax-checkpoint-1"
 # Fields that may differ between a run and its resumption: they change where and how
-# a run reports, never what it computes.
-RESUMABLE_KEYS = ("run_dir", "progress", "resume", "checkpoint_every", "tensorboard")
+# a run reports, or how long it goes on, never what its iterations compute.
+RESUMABLE_KEYS = ("run_dir", "progress", "resume", "checkpoint_every", "tensorboard", "total_steps")
+# Before total_steps became resumable it was fingerprinted: such checkpoints still
+# resume, at their own budget.
+_LEGACY_RESUMABLE_KEYS = ("run_dir", "progress", "resume", "checkpoint_every", "tensorboard")
 VERSIONED_PACKAGES = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "brax", "flax", "optax", "numpy", "chex")
 
 
@@ -59,14 +65,14 @@ def atomic_write(path: Path, data: bytes) -> None:
     os.replace(tmp, path)
 
 
-def fingerprint_fields(cfg: Config) -> dict[str, Any]:
+def fingerprint_fields(cfg: Config, resumable: tuple[str, ...] = RESUMABLE_KEYS) -> dict[str, Any]:
     """The config fields a checkpoint must agree with (all but `RESUMABLE_KEYS`)."""
-    return {k: v for k, v in to_dict(cfg).items() if k not in RESUMABLE_KEYS}
+    return {k: v for k, v in to_dict(cfg).items() if k not in resumable}
 
 
-def config_fingerprint(cfg: Config) -> str:
+def config_fingerprint(cfg: Config, resumable: tuple[str, ...] = RESUMABLE_KEYS) -> str:
     """sha256 of the fields of `fingerprint_fields`, as canonical JSON."""
-    text = json.dumps(fingerprint_fields(cfg), sort_keys=True, default=str)
+    text = json.dumps(fingerprint_fields(cfg, resumable), sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()
 
 
@@ -85,6 +91,7 @@ def load_config(run_dir: Path) -> Config:
     Raises `ConfigError` (one line) for a missing file, a malformed YAML, an unknown
     key or a bad value (a NaN learning rate, say), naming the file and the key.
     """
+    import yaml
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
@@ -97,6 +104,11 @@ def load_config(run_dir: Path) -> Config:
         stored = OmegaConf.load(path)
         merged = OmegaConf.merge(OmegaConf.structured(Config()), stored)
         cfg = OmegaConf.to_object(merged)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        problem = getattr(exc, "problem", None) or "malformed"
+        raise ConfigError(f"invalid {path}: not valid YAML{where} ({problem})") from None
     except (OmegaConfBaseException, ValueError) as exc:
         key = getattr(exc, "full_key", None) or "?"
         raise ConfigError(f"invalid {path}: key {key!r}: {str(exc).splitlines()[0]}") from None
@@ -127,19 +139,23 @@ def package_versions() -> dict[str, str]:
 class LoopState:
     """What the run loop itself carries between iterations (besides the trainer state).
 
+    A single run stores scalars; a sweep stores one entry per grid point (lists).
+
     Attributes:
-      eval_key: the loop's PRNG key for evaluations (two uint32 words).
+      eval_key: the loop's PRNG key for evaluations (two uint32 words; per point in a sweep).
       train_s, eval_s, elapsed_s: seconds spent so far (reported, never compared).
       last_return: latest finite training-episode return (NaN before any).
       last_eval: metrics of the latest evaluation.
+      diverged: sweep points that diverged (index as text -> the reason); their rows stop.
     """
 
-    eval_key: list[int]
+    eval_key: list[Any]
     train_s: float = 0.0
     eval_s: float = 0.0
     elapsed_s: float = 0.0
-    last_return: float = float("nan")
-    last_eval: dict[str, float] = dataclasses.field(default_factory=dict)
+    last_return: Any = float("nan")
+    last_eval: dict[str, Any] = dataclasses.field(default_factory=dict)
+    diverged: dict[str, str] = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass
@@ -153,8 +169,17 @@ class Checkpoint:
     state_bytes: bytes
 
 
-def _json_safe(x: float) -> float | None:
+def _json_safe(x: Any) -> Any:
+    """Non-finite floats as None (JSON has no NaN), in nested lists too."""
+    if isinstance(x, list):
+        return [_json_safe(v) for v in x]
     return x if math.isfinite(x) else None
+
+
+def _from_json(x: Any) -> Any:
+    if isinstance(x, list):
+        return [_from_json(v) for v in x]
+    return float("nan") if x is None else x
 
 
 def encode_checkpoint(
@@ -203,14 +228,14 @@ def decode_checkpoint(path: Path, cfg: Config) -> Checkpoint:
         raise CheckpointError(
             f"checkpoint {str(path)!r} has format {meta.get('format')!r} (allowed: {FORMAT})"
         )
-    if meta["fingerprint"] != config_fingerprint(cfg):
+    if meta["fingerprint"] not in (config_fingerprint(cfg), config_fingerprint(cfg, _LEGACY_RESUMABLE_KEYS)):
         raise CheckpointError(
             f"checkpoint {str(path)!r} belongs to another run: its config fingerprint "
             f"{meta['fingerprint'][:12]} differs from this config's {config_fingerprint(cfg)[:12]}"
         )
     loop = dict(meta["loop"])
-    loop["last_return"] = float("nan") if loop["last_return"] is None else loop["last_return"]
-    loop["last_eval"] = {k: float("nan") if v is None else v for k, v in loop["last_eval"].items()}
+    loop["last_return"] = _from_json(loop["last_return"])
+    loop["last_eval"] = {k: _from_json(v) for k, v in loop["last_eval"].items()}
     return Checkpoint(
         iteration=meta["iteration"],
         env_steps=meta["env_steps"],
@@ -281,3 +306,125 @@ def truncate_metrics(path: Path, iteration: int) -> None:
     """Keeps the rows up to `iteration` (atomically): a resumed run rewrites the rest."""
     rows = [r for r in read_metrics(path) if r["iteration"] <= iteration]
     atomic_write(Path(path), "".join(json.dumps(r) + "\n" for r in rows).encode())
+
+
+def prepare_output_dir(path: Path, key: str = "run_dir") -> Path:
+    """Creates `path` as a new or empty, writable directory; raises `ConfigError` in one line otherwise.
+
+    Called before any work, so a read-only or invalid location is refused at once
+    rather than after the first hour of training; a directory created here is removed
+    again when it turns out unusable.
+    """
+    path = Path(path)
+    if path.exists() and (not path.is_dir() or any(path.iterdir())):
+        hint = f"; to continue the run in it: resume={path}" if (path / CONFIG).is_file() else ""
+        raise ConfigError(
+            f"invalid value for {key!r}: {str(path)!r} (allowed: a new or empty directory{hint})"
+        )
+    created = []
+    try:
+        for parent in [*reversed(path.parents), path]:
+            if not parent.exists():
+                parent.mkdir()
+                created.append(parent)
+        probe = path / ".write-check"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except (OSError, ValueError) as exc:
+        for made in reversed(created):
+            made.rmdir()
+        reason = getattr(exc, "strerror", None) or str(exc)
+        raise ConfigError(
+            f"invalid value for {key!r}: {str(path)!r} cannot be written ({reason}) "
+            "(allowed: a new or empty directory in a writable location)"
+        ) from None
+    return path
+
+
+def resume_config(resume_dir: str, overrides: list[str]) -> tuple[Config, Path]:
+    """The stored config of the run (or sweep) in `resume_dir` with `overrides` applied.
+
+    Only `RESUMABLE_KEYS` may change; any other override is refused naming the key.
+    The directory's recorded ``run_dir`` is not compared: a run resumes from wherever
+    it now lives (moved, copied, or reached by another relative path). A ``run_dir``
+    given with the resume must name the same directory.
+    """
+    from coherent_jax.config import parse_overrides
+
+    path = Path(resume_dir)
+    if not resume_dir or not path.is_dir():
+        raise ConfigError(
+            f"invalid value for 'resume': {resume_dir!r} (allowed: an existing run directory with {CONFIG})"
+        )
+    stored = load_config(path)
+    given_dir = [o.split("=", 1)[1].strip() for o in overrides if o.split("=", 1)[0].strip() == "run_dir"]
+    cfg = parse_overrides([o for o in overrides if o.split("=", 1)[0].strip() != "run_dir"], base=stored)
+    changed = config_difference(cfg, stored)
+    if changed is not None:
+        raise ConfigError(
+            f"invalid value for {changed!r} with resume: {getattr(cfg, changed)!r} "
+            f"(allowed: the run's own value {getattr(stored, changed)!r})"
+        )
+    if given_dir and given_dir[-1] and Path(given_dir[-1]).resolve() != path.resolve():
+        raise ConfigError(
+            f"invalid value for 'run_dir' with resume: {given_dir[-1]!r} (allowed: {resume_dir!r})"
+        )
+    return dataclasses.replace(cfg, run_dir=str(path), resume=str(path)), path
+
+
+def resume_point(run_dir: Path, cfg: Config, metrics: Path | None = None) -> Checkpoint | None:
+    """The checkpoint a resume starts from, or None to start the run over from iteration 0.
+
+    A run stopped before its first checkpoint (killed during the compile, say) has
+    none; it starts over if it logged fewer rows than one checkpoint interval.
+    Otherwise a missing checkpoint is an error: it was lost, and starting over would
+    overwrite logged work. A budget below the checkpoint's iteration is refused.
+    `metrics` is the ``metrics.jsonl`` that tells how far it got (default: the run's own).
+    """
+    path = run_dir / CHECKPOINT
+    if not path.exists():
+        logged = len(read_metrics(metrics or run_dir / METRICS))
+        if logged == 0 or (cfg.checkpoint_every > 0 and logged < cfg.checkpoint_every):
+            return None
+        raise CheckpointError(
+            f"no checkpoint at {str(path)!r} although {logged} iterations were logged "
+            f"(allowed: a run directory with {CHECKPOINT})"
+        )
+    ckpt = decode_checkpoint(path, cfg)
+    if ckpt.iteration > cfg.num_iterations:
+        raise ConfigError(
+            f"invalid value for 'total_steps' with resume: {cfg.total_steps} "
+            f"(allowed: at least the {ckpt.env_steps} env steps already done)"
+        )
+    return ckpt
+
+
+def record_versions(run_dir: Path, resumed_at: int | None) -> None:
+    """Writes ``versions.json``; on resume, a ``versions-resumed-N.json`` beside it if they changed."""
+    versions = package_versions()
+    if resumed_at is None:
+        atomic_write(run_dir / VERSIONS, json.dumps(versions, indent=2).encode())
+        return
+    stored = json.loads((run_dir / VERSIONS).read_text()) if (run_dir / VERSIONS).exists() else {}
+    if {k: v for k, v in versions.items() if k != "platform"} != {
+        k: v for k, v in stored.items() if k != "platform"
+    }:
+        name = f"versions-resumed-{resumed_at}.json"
+        atomic_write(run_dir / name, json.dumps(versions, indent=2).encode())
+        print(f"{PREFIX} warning: package versions differ from the run's; see {name}", flush=True)
+
+
+def write_config(run_dir: Path, cfg: Config) -> None:
+    """The run's resolved config as ``config.yaml`` (without ``resume``: it says how a session began)."""
+    from omegaconf import OmegaConf
+
+    stored = dataclasses.replace(cfg, resume="")
+    atomic_write(run_dir / CONFIG, OmegaConf.to_yaml(to_dict(stored)).encode())
+
+
+def split_resume(argv: list[str]) -> tuple[str | None, list[str]]:
+    """The ``resume=`` value (the last one; None if absent or empty) and the other arguments."""
+    resume_args = [a for a in argv if a.split("=", 1)[0].strip() == "resume"]
+    rest = [a for a in argv if a not in resume_args]
+    value = resume_args[-1].split("=", 1)[1].strip() if resume_args and "=" in resume_args[-1] else ""
+    return value or None, rest

@@ -1,27 +1,33 @@
 """Sweeps in one program: ``python -m coherent_jax.sweep explore=coherent seeds=8 beta=[0,0.01,0.1,1]``.
 
-Every ``key=value`` of `python -m coherent_jax.train` is accepted; a key of
-`config.SWEEPABLE` (or ``seed``) given a list, ``beta=[0,0.01,0.1,1]``, becomes an
-axis of the grid, and ``seeds=N`` runs each point with seeds ``seed, seed+1, ...,
-seed+N-1``. The grid is the product of the axes (seeds innermost). Only the
-hyperparameters that live in the train state as arrays (``state.hparams``) can
-vary, so the whole grid is one program:
+Every ``key=value`` of `python -m coherent_jax.train` is accepted; a sweepable key
+(declared on its config field, `config.Sweepable`; or ``seed``) given a list,
+``beta=[0,0.01,0.1,1]``, becomes an axis of the grid, and ``seeds=N`` runs each
+point with seeds ``seed, seed+1, ..., seed+N-1``. The grid is the product of the
+axes (seeds innermost). Only the hyperparameters that live in the train state as
+arrays (``state.hparams``) can vary, so the whole grid is one program:
 
     states = vmap(trainer.init)(init_keys, hparams)       # one row per grid point
     states, metrics = vmap(trainer.iteration)(states)     # compiled once, looped in Python
 
-Each point derives its keys exactly as a single run does (`train.run_keys`), so
-point i equals ``python -m coherent_jax.train`` with that point's settings (same
-metrics up to the order of float sums that vmap may change). With several JAX
-devices the points are split over them (`parallel.point_shardings`).
+The loop over iterations is `coherent_jax.loop`, the same as a single run's: the
+same evaluations, metrics rows, TensorBoard files, checkpoints (one for the whole
+grid), ``resume=SWEEP_DIR`` (also ``total_steps=N`` to extend), SIGINT/SIGTERM
+handling and divergence guard (a diverged point is named and marked, the others
+continue; exit status 3 at the end). Each point derives its keys exactly as a
+single run does (`loop.run_keys`), so point i equals ``python -m
+coherent_jax.train`` with that point's settings. With several JAX devices the
+points are split over them (`parallel.point_shardings`).
 
-Outputs, in ``run_dir`` (default ``runs/sweep-<env>-<algo>-<explore>-<time>``): one
-directory per point named by its settings, holding what a single run writes
-(``config.yaml``, ``metrics.jsonl``, ``params.msgpack``, ``summary.json``), and the
-aggregate over seeds of the final evaluation return per non-seed point,
-``sweep.csv`` and ``sweep.json``, also printed. A bad key or value (an unknown
-key, a list for a shape setting, an empty list, a value out of range) is one
-line on stderr and exit status 2 before anything is written.
+Outputs, in ``run_dir`` (default ``runs/sweep-<env>-<algo>-<explore>-<time>``): the
+shared ``config.yaml`` and the grid (``grid.json``), ``versions.json``, the
+checkpoint, one directory per point named by its settings holding what a single
+run writes (``config.yaml``, ``metrics.jsonl``, ``tb/``, ``params.msgpack``,
+``summary.json``), and the aggregate over seeds of the final evaluation return per
+non-seed point, ``sweep.csv`` and ``sweep.json``, also printed. A bad key or value
+(an unknown key, a list for a shape setting, an empty list, a value out of range,
+an axis the algorithm does not read) is one line on stderr and exit status 2
+before anything is written.
 """
 
 from __future__ import annotations
@@ -31,6 +37,7 @@ import dataclasses
 import io
 import itertools
 import json
+import signal
 import statistics
 import sys
 import time
@@ -38,12 +45,43 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from coherent_jax.config import SWEEPABLE, Config, ConfigError, help_text, parse_overrides, to_dict
-from coherent_jax.runs import atomic_write
-from coherent_jax.train import _to_float, check_devices, prepare_run_dir, run_keys
+from coherent_jax import cli
+from coherent_jax.config import (
+    SWEEPABLE,
+    Config,
+    ConfigError,
+    help_text,
+    parse_overrides,
+    sweepable,
+    validate,
+)
+from coherent_jax.loop import PREFIX, Job, StopRequest, quiet_imports, run_loop, to_float, write_params
+from coherent_jax.runs import (
+    METRICS,
+    Checkpoint,
+    CheckpointError,
+    atomic_write,
+    prepare_output_dir,
+    record_versions,
+    resume_config,
+    resume_point,
+    split_resume,
+    write_config,
+)
 
 # Keys that may take a list of values: the state's array hyperparameters, and seed.
 AXIS_KEYS = (*SWEEPABLE, "seed")
+GRID = "grid.json"
+# The sweep's own keys (everything else is a training-config key or an axis).
+SWEEP_KEYS = {
+    "seeds": cli.Key(
+        default=None,
+        parse=cli.int_at_least(1),
+        allowed="an integer >= 1",
+        help="runs every point with seeds seed, seed+1, ..., seed+N-1 (default: seed alone)",
+    ),
+}
+EXIT_DIVERGED = 3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,27 +127,20 @@ def _list_items(key: str, text: str) -> list[str]:
 
 
 def parse_sweep(argv: Sequence[str]) -> SweepPlan:
-    """Splits ``key=value`` strings into the grid; raises `ConfigError` naming the bad key or value."""
+    """Splits ``key=value`` strings into the grid; raises `ConfigError` naming the bad key or value.
+
+    The axes (a sweepable key or ``seed`` given a list) are taken out first; the rest,
+    the sweep's own keys (`SWEEP_KEYS`) and single training-config values, go through
+    the command-line parser shared by every entry point (`coherent_jax.cli`).
+    """
     fields = {f.name: f for f in dataclasses.fields(Config)}
     scalars: list[str] = []
     axes: dict[str, list[str]] = {}
-    num_seeds = None
     for item in argv:
-        if "=" not in item or item.startswith("="):
-            raise ConfigError(f"malformed override {item!r}: expected key=value")
-        key, text = (s.strip() for s in item.split("=", 1))
-        if key == "seeds":
-            try:
-                num_seeds = int(text)
-            except ValueError:
-                num_seeds = 0
-            if num_seeds < 1:
-                raise ConfigError(f"invalid value for 'seeds': {text!r} (allowed: an integer >= 1)")
-        elif key in fields and _is_list(text):
-            list_field = "list" in str(fields[key].type)
-            if list_field and not text.startswith("[["):
-                scalars.append(item)  # e.g. policy_hidden=[64,64]: one value of a list setting
-                continue
+        key, text = cli.split_item(item)
+        list_field = key in fields and "list" in str(fields[key].type)
+        # policy_hidden=[64,64] is one value of a list setting; [[8],[16]] would be an axis of them.
+        if key in fields and _is_list(text) and (not list_field or text.startswith("[[")):
             if key not in AXIS_KEYS:
                 raise ConfigError(
                     f"invalid value for {key!r}: {text!r} (allowed: one value; it sets shapes or the "
@@ -119,31 +150,40 @@ def parse_sweep(argv: Sequence[str]) -> SweepPlan:
             axes[key] = _list_items(key, text)
         else:
             scalars.append(item)
-    base = parse_overrides(scalars)  # unknown keys and bad single values end here
+    parsed = cli.parse_command(scalars, SWEEP_KEYS, command="sweep")
+    base, num_seeds, scalars = parsed.config, parsed.settings["seeds"], parsed.config_items
     seed_items = axes.pop("seed", None)
     if seed_items is not None and num_seeds is not None:
         raise ConfigError(
             f"invalid key 'seeds': {num_seeds} with seed={seed_items} "
             "(allowed: either seeds=N or a list of seeds)"
         )
+    for key in axes:
+        if not sweepable(key).read_by(base.algo, base.explore):
+            raise ConfigError(
+                f"invalid key {key!r}: algo={base.algo} explore={base.explore} does not use it "
+                f"(allowed: keys that change its hyperparameters)"
+            )
+    # Each value parsed as a single override would be (typed, and checked: e.g. beta=2).
+    typed = {
+        k: [getattr(parse_overrides([*scalars, f"{k}={v}"]), k) for v in items] for k, items in axes.items()
+    }
     if seed_items is None:
-        seed_items = [str(base.seed + i) for i in range(num_seeds or 1)]
+        seeds = [base.seed + i for i in range(num_seeds or 1)]
+    else:
+        seeds = [parse_overrides([*scalars, f"seed={v}"]).seed for v in seed_items]
+    return make_plan(base, typed, seeds)
 
+
+def make_plan(base: Config, axes: dict[str, list[Any]], seeds: list[int]) -> SweepPlan:
+    """The grid of `axes` x `seeds` over `base` (seeds innermost), each point's config validated."""
     points: list[Point] = []
-    typed_axes: dict[str, list[Any]] = {k: [] for k in axes}
-    seeds: list[int] = []
-    for combo in itertools.product(*axes.values(), seed_items):
-        *values, seed_text = combo
-        overrides = [f"{k}={v}" for k, v in zip(axes, values, strict=True)] + [f"seed={seed_text}"]
-        cfg = parse_overrides([*scalars, *overrides])  # validates each value, e.g. beta=2
-        typed = {k: getattr(cfg, k) for k in axes}
-        for k, v in typed.items():
-            if v not in typed_axes[k]:
-                typed_axes[k].append(v)
-        if cfg.seed not in seeds:
-            seeds.append(cfg.seed)
-        points.append(Point(index=len(points), values=typed, seed=cfg.seed, cfg=cfg))
-    return SweepPlan(base=base, axes=typed_axes, seeds=seeds, points=points)
+    for combo in itertools.product(*axes.values(), seeds):
+        *values, seed = combo
+        settings = dict(zip(axes, values, strict=True))
+        cfg = validate(dataclasses.replace(base, **settings, seed=seed))
+        points.append(Point(index=len(points), values=settings, seed=seed, cfg=cfg))
+    return SweepPlan(base=base, axes={k: list(v) for k, v in axes.items()}, seeds=list(seeds), points=points)
 
 
 def default_sweep_dir(cfg: Config) -> Path:
@@ -151,185 +191,111 @@ def default_sweep_dir(cfg: Config) -> Path:
     return Path("runs") / f"sweep-{cfg.env}-{cfg.algo}-{cfg.explore}-{stamp}"
 
 
-def build_hparams(plan: SweepPlan, env, eval_env) -> list[Any]:
-    """Each point's ``init_hparams()``, from a trainer built for that point's config.
+def point_hparams(base_hparams: Any, point: Point) -> Any:
+    """`base_hparams` (the shared trainer's ``init_hparams()``) with the point's axis values.
 
-    Raises `ConfigError` if an axis does not reach the state's hyperparameters for
-    this algorithm (e.g. ``clip_eps`` for SAC): such a sweep would run identical points.
-    """
-    import jax
-    import numpy as np
-
-    from coherent_jax.agents import make_trainer
-
-    hparams = [make_trainer(p.cfg, env, eval_env).init_hparams() for p in plan.points]
-    structure = jax.tree.structure(hparams[0])
-    leaves = [[np.asarray(x) for x in jax.tree.leaves(h)] for h in hparams]
-    for h in hparams[1:]:
-        if jax.tree.structure(h) != structure:  # would mean a swept key changed the program
-            raise ConfigError("invalid sweep: the grid points' hyperparameters differ in structure")
-    for key, values in plan.axes.items():
-        if len(values) < 2:
-            continue
-        first = plan.points[0]
-        other = next(
-            p
-            for p in plan.points
-            if p.seed == first.seed
-            and p.values[key] == values[1]
-            and all(p.values[k] == first.values[k] for k in plan.axes if k != key)
-        )
-        same = all(
-            np.array_equal(a, b) for a, b in zip(leaves[first.index], leaves[other.index], strict=True)
-        )
-        if same:
-            raise ConfigError(
-                f"invalid key {key!r}: algo={plan.base.algo} explore={plan.base.explore} does not use it "
-                f"(allowed: keys that change its hyperparameters)"
-            )
-    return hparams
-
-
-def _gather(tree: Any) -> Any:
-    """Host copy of a (possibly multi-host sharded) pytree."""
-    import jax
-
-    if jax.process_count() > 1:
-        from jax.experimental import multihost_utils
-
-        tree = multihost_utils.process_allgather(tree, tiled=True)
-    return jax.device_get(tree)
-
-
-def run_sweep(plan: SweepPlan, out_dir: Path | None, env=None, eval_env=None) -> dict[str, Any]:
-    """Runs every point of ``plan`` as one vmapped program; writes and returns the aggregate.
-
-    ``env`` and ``eval_env`` (`VecEnv`s of the plan's shapes) are built if not given.
+    Each axis key's value goes to the leaf its `config.Sweepable` names (the key's own
+    name unless declared otherwise), as the float32 array a trainer built for the
+    point would hold; no trainer is built per point.
     """
     import jax
     import jax.numpy as jnp
-    import numpy as np
-    from flax import serialization
-    from tqdm.auto import tqdm
 
-    from coherent_jax import parallel
+    wanted = {sweepable(k).hparam or k: v for k, v in point.values.items()}
+    found = set()
+
+    def put(path, leaf):
+        last = path[-1]
+        name = getattr(last, "name", getattr(last, "key", None))
+        if name in wanted:
+            found.add(name)
+            return jnp.asarray(wanted[name], leaf.dtype)
+        return leaf
+
+    hparams = jax.tree_util.tree_map_with_path(put, base_hparams)
+    missing = set(wanted) - found
+    if missing:  # the declaration and the trainer's hyperparameters disagree
+        raise RuntimeError(f"sweepable keys {sorted(missing)} are not in the train state's hyperparameters")
+    return hparams
+
+
+def stacked_hparams(plan: SweepPlan, trainer: Any) -> Any:
+    """Every point's hyperparameters stacked on a leading axis (the vmapped init's input)."""
+    import jax
+    import jax.numpy as jnp
+
+    base = trainer.init_hparams()
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *[point_hparams(base, p) for p in plan.points])
+
+
+def _point_config(p: Point, d: Path) -> Config:
+    """The point's own settings, as the single run that it equals would record them."""
+    return dataclasses.replace(p.cfg, run_dir=str(d))
+
+
+def run_sweep(
+    plan: SweepPlan,
+    out_dir: Path | None,
+    env=None,
+    eval_env=None,
+    resume: Checkpoint | None = None,
+    stop: StopRequest | None = None,
+) -> dict[str, Any]:
+    """Runs every point of ``plan`` as one vmapped program; writes and returns the aggregate.
+
+    ``env`` and ``eval_env`` (`VecEnv`s of the plan's shapes) are built if not given.
+    With `resume` (a verified checkpoint of ``out_dir``) the grid continues after it.
+    """
+    import contextlib
+
+    import jax
+
     from coherent_jax.agents import make_trainer
     from coherent_jax.envs.vec_env import VecEnv
 
     cfg = plan.base
-    t_start = time.perf_counter()
     env = env or VecEnv(cfg.env, cfg.num_envs, cfg.episode_length, cfg.physics, cfg.physics_threads)
     eval_env = eval_env or VecEnv(
         cfg.env, cfg.eval_episodes, cfg.episode_length, cfg.physics, cfg.physics_threads
     )
-    hparams = build_hparams(plan, env, eval_env)
     trainer = make_trainer(cfg, env, eval_env)  # shapes and program: shared by every point
     num_points = len(plan.points)
-    stacked_hp = jax.tree.map(lambda *xs: jnp.stack(xs), *hparams)
-    keys = [run_keys(p.seed) for p in plan.points]
-    key = jnp.stack([k for k, _ in keys])
-    init_keys = jnp.stack([k for _, k in keys])
-
-    # The largest device count that divides the points (each device runs whole points).
-    available = parallel.resolve_num_devices(cfg.num_devices)
-    num_devices = max(d for d in range(1, available + 1) if num_points % d == 0)
-    init = jax.vmap(trainer.init)
-    step = jax.vmap(trainer.iteration)
-    t0 = time.perf_counter()
-    if num_devices == 1:
-        states = jax.jit(init)(init_keys, stacked_hp)
-        iteration = jax.jit(step, donate_argnums=0).lower(states).compile()
-    else:
-        mesh = parallel.make_mesh(num_devices, parallel.POINT_AXIS)
-        shardings = parallel.point_shardings(jax.eval_shape(init, init_keys, stacked_hp), mesh)
-        states = jax.jit(init, out_shardings=shardings)(init_keys, stacked_hp)
-        metric_sharding = parallel.NamedSharding(mesh, parallel.PartitionSpec(parallel.POINT_AXIS))
-        iteration = (
-            jax.jit(
-                step, in_shardings=(shardings,), out_shardings=(shardings, metric_sharding), donate_argnums=0
-            )
-            .lower(states)
-            .compile()
-        )
-    evaluate = jax.jit(jax.vmap(trainer.evaluate)).lower(states, key).compile()
-    compile_s = time.perf_counter() - t0
-    devices_note = f" over {num_devices} devices" if num_devices > 1 else ""
-    print(
-        f"[coherent_jax] sweep of {num_points} points ({cfg.env} {cfg.algo} explore={cfg.explore}): "
-        f"compiled in {compile_s:.1f} s; {cfg.num_iterations} iterations of {cfg.steps_per_iteration} "
-        f"env steps per point{devices_note}",
-        flush=True,
-    )
-
     point_dirs: list[Path] = []
-    files = []
     if out_dir is not None:
-        from omegaconf import OmegaConf
-
         for p in plan.points:
             d = out_dir / p.name
-            d.mkdir()
-            # The point's own settings, as the single run that it equals would record them.
-            point_cfg = dataclasses.replace(p.cfg, run_dir=str(d))
-            atomic_write(d / "config.yaml", OmegaConf.to_yaml(to_dict(point_cfg)).encode())
+            d.mkdir(exist_ok=True)  # a resumed sweep, or one started over in its own directory
+            write_config(d, _point_config(p, d))
             point_dirs.append(d)
-            files.append(open(d / "metrics.jsonl", "w"))
-    bar = tqdm(
-        total=cfg.num_iterations,
-        unit="it",
-        disable=not cfg.progress,
-        dynamic_ncols=True,
-        mininterval=1.0,
+    job = Job(
+        cfg=cfg,
+        trainer=trainer,
+        seeds=[p.seed for p in plan.points],
+        names=[p.name for p in plan.points],
+        run_dir=out_dir,
+        point_dirs=point_dirs,
+        hparams=stacked_hparams(plan, trainer),
+        label=f"sweep of {num_points} points ({cfg.env} {cfg.algo} explore={cfg.explore})",
     )
-    train_s = eval_s = 0.0
-    last_eval: dict[str, np.ndarray] = {}
-    last_return = np.full((num_points,), np.nan)
-    try:
-        for i in range(cfg.num_iterations):
-            t0 = time.perf_counter()
-            states, metrics = iteration(states)
-            metrics = {k: np.asarray(v, np.float64) for k, v in _gather(metrics).items()}
-            train_s += time.perf_counter() - t0
-            if i == cfg.num_iterations - 1 or (cfg.eval_every > 0 and (i + 1) % cfg.eval_every == 0):
-                t0 = time.perf_counter()
-                split = jax.vmap(jax.random.split)(key)  # each point: key, eval_key = split(key)
-                key, eval_key = split[:, 0], split[:, 1]
-                last_eval = {
-                    k: np.asarray(v, np.float64) for k, v in _gather(evaluate(states, eval_key)).items()
-                }
-                eval_s += time.perf_counter() - t0
-                metrics.update(last_eval)
-            ret = metrics["train/episode_return"]
-            last_return = np.where(np.isnan(ret), last_return, ret)
-            env_steps = (i + 1) * cfg.steps_per_iteration
-            for j, f in enumerate(files):
-                row = {"iteration": i + 1, "env_steps": env_steps, "time_s": time.perf_counter() - t_start}
-                row.update({k: _to_float(v[j]) for k, v in metrics.items()})
-                f.write(json.dumps(row) + "\n")
-                f.flush()
-            bar.update(1)
-            bar.set_postfix(
-                sps=f"{num_points * env_steps / max(train_s, 1e-9):.0f}",
-                ret=f"{np.nanmean(last_return):.1f}" if np.isfinite(last_return).any() else "nan",
-                refresh=False,
-            )
-    finally:
-        bar.close()
-        for f in files:
-            f.close()
+    with contextlib.ExitStack() as stack:
+        stop = stop or stack.enter_context(StopRequest())
+        out = run_loop(job, stop, resume)
 
-    total_steps = cfg.num_iterations * cfg.steps_per_iteration
+    total_steps = out.done * cfg.steps_per_iteration
     common = {
         "env_steps": total_steps,
-        "compile_s": round(compile_s, 2),
-        "train_s": round(train_s, 2),
-        "eval_s": round(eval_s, 2),
+        "compile_s": round(out.compile_s, 2),
+        "train_s": round(out.loop.train_s, 2),
+        "eval_s": round(out.loop.eval_s, 2),
         "jax_version": jax.__version__,
         "backend": jax.default_backend(),
-        "num_devices": num_devices,
+        "num_devices": out.num_devices,
     }
+    nan = [float("nan")] * num_points
+    evals, stds = (out.last_eval.get(f"eval/episode_return{s}", nan) for s in ("", "_std"))
     summaries = []
     for j, p in enumerate(plan.points):
+        ok = j not in out.diverged
         summaries.append(
             {
                 "point": p.index,
@@ -339,9 +305,12 @@ def run_sweep(plan: SweepPlan, out_dir: Path | None, env=None, eval_env=None) ->
                 "env": cfg.env,
                 "algo": cfg.algo,
                 "explore": cfg.explore,
-                "final_eval_return": _to_float(last_eval["eval/episode_return"][j]),
-                "final_eval_return_std": _to_float(last_eval["eval/episode_return_std"][j]),
-                "final_train_return": _to_float(last_return[j]),
+                "final_eval_return": to_float(out.last_eval["eval/episode_return"][j]) if ok else None,
+                "final_eval_return_std": to_float(out.last_eval["eval/episode_return_std"][j])
+                if ok
+                else None,
+                "final_train_return": to_float(out.last_return[j]) if ok else None,
+                "diverged": out.diverged.get(j),
                 **common,
             }
         )
@@ -351,23 +320,33 @@ def run_sweep(plan: SweepPlan, out_dir: Path | None, env=None, eval_env=None) ->
         "seeds": plan.seeds,
         "num_points": num_points,
         **common,
-        "wall_s": round(time.perf_counter() - t_start, 2),
-        "sweep_env_steps_per_s": round(num_points * total_steps / max(train_s, 1e-9), 1),
+        "wall_s": round(out.wall_s, 2),
+        "sweep_env_steps_per_s": round(num_points * total_steps / max(out.loop.train_s, 1e-9), 1),
+        "resumed_from": out.start if resume is not None else None,
+        "stopped_by": out.stopped_by,
+        "diverged": {plan.points[j].name: reason for j, reason in sorted(out.diverged.items())},
         "rows": rows,
         "points": summaries,
     }
+    if out.stopped_by is not None:
+        print(
+            f"{PREFIX} stopped by {out.stopped_by} after iteration {out.done}; "
+            + (f"checkpoint saved; continue with resume={out_dir}" if out_dir else "nothing saved"),
+            flush=True,
+        )
+        return result
     if out_dir is not None:
-        params = _gather(trainer.export_params(states))
-        for j, d in enumerate(point_dirs):
-            one = jax.tree.map(lambda x, j=j: x[j], params)
-            atomic_write(d / "params.msgpack", serialization.to_bytes(one))
-            atomic_write(d / "summary.json", json.dumps(summaries[j], indent=2).encode())
+        write_params(trainer, out.state, point_dirs, points=True)
+        for d, summary in zip(point_dirs, summaries, strict=True):
+            atomic_write(d / "summary.json", json.dumps(summary, indent=2).encode())
         atomic_write(out_dir / "sweep.csv", to_csv(plan, rows).encode())
         atomic_write(out_dir / "sweep.json", json.dumps(result, indent=2).encode())
     print(format_table(plan, rows), flush=True)
+    for name, reason in result["diverged"].items():
+        print(f"{PREFIX} point {name} {reason}", flush=True)
     print(
-        f"[coherent_jax] sweep done: {result['sweep_env_steps_per_s']:.0f} env steps/s over all points, "
-        f"compile {compile_s:.1f} s, wall {result['wall_s']:.0f} s"
+        f"{PREFIX} sweep done: {result['sweep_env_steps_per_s']:.0f} env steps/s over all points, "
+        f"compile {out.compile_s:.1f} s, wall {result['wall_s']:.0f} s"
         + (f"; results in {out_dir}" if out_dir else ""),
         flush=True,
     )
@@ -420,8 +399,11 @@ def sweep_help() -> str:
         [
             "usage: python -m coherent_jax.sweep [key=value ...] [seeds=N] [KEY=[v1,v2,...] ...]",
             f"keys that take a list of values (the grid's axes): {', '.join(AXIS_KEYS)}",
-            "seeds=N: seeds seed, seed+1, ..., seed+N-1 for every point (default 1)",
+            "resume=SWEEP_DIR continues a stopped sweep (total_steps=N extends a finished one)",
             "run_dir: the sweep's directory (one sub-directory per point, plus sweep.csv and sweep.json)",
+            "",
+            "sweep options:",
+            *cli.help_lines(SWEEP_KEYS),
             "",
             help_text().split("\n", 1)[1],
         ]
@@ -433,27 +415,77 @@ def main(argv: Sequence[str] | None = None) -> int:
     if any(a in ("-h", "--help", "help") for a in argv):
         print(sweep_help())
         return 0
-    try:
-        plan = parse_sweep(argv)
-        writer = check_devices(plan.base, split_envs=False)
-        from coherent_jax.envs.vec_env import VecEnv
+    with StopRequest() as stop:
+        try:
+            return _main(argv, stop)
+        except KeyboardInterrupt:  # a SIGINT that arrived before the handler took over
+            print(f"{PREFIX} interrupted", file=sys.stderr, flush=True)
+            return 128 + signal.SIGINT
 
-        cfg = plan.base
-        env = VecEnv(cfg.env, cfg.num_envs, cfg.episode_length, cfg.physics, cfg.physics_threads)
-        eval_env = VecEnv(cfg.env, cfg.eval_episodes, cfg.episode_length, cfg.physics, cfg.physics_threads)
-        build_hparams(plan, env, eval_env)  # refuses an axis without effect, before anything is written
-        out_dir = None
-        if writer:
-            out_dir = prepare_run_dir(
-                dataclasses.replace(cfg, run_dir=cfg.run_dir or str(default_sweep_dir(cfg)))
-            )
-    except ConfigError as exc:
+
+def _main(argv: list[str], stop: StopRequest) -> int:
+    from coherent_jax.parallel import check_devices
+
+    resume_dir, rest = split_resume(argv)
+    checkpoint = None
+    try:
+        if resume_dir is not None:
+            cfg, out_dir = resume_config(resume_dir, rest)
+            plan = _stored_plan(cfg, out_dir)
+            check_devices(cfg, split_envs=False)
+            checkpoint = resume_point(out_dir, cfg, out_dir / plan.points[0].name / METRICS)
+            if checkpoint is not None and checkpoint.iteration >= cfg.num_iterations:
+                if (out_dir / "sweep.json").exists():
+                    print(f"{PREFIX} {out_dir} is already complete ({checkpoint.iteration} iterations)")
+                    return 0
+        else:
+            plan = parse_sweep(argv)
+            cfg = plan.base
+            writer = check_devices(cfg, split_envs=False)
+            out_dir = None
+            if writer:
+                out_dir = prepare_output_dir(Path(cfg.run_dir) if cfg.run_dir else default_sweep_dir(cfg))
+    except (ConfigError, CheckpointError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     if out_dir is not None:
-        print(f"[coherent_jax] sweep dir {out_dir}: {len(plan.points)} points", flush=True)
-    run_sweep(plan, out_dir, env, eval_env)
-    return 0
+        cfg = dataclasses.replace(cfg, run_dir=str(out_dir))
+        write_config(out_dir, cfg)
+        if resume_dir is None:
+            atomic_write(
+                out_dir / GRID, json.dumps({"axes": plan.axes, "seeds": plan.seeds}, indent=2).encode()
+            )
+        record_versions(out_dir, None if resume_dir is None else (checkpoint.iteration if checkpoint else 0))
+        print(f"{PREFIX} sweep dir {out_dir}: {len(plan.points)} points", flush=True)
+    if stop.signum is not None:
+        print(f"{PREFIX} stopped by {stop.name} before training started", flush=True)
+        return 128 + stop.signum
+    quiet_imports()
+    try:
+        result = run_sweep(plan, out_dir, resume=checkpoint, stop=stop)
+    except CheckpointError as exc:  # a state that does not fit this grid, found on restoring it
+        print(f"error: {exc}", file=sys.stderr, flush=True)
+        return 2
+    if result["stopped_by"] is not None:
+        return 128 + int(signal.Signals[result["stopped_by"]])
+    return EXIT_DIVERGED if result["diverged"] else 0
+
+
+def _stored_plan(cfg: Config, out_dir: Path) -> SweepPlan:
+    """The grid a sweep directory records (``grid.json``) over its stored config."""
+    path = out_dir / GRID
+    try:
+        grid = json.loads(path.read_text())
+        axes, seeds = dict(grid["axes"]), [int(s) for s in grid["seeds"]]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ConfigError(
+            f"invalid value for 'resume': {str(out_dir)!r} has no readable {GRID} ({type(exc).__name__}) "
+            "(allowed: a sweep directory)"
+        ) from None
+    unknown = [k for k in axes if k not in SWEEPABLE]
+    if unknown:
+        raise ConfigError(f"invalid {path}: axis {unknown[0]!r} (allowed: {', '.join(SWEEPABLE)})")
+    return make_plan(cfg, axes, seeds)
 
 
 if __name__ == "__main__":

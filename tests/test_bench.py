@@ -9,14 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from coherent_jax.bench import (
-    _sample_segments,
-    dense_log_marginals,
-    format_table,
-    format_throughput_table,
-    run_coherent_bench,
-    run_throughput_bench,
-)
+from coherent_jax.bench import coherent, throughput
+from coherent_jax.bench.dense import dense_log_marginals, sample_segments
 
 TINY = [
     "env=pointmass",
@@ -38,7 +32,7 @@ def _positive(value) -> bool:
 def test_coherent_suite_writes_every_figure(tmp_path):
     """Every figure of the suite is a positive finite number, and block and dense filters agree."""
     out = tmp_path / "results" / "coherent.json"
-    result = run_coherent_bench([*TINY, f"out={out}"], log=lambda msg: None)
+    result = coherent.run([*TINY, f"out={out}"], log=lambda msg: None)
     assert json.loads(out.read_text()) == json.loads(json.dumps(result))
     assert sorted(p.name for p in out.parent.iterdir()) == ["coherent.json"]  # no temp file left
     data = json.loads(out.read_text())
@@ -75,7 +69,7 @@ def test_coherent_suite_writes_every_figure(tmp_path):
     assert case["max_abs_logp_diff"] < 1e-3
     assert case["max_rel_grad_diff"] < 1e-3
 
-    table = format_table(data)
+    table = coherent.format_table(data)
     assert "coherent/action" in table and "dense" in table
 
 
@@ -86,7 +80,7 @@ def test_dense_reference_checkpointed_equals_plain_and_block():
 
     from coherent_jax.exploration.coherent import log_marginals
 
-    x, a, first, mu, w_std, action_std, beta = _sample_segments(
+    x, a, first, mu, w_std, action_std, beta = sample_segments(
         jax.random.PRNGKey(1), 1, 12, 5, 3, 0.3, 0.1, 0.2
     )
     x, a, first = x[0], a[0], first[0]
@@ -125,14 +119,27 @@ def run_cli(args, cwd):
         (["coherent", "filter_q=[8,x]"], "'filter_q'"),
         (["coherent", "env=cheetah"], "'env'"),
         (["coherent", "explore=action"], "'explore'"),
+        (["coherent", "policy_hidden=[64,"], "'policy_hidden'"),
+        (["sac", "warmup_steps=5"], "'warmup_steps'"),
+        (["physics", "envs=[3]", "variants=[mjx_2dev]"], "'envs'"),
     ],
 )
-def test_cli_bad_input_exits_2_and_writes_nothing(tmp_path, args, named):
-    proc = run_cli([*args, f"out={tmp_path / 'r.json'}"], cwd=tmp_path)
+def test_bad_input_exits_2_and_writes_nothing(tmp_path, capsys, args, named):
+    from coherent_jax.bench.__main__ import main
+
+    assert main([*args, f"out={tmp_path / 'r.json'}"]) == 2
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error:") and named in lines[0], lines
+    assert "allowed" in lines[0] or "valid" in lines[0]
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_cli_entry_point_exits_2_and_writes_nothing(tmp_path):
+    """``python -m coherent_jax.bench`` itself (the cases above run its `main` in-process)."""
+    proc = run_cli(["coherent", "coherent.layers=every", f"out={tmp_path / 'r.json'}"], cwd=tmp_path)
     assert proc.returncode == 2, proc.stderr
     lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error:") and named in lines[0], proc.stderr
-    assert "allowed" in lines[0] or "valid" in lines[0]
+    assert len(lines) == 1 and lines[0].startswith("error:") and "'coherent.layers'" in lines[0], lines
     assert list(tmp_path.iterdir()) == []
 
 
@@ -145,7 +152,7 @@ def test_throughput_suite_writes_every_row(tmp_path):
     out = tmp_path / "results" / "throughput.json"
     args = ["env=pointmass", "num_envs=4", "unroll_length=8", "num_minibatches=2", "iterations=2"]
     only_ppo = "rows=[ppo,coherent_ppo]"
-    result = run_throughput_bench([*args, only_ppo, f"out={out}"], log=lambda msg: None)
+    result = throughput.run([*args, only_ppo, f"out={out}"], log=lambda msg: None)
     assert json.loads(out.read_text()) == json.loads(json.dumps(result))
     assert sorted(p.name for p in out.parent.iterdir()) == ["throughput.json"]
     data = json.loads(out.read_text())
@@ -174,7 +181,7 @@ def test_throughput_suite_writes_every_row(tmp_path):
     assert ratios["coherent_ppo_over_ppo"] == pytest.approx(
         rows["coherent_ppo"]["env_steps_per_s"] / rows["ppo"]["env_steps_per_s"]
     )
-    table = format_throughput_table(data)
+    table = throughput.format_table(data)
     assert "Brax PPO" in table and "skipped: not in rows=" in table and "PPO (ours) / raw env" in table
 
 
@@ -191,7 +198,7 @@ def test_throughput_suite_writes_every_row(tmp_path):
 )
 def test_throughput_bad_input_exits_2_and_writes_nothing(tmp_path, capsys, args, named):
     """The same checks in-process (the subprocess test above covers the entry point)."""
-    from coherent_jax.bench import main
+    from coherent_jax.bench.__main__ import main
 
     for argv in (["throughput", *args], args):  # the suite named, and the default
         assert main([*argv, f"out={tmp_path / 'r.json'}"]) == 2
@@ -199,3 +206,33 @@ def test_throughput_bad_input_exits_2_and_writes_nothing(tmp_path, capsys, args,
         assert len(lines) == 1 and lines[0].startswith("error:") and named in lines[0], lines
         assert "allowed" in lines[0] or "valid" in lines[0]
         assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("suite", ["throughput", "coherent", "sac", "physics"])
+def test_every_suite_checks_its_output_path_first(tmp_path, capsys, suite):
+    """A location that cannot be written is refused in one line before any work, not at the end."""
+    from coherent_jax.bench.__main__ import main
+
+    (tmp_path / "a_file").write_text("keep")
+    for bad in (tmp_path / "a_file" / "r.json", tmp_path, Path("/proc/r.json")):
+        assert main([suite, f"out={bad}"]) == 2
+        lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+        assert len(lines) == 1 and "'out'" in lines[0] and "allowed" in lines[0], lines
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
+
+
+def test_training_keys_pass_through_including_dotted_ones():
+    """Every training key reaches the config, the ``coherent.*`` group too; a bad one is refused."""
+    from coherent_jax.config import ConfigError
+
+    items = ["beta=0.1", "coherent.integration=mc", "coherent.layers=all"]
+    cfg = coherent.parse(items).config
+    assert (cfg.beta, cfg.coherent.integration, cfg.coherent.layers) == (0.1, "mc", "all")
+    assert throughput.parse(["coherent.integration=mc"]).config.coherent.integration == "mc"
+    with pytest.raises(ConfigError, match="'coherent.integration'"):
+        coherent.parse(["coherent.integration=exact"])
+    # The sac suite checks the config with Coherent-SAC too, before anything runs.
+    from coherent_jax.bench import sac
+
+    with pytest.raises(ConfigError, match="'coherent.integration'"):
+        sac.parse(["coherent.integration=analytic"])

@@ -1,38 +1,28 @@
 """The SAC benchmark: bad settings refused up front; a tiny real run writes consistent figures."""
 
 import json
-import os
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 
-from coherent_jax.bench_sac import format_sac_table, run_sac_bench
+from coherent_jax.bench import sac
 from coherent_jax.config import ConfigError
-
-
-def run_cli(args, cwd):
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[1]) + os.pathsep + env.get("PYTHONPATH", "")
-    return subprocess.run(
-        [sys.executable, "-m", "coherent_jax.bench", "sac", *args],
-        cwd=cwd,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
 
 
 @pytest.mark.parametrize(
     "args,key",
-    [(["explore=coherent"], "'explore'"), (["iterations=0"], "'iterations'"), (["bogus=1"], "'bogus'")],
+    [
+        (["explore=coherent"], "'explore'"),
+        (["iterations=0"], "'iterations'"),
+        (["bogus=1"], "'bogus'"),
+        (["coherent.integration=analytic"], "'coherent.integration'"),
+    ],
 )
-def test_bad_settings_exit_2_and_write_nothing(tmp_path, args, key):
-    proc = run_cli([*args, f"out={tmp_path / 'r.json'}"], cwd=tmp_path)
-    assert proc.returncode == 2
-    assert key in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+def test_bad_settings_exit_2_and_write_nothing(tmp_path, capsys, args, key):
+    from coherent_jax.bench.__main__ import main
+
+    assert main(["sac", *args, f"out={tmp_path / 'r.json'}"]) == 2
+    err = capsys.readouterr().err
+    assert key in err and len(err.strip().splitlines()) == 1
     assert list(tmp_path.iterdir()) == []
 
 
@@ -49,7 +39,7 @@ def test_tiny_run_reports_both_strategies(tmp_path):
         "iterations=2",
         f"out={out}",
     ]
-    result = run_sac_bench(overrides, log=lambda msg: None)
+    result = sac.run(overrides, log=lambda msg: None)
     saved = json.loads(out.read_text())
     tr = saved["training"]
     assert tr["env_steps_per_iteration"] == 32 and tr["updates_per_iteration"] == 8
@@ -58,6 +48,6 @@ def test_tiny_run_reports_both_strategies(tmp_path):
         assert len(e["iteration_s"]) == 2 and e["compile_s"] > 0
         assert e["env_steps_per_s"] == pytest.approx(32 / e["iteration_s_median"])
         assert e["gradient_updates_per_s"] == pytest.approx(8 / e["iteration_s_median"])
-    assert "Coherent-SAC / SAC" in format_sac_table(result)
+    assert "Coherent-SAC / SAC" in sac.format_table(result)
     with pytest.raises(ConfigError):
-        run_sac_bench(["algo=ppo"])
+        sac.run(["algo=ppo"])

@@ -24,7 +24,7 @@ BAD = [
     (["normalize_obs=maybe"], "'normalize_obs'"),
     (["num_minibatches=3"], "'num_minibatches'"),
     (["policy_hidden=[0,64]"], "'policy_hidden'"),
-    # issue 5: strategies, the coherent.* group and refused pairs
+    # strategies, the coherent.* group and refused pairs
     (["explore=coherent", "coherent.integration=exact"], "'coherent.integration'"),
     (["explore=coherent", "coherent.layers=first"], "'coherent.layers'"),
     (["explore=coherent", "coherent.layers=all"], "'coherent.integration'"),
@@ -36,6 +36,10 @@ BAD = [
     (["pink_exponent=-1"], "'pink_exponent'"),
     (["noisynet_sigma0=0"], "'noisynet_sigma0'"),
     (["lr"], "'lr'"),
+    # YAML syntax errors in a value
+    (["policy_hidden=[64,64"], "'policy_hidden'"),
+    (["seed={"], "'seed'"),
+    (["env="], "'env'"),
 ]
 
 
@@ -51,6 +55,10 @@ def test_bad_overrides_raise_naming_the_key(overrides, key):
 def test_error_names_allowed_values():
     with pytest.raises(ConfigError, match="halfcheetah"):
         parse_overrides(["env=cheetah"])
+    with pytest.raises(ConfigError, match="halfcheetah, hopper"):
+        parse_overrides(["env="])
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        parse_overrides(["policy_hidden=[64,64"])
     with pytest.raises(ConfigError, match=r"\[0, 1\]"):
         parse_overrides(["beta=1.5"])
 
@@ -77,7 +85,7 @@ def run_cli(args, cwd):
     )
 
 
-@pytest.mark.parametrize("overrides,key", BAD[:8] + BAD[-1:])
+@pytest.mark.parametrize("overrides,key", BAD[:8] + BAD[-4:])
 def test_cli_bad_input_exits_2_and_writes_nothing(tmp_path, overrides, key):
     proc = run_cli([*overrides, f"run_dir={tmp_path / 'run'}"], cwd=tmp_path)
     assert proc.returncode == 2, proc.stderr
@@ -117,3 +125,38 @@ def test_dotted_group_keys_and_sac_default():
     assert (cfg.coherent.integration, cfg.coherent.layers) == ("mc", "all")
     assert parse_overrides(["algo=sac", "explore=coherent"]).coherent.integration == "mc"
     assert parse_overrides([]).coherent.integration == "analytic"
+
+
+@pytest.mark.parametrize("where", ["under_a_file", "read_only"])
+def test_cli_refuses_an_unwritable_run_dir_before_any_work(tmp_path, where):
+    """A run directory that cannot be created or written: one line, exit 2, nothing left behind."""
+    if where == "under_a_file":
+        (tmp_path / "file.txt").write_text("x")
+        run = tmp_path / "file.txt" / "run"
+    else:
+        run = Path("/sys/coherent_jax_run_dir_check/run")  # sysfs refuses new directories
+    proc = run_cli(["env=pointmass", f"run_dir={run}"], cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1 and "'run_dir'" in lines[0] and "cannot be written" in lines[0], proc.stderr
+    assert "compiling" not in proc.stdout
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert left == (["file.txt"] if where == "under_a_file" else []), left
+    assert not run.exists()
+
+
+def test_help_prints_options_grouped_and_every_field_declares_its_group():
+    import dataclasses
+
+    from coherent_jax.config import GROUPS, SWEEPABLE, help_text
+
+    assert all(f.metadata.get("group") in GROUPS for f in dataclasses.fields(Config))
+    text = help_text()
+    headers = [text.index(f"\n{g}:\n") for g in GROUPS]
+    assert headers == sorted(headers)
+    # Each option sits under its own group's header.
+    for f in dataclasses.fields(Config):
+        pos = text.index(f"  {f.name}=")
+        group = max((h, g) for h, g in zip(headers, GROUPS, strict=True) if h < pos)[1]
+        assert group == f.metadata["group"], f.name
+    assert "sweepable" in text and all(k in text for k in SWEEPABLE)

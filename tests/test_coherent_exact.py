@@ -259,7 +259,7 @@ def test_block_size_divides():
 
 
 def _collect(trainer, env, params, env_state, carry, key, length):
-    """One segment as the trainer collects it: unroll, then the strategy's end_segment."""
+    """One segment as the trainer collects it: unroll, then the strategy's score_segment."""
     from coherent_jax.rollout import unroll
 
     strategy, hp = trainer.strategy, trainer.init_hparams().explore
@@ -268,7 +268,7 @@ def _collect(trainer, env, params, env_state, carry, key, length):
         return strategy.act(k, params, hp, c, obs, first)
 
     env_state, carry_end, data = unroll(env, act, env_state, carry, key, length)
-    log_prob, carry_end = strategy.end_segment(
+    log_prob, carry_end = strategy.score_segment(
         params, hp, carry, carry_end, data.obs, data.action, data.first, data.log_prob
     )
     return env_state, carry_end, data._replace(log_prob=log_prob)

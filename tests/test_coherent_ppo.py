@@ -51,7 +51,7 @@ def test_behaviour_log_prob_equals_segment_recompute(short_episode_env, explore,
     @jax.jit
     def collect_and_score(env_state, carry, key):
         env_state, carry_end, data = unroll(short_episode_env, act, env_state, carry, key, 10)
-        log_prob, carry_end = strategy.end_segment(
+        log_prob, carry_end = strategy.score_segment(
             params, hp, carry, carry_end, data.obs, data.action, data.first, data.log_prob
         )
         data = data._replace(log_prob=log_prob)

@@ -20,7 +20,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from coherent_jax import parallel, sweep, train
+from coherent_jax import loop, parallel, sweep, train
 from coherent_jax.agents import make_trainer
 from coherent_jax.config import parse_overrides
 
@@ -31,7 +31,7 @@ cfg = parse_overrides(TINY)
 out = {"device_count": jax.device_count()}
 for n in (1, 2):
     trainer = make_trainer(cfg)
-    _, init_key = train.run_keys(cfg.seed)
+    _, init_key = loop.run_keys(cfg.seed)
     state, shardings = parallel.init_state(trainer, init_key, n, cfg.num_envs)
     iteration = parallel.compile_iteration(trainer, state, shardings)
     metrics = []

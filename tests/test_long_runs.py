@@ -99,20 +99,28 @@ def snapshot(path: Path) -> dict[str, str]:
     }
 
 
-def test_sigkill_then_resume_equals_an_uninterrupted_run(tmp_path):
-    """SIGKILL mid-run, then resume: metrics and final parameters equal an uninterrupted run's."""
-    run = tmp_path / "run"
-    metrics = run / "metrics.jsonl"
-    proc = spawn([*LONG, f"run_dir={run}"], tmp_path)
-    wait_for_rows(proc, metrics, 10)
+def test_sigkill_then_resume_equals_an_uninterrupted_run(tmp_path, monkeypatch):
+    """SIGKILL mid-run, move the directory, resume it from elsewhere: metrics and parameters
+    equal an uninterrupted run's. Then ``total_steps`` extends the finished run."""
+    first = tmp_path / "first"
+    proc = spawn([*LONG, f"run_dir={first}"], tmp_path)
+    wait_for_rows(proc, first / "metrics.jsonl", 10)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
-    killed_at = len(read_metrics(metrics))
-    ckpt = decode_checkpoint(run / CHECKPOINT, parse_overrides(LONG))
+    killed_at = len(read_metrics(first / "metrics.jsonl"))
+    ckpt = decode_checkpoint(first / CHECKPOINT, parse_overrides(LONG))
     assert 10 <= killed_at < 150 and ckpt.iteration % 3 == 0 and ckpt.iteration <= killed_at
-    assert not (run / "summary.json").exists()
+    assert not (first / "summary.json").exists()
 
-    assert main([f"resume={run}"]) == 0
+    # Moved, and resumed by a relative path from another working directory.
+    run = tmp_path / "moved" / "run"
+    run.parent.mkdir()
+    first.rename(run)
+    metrics = run / "metrics.jsonl"
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    assert main(["resume=../moved/run"]) == 0
     resumed = read_metrics(metrics)
     assert [r["iteration"] for r in resumed] == list(range(1, 151))
     assert json.loads((run / "summary.json").read_text())["resumed_from"] == ckpt.iteration
@@ -133,6 +141,16 @@ def test_sigkill_then_resume_equals_an_uninterrupted_run(tmp_path):
     assert main([f"resume={run}"]) == 0
     assert snapshot(run) == before
 
+    # A larger budget extends it: the first 150 rows stay, 10 more follow.
+    assert main([f"resume={run}", "total_steps=1280"]) == 0
+    extended = read_metrics(metrics)
+    assert [r["iteration"] for r in extended] == list(range(1, 161))
+    assert strip_times(extended[:150]) == strip_times(reference)
+    assert json.loads((run / "summary.json").read_text())["env_steps"] == 1280
+    assert "total_steps: 1280" in (run / "config.yaml").read_text()
+    # A budget below the work already done is refused.
+    assert main([f"resume={run}", "total_steps=400"]) == 2
+
 
 def test_sigterm_stops_after_the_iteration_with_a_checkpoint(tmp_path):
     """SIGTERM: exit 128+15 after finishing the iteration, whose checkpoint is the last row's."""
@@ -144,6 +162,8 @@ def test_sigterm_stops_after_the_iteration_with_a_checkpoint(tmp_path):
     out, err = proc.communicate(timeout=120)
     assert proc.returncode == 128 + signal.SIGTERM, err
     assert "stopped by SIGTERM" in out and "resume=" in out
+    assert out.index("compiling ...") < out.index("compiled in")
+    assert "Failed to import" not in out + err  # mujoco's message about its optional warp backend
     rows = read_metrics(metrics)
     ckpt = decode_checkpoint(run / CHECKPOINT, parse_overrides([*LONG, "checkpoint_every=1000"]))
     assert ckpt.iteration == rows[-1]["iteration"] == len(rows) < 150
@@ -168,7 +188,8 @@ def test_guard_skips_losses_of_an_iteration_without_update_but_never_parameters(
     """SAC logs NaN losses while its buffer warms up (no update applied): not a divergence."""
     import jax.numpy as jnp
 
-    from coherent_jax.train import DivergenceError, _check_finite
+    from coherent_jax.loop import DivergenceError
+    from coherent_jax.loop import check_finite as _check_finite
 
     class Trainer:
         def export_params(self, state):
@@ -280,5 +301,48 @@ def test_resume_with_nan_in_stored_config_is_refused(fake_run, capsys):
 
 
 def test_missing_checkpoint_is_refused(fake_run, capsys):
+    """Rows for a whole checkpoint interval (10) but no checkpoint: it was lost, not yet to be written."""
     (fake_run / CHECKPOINT).unlink()
+    rows = "".join(json.dumps({"iteration": i, "env_steps": 8 * i}) + "\n" for i in range(1, 11))
+    (fake_run / "metrics.jsonl").write_text(rows)
     refused([f"resume={fake_run}"], capsys, "no checkpoint", fake_run)
+
+
+def test_resume_with_malformed_stored_yaml_is_refused(fake_run, capsys):
+    path = fake_run / "config.yaml"
+    path.write_text(path.read_text().replace("policy_hidden:", "policy_hidden: [8,\n  oops:"))
+    refused([f"resume={fake_run}"], capsys, "not valid YAML", fake_run)
+
+
+SHORT = [*TINY, "total_steps=80", "eval_every=3", "checkpoint_every=4", "seed=2"]
+
+
+@pytest.mark.slow
+def test_ctrl_c_during_compile_and_kill_before_first_checkpoint_are_resumable(tmp_path):
+    """SIGINT while compiling: exit 130, no traceback, a checkpoint at iteration 0 that resumes to an
+    uninterrupted run's metrics. A run killed before any checkpoint (none written) starts over."""
+    run = tmp_path / "run"
+    proc = spawn([*SHORT, f"run_dir={run}"], tmp_path)
+    for line in proc.stdout:
+        if "compiling" in line:
+            break
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=300)
+    assert proc.returncode == 128 + signal.SIGINT, err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+    assert decode_checkpoint(run / CHECKPOINT, parse_overrides(SHORT)).iteration == 0
+    assert read_metrics(run / "metrics.jsonl") == []
+
+    bare = tmp_path / "bare"  # what a SIGKILL during the compile leaves: no checkpoint, no rows
+    bare.mkdir()
+    for name in ("config.yaml", "versions.json"):
+        (bare / name).write_bytes((run / name).read_bytes())
+
+    assert main([f"resume={run}"]) == 0
+    assert main([f"resume={bare}"]) == 0
+    ref = tmp_path / "ref"
+    assert main([*SHORT, f"run_dir={ref}"]) == 0
+    reference = strip_times(read_metrics(ref / "metrics.jsonl"))
+    assert [r["iteration"] for r in reference] == list(range(1, 11))
+    assert strip_times(read_metrics(run / "metrics.jsonl")) == reference
+    assert strip_times(read_metrics(bare / "metrics.jsonl")) == reference

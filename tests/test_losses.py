@@ -93,3 +93,171 @@ def test_value_loss_and_standardize():
     z = losses.standardize(jnp.array([1.0, 2.0, 3.0, 4.0]))
     assert float(z.mean()) == pytest.approx(0.0, abs=1e-6)
     assert float(z.std()) == pytest.approx(1.0, rel=1e-5)
+
+
+# ------------------------------------------- the whole losses, at module level, typed batches
+
+
+def _onpolicy_setup(dtype=np.float32, clipped=True):
+    import jax
+
+    from coherent_jax.agents.onpolicy import AgentParams, HParams
+    from coherent_jax.exploration.action import ActionNoise
+    from coherent_jax.networks import ValueNetwork
+
+    T, m, o, p = 5, 3, 4, 2
+    strategy = ActionNoise(p, (8,), "tanh", init_std=0.5)
+    value_net = ValueNetwork((8,), "tanh")
+    k = jax.random.split(jax.random.PRNGKey(0), 8)
+    params = AgentParams(policy=strategy.init(k[0], o), value=value_net.init(k[1], jnp.zeros((1, o))))
+    params = jax.tree.map(lambda x: jnp.asarray(x, dtype), params)
+    obs = jax.random.normal(k[2], (T, m, o), dtype)
+    action = jax.random.normal(k[3], (T, m, p), dtype)
+    current = strategy.log_prob(params.policy, {}, (), obs.reshape(-1, o), action.reshape(-1, p), None)
+    batch = losses.SegmentBatch(
+        obs=obs,
+        action=action,
+        first=jnp.zeros((T, m), bool),
+        extras=(),
+        # near the current policy, so the ratios stay inside the clipping range
+        behaviour_log_prob=current.log_prob.reshape(T, m) + 0.05 * jax.random.normal(k[4], (T, m), dtype),
+        advantages=jax.random.normal(k[5], (T, m), dtype),
+        targets=jax.random.normal(k[6], (T, m), dtype),
+        carry0=(),
+    )
+    f = lambda v: jnp.asarray(v, dtype)  # noqa: E731
+    hp = HParams(
+        lr=f(0.0), gamma=f(0.9), gae_lambda=f(0.9), clip_eps=f(0.2), target_kl=f(0.0),
+        vf_coef=f(0.5), ent_coef=f(0.01), explore={},
+    )  # fmt: skip
+    kwargs = dict(strategy=strategy, value_net=value_net, clipped=clipped, normalize_advantages=True)
+    return params, hp, batch, kwargs
+
+
+@pytest.mark.parametrize("clipped", [True, False], ids=["ppo", "a2c"])
+def test_onpolicy_loss_against_float64_reference(clipped):
+    """L = L_pi + vf_coef L_V - ent_coef H from the networks' outputs, recomputed in numpy float64."""
+    import jax
+
+    params, hp, batch, kwargs = _onpolicy_setup(clipped=clipped)
+    loss, metrics = jax.jit(lambda pr, b: losses.onpolicy_loss(pr, hp, b, **kwargs))(params, batch)
+    strategy, value_net = kwargs["strategy"], kwargs["value_net"]
+    f64 = lambda x: np.asarray(x, np.float64)  # noqa: E731
+    mean = f64(strategy.mean_action(params.policy, batch.obs))
+    log_std = f64(params.policy["log_std"])
+    a = f64(batch.action)
+    logp = np.sum(-0.5 * ((a - mean) / np.exp(log_std)) ** 2 - log_std - 0.5 * math.log(2 * math.pi), -1)
+    adv = f64(batch.advantages)
+    adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+    ratio = np.exp(logp - f64(batch.behaviour_log_prob))
+    if clipped:
+        pi = -np.mean(np.minimum(ratio * adv, np.clip(ratio, 0.8, 1.2) * adv))
+    else:
+        pi = -np.mean(logp * adv)
+    v = 0.5 * np.mean((f64(value_net.apply(params.value, batch.obs)) - f64(batch.targets)) ** 2)
+    entropy = np.sum(log_std + 0.5 * math.log(2 * math.pi * math.e))
+    np.testing.assert_allclose(float(metrics["policy_loss"]), pi, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(float(metrics["value_loss"]), v, rtol=1e-5)
+    np.testing.assert_allclose(float(metrics["entropy"]), entropy, rtol=1e-6)
+    np.testing.assert_allclose(float(loss), pi + 0.5 * v - 0.01 * entropy, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(float(metrics["approx_kl"]), np.mean(ratio - 1 - np.log(ratio)), rtol=1e-4)
+
+
+def test_onpolicy_loss_gradient_matches_finite_differences():
+    """In float64: the gradient along a random direction equals a central difference."""
+    import jax
+
+    with jax.enable_x64(True):
+        params, hp, batch, kwargs = _onpolicy_setup(dtype=np.float64)
+        leaves, treedef = jax.tree.flatten(params)
+        keys = jax.random.split(jax.random.PRNGKey(5), len(leaves))
+        direction = jax.tree.unflatten(
+            treedef, [jax.random.normal(k, x.shape, x.dtype) for x, k in zip(leaves, keys, strict=True)]
+        )
+        h = 1e-6
+
+        @jax.jit
+        def derivatives(pr):
+            loss = lambda q: losses.onpolicy_loss(q, hp, batch, **kwargs)[0]  # noqa: E731
+            grad = jax.grad(loss)(pr)
+            analytic = sum(
+                jnp.sum(g * d) for g, d in zip(*map(jax.tree.leaves, (grad, direction)), strict=True)
+            )
+            shift = lambda s: jax.tree.map(lambda x, d: x + s * h * d, pr, direction)  # noqa: E731
+            return analytic, (loss(shift(1.0)) - loss(shift(-1.0))) / (2 * h)
+
+        analytic, numeric = map(float, derivatives(params))
+        assert abs(analytic) > 1e-3
+        np.testing.assert_allclose(analytic, numeric, rtol=1e-6)
+
+
+def test_sac_losses_against_float64_reference():
+    """Critic (2.46), soft target (2.47), actor (2.51) and temperature losses and the temperature's
+    gradient, from the networks' outputs and the same noise draws, recomputed in numpy float64."""
+    import jax
+
+    from coherent_jax.agents import sac_losses
+    from coherent_jax.networks import QNetwork, SquashedGaussianActor
+    from coherent_jax.replay import Experience
+
+    B, o, p = 6, 3, 2
+    actor = SquashedGaussianActor(p, (8,), "relu")
+    critic = QNetwork((8,), "relu")
+    k = jax.random.split(jax.random.PRNGKey(1), 10)
+    actor_params = actor.init(k[0], o)
+    critic_params = jax.vmap(lambda kk: critic.init(kk, jnp.zeros((1, o)), jnp.zeros((1, p))))(
+        jax.random.split(k[1])
+    )
+    target_params = jax.tree.map(lambda x: x + 0.1, critic_params)
+    batch = Experience(
+        obs=jax.random.normal(k[2], (B, o)),
+        action=jax.random.uniform(k[3], (B, p), minval=-1, maxval=1),
+        reward=jax.random.normal(k[4], (B,)),
+        next_obs=jax.random.normal(k[5], (B, o)),
+        terminated=(jax.random.uniform(k[6], (B,)) < 0.3).astype(jnp.float32),
+    )
+    gamma, alpha = 0.9, 0.3
+    f64 = lambda x: np.asarray(x, np.float64)  # noqa: E731
+
+    draw = jax.jit(lambda key, obs: (actor.dist(actor_params, obs), jax.random.normal(key, (B, p))))
+    q_jit = jax.jit(lambda params, obs, action: sac_losses.q_values(critic, params, obs, action))
+
+    def sample(key, obs):  # tanh(mean + std xi) and log pi, with xi as `squash` draws it
+        dist, xi = draw(key, obs)
+        xi = f64(xi)
+        u = f64(dist.mean) + np.exp(f64(dist.log_std)) * xi
+        logp = np.sum(
+            -0.5 * xi**2 - f64(dist.log_std) - 0.5 * math.log(2 * math.pi) - np.log(1 - np.tanh(u) ** 2), -1
+        )
+        return np.tanh(u), logp
+
+    def q(params, obs, action):
+        return f64(q_jit(params, obs, jnp.asarray(action, jnp.float32)))
+
+    target_entropy = -2.0
+    nets = dict(actor=actor, critic=critic)
+
+    @jax.jit
+    def outputs():
+        y = sac_losses.critic_target(actor_params, target_params, batch, k[7], gamma, alpha, **nets)
+        c_loss, _ = sac_losses.critic_loss(critic_params, batch, y, critic=critic)
+        a_loss, logp = sac_losses.actor_loss(actor_params, critic_params, batch, k[8], alpha, **nets)
+        t_loss, t_grad = jax.value_and_grad(sac_losses.temperature_loss)(jnp.log(alpha), logp, target_entropy)
+        return y, c_loss, a_loss, logp, t_loss, t_grad
+
+    y_jax, c_loss, a_loss, logp, t_loss, grad = outputs()
+    next_a, next_logp = sample(k[7], batch.next_obs)
+    soft = np.min(q(target_params, batch.next_obs, next_a), 0) - alpha * next_logp
+    y = f64(batch.reward) + gamma * (1 - f64(batch.terminated)) * soft
+    np.testing.assert_allclose(y_jax, y, rtol=1e-5, atol=1e-5)
+    ref_c = np.sum(np.mean((q(critic_params, batch.obs, batch.action) - y[None]) ** 2, axis=1))
+    np.testing.assert_allclose(float(c_loss), ref_c, rtol=1e-5)
+
+    a, ref_logp = sample(k[8], batch.obs)
+    ref_a = np.mean(alpha * ref_logp - np.min(q(critic_params, batch.obs, a), 0))
+    np.testing.assert_allclose(logp, ref_logp, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(float(a_loss), ref_a, rtol=1e-4, atol=1e-5)
+
+    ref_t = -math.log(alpha) * np.mean(ref_logp + target_entropy)
+    np.testing.assert_allclose(float(t_loss), ref_t, rtol=1e-4)
+    np.testing.assert_allclose(float(grad), -np.mean(ref_logp + target_entropy), rtol=1e-4)

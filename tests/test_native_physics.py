@@ -171,14 +171,14 @@ def test_physics_choice_and_refusals():
 
 
 def test_bench_physics_bad_input_exits_2_and_writes_nothing(tmp_path, capsys):
-    from coherent_jax.bench_physics import main
+    from coherent_jax.bench.__main__ import main
 
     out = tmp_path / "physics.json"
     for bad, key in (("envs=[0]", "'envs'"), ("variants=[warp]", "'variants'"), ("env=swimmer", "'env'")):
-        assert main([bad, f"out={out}"]) == 2
+        assert main(["physics", bad, f"out={out}"]) == 2
         err = capsys.readouterr().err
         assert key in err and "allowed" in err and len(err.strip().splitlines()) == 1
-    assert main(["physics=mjx"]) == 2 and "unknown key 'physics'" in capsys.readouterr().err
+    assert main(["physics", "physics=mjx"]) == 2 and "unknown key 'physics'" in capsys.readouterr().err
     assert not out.exists()
 
 
@@ -186,11 +186,11 @@ def test_bench_physics_measures_and_writes_json(tmp_path):
     """A tiny real run (native MuJoCo without JAX, so no compile): one row per variant and count."""
     import json
 
-    from coherent_jax.bench_physics import main
+    from coherent_jax.bench.__main__ import main
 
     out = tmp_path / "physics.json"
     args = ["env=inverted_pendulum", "envs=[2,4]", "variants=[native_raw]", "steps=5", "repeats=1"]
-    assert main([*args, f"out={out}"]) == 0
+    assert main(["physics", *args, f"out={out}"]) == 0
     result = json.loads(out.read_text())
     assert [(r["variant"], r["n"]) for r in result["rows"]] == [("native_raw", 2), ("native_raw", 4)]
     assert all(r["env_steps_per_s"] > 0 and "error" not in r for r in result["rows"])

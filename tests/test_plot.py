@@ -7,19 +7,19 @@ import pytest
 from omegaconf import OmegaConf
 
 from coherent_jax.config import parse_overrides, to_dict
-from coherent_jax.plot import aggregate_iqm, main, mean_and_interval, normalized_final_scores
+from coherent_jax.plot import aggregate_iqm, load_run, main, mean_and_interval, normalized_final_scores
 
 STEPS = [100, 200, 300, 400]
 
 
-def write_run(root, env, explore, seed, finals_offset):
+def write_run(root, env, explore, seed, finals_offset, extra=(), steps=STEPS, name=None):
     """A run directory with a synthetic learning curve (eval rows every 2nd iteration)."""
-    cfg = parse_overrides([f"env={env}", f"explore={explore}", f"seed={seed}"])
-    path = root / f"{env}-{explore}-s{seed}"
+    cfg = parse_overrides([f"env={env}", f"explore={explore}", f"seed={seed}", *extra])
+    path = root / (name or f"{env}-{explore}-s{seed}")
     path.mkdir(parents=True)
     (path / "config.yaml").write_text(OmegaConf.to_yaml(to_dict(cfg)))
     rows = []
-    for i, s in enumerate(STEPS, start=1):
+    for i, s in enumerate(steps, start=1):
         row = {"iteration": i, "env_steps": s, "time_s": 0.1 * i, "train/episode_return": float(i)}
         if i % 2 == 0:
             row["eval/episode_return"] = finals_offset + 10.0 * i + seed
@@ -28,13 +28,25 @@ def write_run(root, env, explore, seed, finals_offset):
     return path
 
 
-def test_t_interval_matches_a_hand_computation():
+def test_bootstrap_interval_of_the_mean_stays_in_the_data():
+    """With 2 or 3 seeds the 95% percentile bootstrap of the mean is the seeds' range (each
+    extreme resample has probability 1/n^(n-1) > 2.5%), where a t-interval is far wider;
+    with 10 seeds it is close to the normal interval mean +- 1.96 s / sqrt(n)."""
     curves = np.array([[1.0, 2.0], [3.0, 2.0], [5.0, 2.0]])
-    mean, half = mean_and_interval(curves)
-    # n = 3: t_{0.975, 2} = 4.302653, sample std of (1, 3, 5) = 2.
+    mean, low, high = mean_and_interval(curves)
     np.testing.assert_allclose(mean, [3.0, 2.0])
-    np.testing.assert_allclose(half, [4.302653 * 2 / np.sqrt(3), 0.0], rtol=1e-6)
-    assert mean_and_interval(curves[:1])[1].tolist() == [0.0, 0.0]
+    np.testing.assert_allclose(low, [1.0, 2.0])
+    np.testing.assert_allclose(high, [5.0, 2.0])
+    mean, low, high = mean_and_interval(np.array([[0.0], [10.0]]))
+    assert (low[0], mean[0], high[0]) == (0.0, 5.0, 10.0)  # t-interval: 5 +- 63.5
+    assert mean_and_interval(curves[:1])[1].tolist() == [1.0, 2.0]
+    ten = np.random.default_rng(1).normal(0.0, 1.0, size=(10, 1))
+    mean, low, high = mean_and_interval(ten, reps=20000)
+    half = 1.96 * ten.std() / np.sqrt(10)  # the bootstrap's plug-in std (ddof 0)
+    assert (high - low)[0] == pytest.approx(2 * half, rel=0.1)
+    assert ten.min() < low[0] < mean[0] < high[0] < ten.max()
+    again = mean_and_interval(ten, reps=20000)
+    np.testing.assert_array_equal(again[1], low)  # seeded: the same band every time
 
 
 def test_iqm_and_bootstrap_interval_match_hand_computation():
@@ -49,8 +61,6 @@ def test_iqm_and_bootstrap_interval_match_hand_computation():
 
 
 def test_normalisation_is_min_max_per_task(tmp_path):
-    from coherent_jax.plot import load_run
-
     runs = [
         load_run(write_run(tmp_path, env, ex, seed, off), "eval/episode_return")
         for env, ex, seed, off in [
@@ -84,8 +94,8 @@ def test_cli_writes_non_blank_curves_and_aggregate(tmp_path, capsys):
     assert main([str(runs), f"out={out}", "reps=300"]) == 0
     text = capsys.readouterr().out
     assert "12 runs, 2 task(s)" in text
-    # hopper/action: finals 40 + seed, mean 41, interval t_{0.975,2} * 1 / sqrt(3).
-    assert f"41.00 +- {4.302653 / np.sqrt(3):.2f}" in text
+    # hopper/action: finals 40 + seed, mean 41; with 3 seeds the bootstrap interval is their range.
+    assert "n=3  eval/episode_return at 400 steps: 41.00, 95% bootstrap CI [40.00, 42.00]" in text
     pixels = png_pixels(out / "learning_curves.png")
     assert pixels.shape[0] > 100 and pixels.std() > 10.0
     assert png_pixels(out / "aggregate.png").std() > 10.0
@@ -107,13 +117,69 @@ def test_cli_writes_non_blank_curves_and_aggregate(tmp_path, capsys):
         (["{run}", "colour=red"], "'colour'"),
         (["{run}", "reps=abc"], "'reps'"),
         (["{run}", "metric=eval/nothing"], "'eval/nothing'"),
+        (["{run}", "reps=10"], "'reps'"),
+        (["{run}", "out={tmp}/a_file/plots"], "'out'"),
     ],
 )
 def test_bad_input_is_refused_and_writes_nothing(tmp_path, capsys, args, text):
     run = write_run(tmp_path, "hopper", "action", 0, 0.0)
     (tmp_path / "empty").mkdir()
+    (tmp_path / "a_file").write_text("")
     args = [a.format(tmp=tmp_path, run=run) for a in args]
     assert main([*args, f"out={tmp_path / 'plots'}"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error:") and text in err[0], err
     assert not (tmp_path / "plots").exists()
+
+
+def test_runs_differing_in_more_than_the_seed_are_not_averaged(tmp_path, capsys):
+    """Two betas are two lines, labelled by beta; seeds of one beta are one line."""
+    from coherent_jax.plot import group_curves
+
+    runs = tmp_path / "runs"
+    for beta, off in (("0.01", 0.0), ("0.1", 100.0)):
+        for seed in (0, 1):
+            write_run(runs, "hopper", "coherent", seed, off, [f"beta={beta}"], name=f"b{beta}-s{seed}")
+    loaded = [load_run(p, "eval/episode_return") for p in sorted(runs.iterdir())]
+    grouped = group_curves(loaded)["hopper"]
+    assert sorted(grouped) == ["beta=0.01", "beta=0.1"]
+    assert grouped["beta=0.1"].values[:, -1].tolist() == [140.0, 141.0]
+    # run_dir, progress and the seed do not split a group.
+    write_run(runs, "hopper", "coherent", 2, 0.0, ["beta=0.01", "progress=false", "run_dir=x"], name="b-s2")
+    assert main([str(runs), f"out={tmp_path / 'plots'}", "reps=200"]) == 0
+    text = capsys.readouterr().out
+    assert "beta=0.01" in text and "n=3" in text and "beta=0.1" in text and "n=2" in text
+
+
+def test_seeds_logged_at_different_steps(tmp_path, capsys):
+    """Offset evaluation steps are interpolated where all seeds cover; disjoint ones drawn one by one."""
+    from coherent_jax.plot import common_curves
+
+    a = write_run(tmp_path / "r", "hopper", "action", 0, 0.0, steps=[100, 200, 300, 400])  # eval 200, 400
+    b = write_run(tmp_path / "r", "hopper", "action", 1, 0.0, steps=[150, 300, 450, 600])  # eval 300, 600
+    c = common_curves([load_run(p, "eval/episode_return") for p in (a, b)])
+    # Shared range [300, 400]; seed 0 is 20 at 200 and 40 at 400, seed 1 is 21 at 300 and 41 at 600.
+    assert c.steps.tolist() == [300, 400] and c.interpolated
+    np.testing.assert_allclose(c.values, [[30.0, 40.0], [21.0, 21.0 + 20.0 * 100 / 300]])
+    out = tmp_path / "plots"
+    assert main([str(tmp_path / "r"), f"out={out}", "reps=200"]) == 0
+    assert "interpolated" in capsys.readouterr().out
+    assert png_pixels(out / "learning_curves.png").std() > 10.0
+
+    d = write_run(tmp_path / "d", "hopper", "action", 0, 0.0, steps=[100, 200])
+    e = write_run(tmp_path / "d", "hopper", "action", 1, 0.0, steps=[300, 400])
+    assert common_curves([load_run(p, "eval/episode_return") for p in (d, e)]).steps.size == 0
+    assert main([str(tmp_path / "d"), f"out={out}", "reps=200"]) == 0
+    assert "drawn one by one" in capsys.readouterr().out
+
+
+def test_sweep_point_directories_with_equals_in_their_names(tmp_path, capsys):
+    sweep = tmp_path / "sweep-hopper"
+    for i, seed in enumerate((0, 1)):
+        write_run(sweep, "hopper", "coherent", seed, 0.0, ["beta=0.1"], name=f"p00{i}-beta=0.1-seed={seed}")
+    (sweep / "sweep.csv").write_text("beta,mean\n")
+    point = sweep / "p000-beta=0.1-seed=0"
+    assert main([str(sweep), f"out={tmp_path / 'a'}", "reps=200"]) == 0
+    assert "n=2" in capsys.readouterr().out
+    assert main([str(point), f"out={tmp_path / 'b'}", "reps=200"]) == 0
+    assert "n=1" in capsys.readouterr().out

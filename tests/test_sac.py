@@ -5,9 +5,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from coherent_jax.agents.sac import SACTrainer, polyak_update, soft_target
+from coherent_jax.agents.sac import SACTrainer, polyak_update
+from coherent_jax.agents.sac_losses import soft_target
 from coherent_jax.config import parse_overrides
-from coherent_jax.exploration import make_exploration
+from coherent_jax.exploration import make_behaviour
 from coherent_jax.exploration.adaptive import adapt_sigma, policy_distance
 from coherent_jax.networks import SquashedGaussianActor, squash
 from coherent_jax.replay import Experience, replay_add, replay_init, replay_sample
@@ -138,48 +139,48 @@ def test_sigma_rule_moves_the_right_way_on_both_sides_of_delta(distance, expecte
 
 def _coherent_setup(sigma, beta=0.3):
     cfg = parse_overrides([*FAST, "explore=coherent", f"beta={beta}", f"sigma_init={sigma}"])
-    strategy = make_exploration(cfg, action_size=2)
+    behaviour = make_behaviour(cfg, action_size=2)
     actor = SquashedGaussianActor(2, [16, 16], "relu")
     params = actor.init(jax.random.PRNGKey(0), 6)
     params["mu"] = jax.random.normal(jax.random.PRNGKey(7), params["mu"].shape)  # a non-trivial head
-    return cfg, strategy, actor, params, strategy.offpolicy_init_hparams()
+    return cfg, behaviour, actor, params, behaviour.init_hparams()
 
 
 def test_sigma_zero_perturbed_actor_acts_exactly_like_the_unperturbed_one():
     cfg, coherent, actor, params, hp = _coherent_setup(sigma=0.0)
-    plain = make_exploration(parse_overrides([*FAST, "explore=action"]), action_size=2)
+    plain = make_behaviour(parse_overrides([*FAST, "explore=action"]), action_size=2)
     obs = jax.random.normal(jax.random.PRNGKey(1), (5, 6))
     first = jnp.array([True, False, False, True, False])
-    carry = coherent.offpolicy_init_carry(jax.random.PRNGKey(2), actor, params, hp, 5)
+    carry = coherent.init_carry(jax.random.PRNGKey(2), actor, params, hp, 5)
     for step in range(3):
         key = jax.random.PRNGKey(10 + step)
-        a_coh, carry = coherent.offpolicy_act(key, actor, params, hp, carry, obs, first)
-        a_plain, _ = plain.offpolicy_act(key, actor, params, plain.offpolicy_init_hparams(), (), obs, first)
+        a_coh, carry = coherent.act(key, actor, params, hp, carry, obs, first)
+        a_plain, _ = plain.act(key, actor, params, plain.init_hparams(), (), obs, first)
         np.testing.assert_array_equal(np.asarray(a_coh), np.asarray(a_plain))
-    _, m = coherent.offpolicy_adapt(jax.random.PRNGKey(3), actor, params, hp, obs)
+    _, m = coherent.adapt(jax.random.PRNGKey(3), actor, params, hp, obs)
     assert float(m["policy_distance"]) == 0.0
 
     # With sigma > 0 the same keys give other actions, and the distance is positive.
     _, coherent2, _, _, hp2 = _coherent_setup(sigma=0.5)
-    a_coh2, _ = coherent2.offpolicy_act(key, actor, params, hp2, carry, obs, first)
+    a_coh2, _ = coherent2.act(key, actor, params, hp2, carry, obs, first)
     assert not np.allclose(np.asarray(a_coh2), np.asarray(a_plain))
-    _, m2 = coherent2.offpolicy_adapt(jax.random.PRNGKey(3), actor, params, hp2, obs)
+    _, m2 = coherent2.adapt(jax.random.PRNGKey(3), actor, params, hp2, obs)
     assert float(m2["policy_distance"]) > 0.0
 
 
 def test_coherent_sac_head_follows_the_beta_chain():
     """z_t = (1-beta) z_{t-1} + sqrt(2 beta - beta^2) eps: lag-1 correlation 1 - beta, unit variance."""
     beta = 0.2
-    _, strategy, actor, params, hp = _coherent_setup(sigma=0.1, beta=beta)
+    _, behaviour, actor, params, hp = _coherent_setup(sigma=0.1, beta=beta)
     n = 64
     obs = jnp.zeros((n, 6))
     not_first = jnp.zeros((n,), bool)
 
     def step(carry, k):
-        _, z = strategy.offpolicy_act(k, actor, params, hp, carry, obs, not_first)
+        _, z = behaviour.act(k, actor, params, hp, carry, obs, not_first)
         return z, z
 
-    z0 = strategy.offpolicy_init_carry(jax.random.PRNGKey(0), actor, params, hp, n)
+    z0 = behaviour.init_carry(jax.random.PRNGKey(0), actor, params, hp, n)
     _, zs = jax.lax.scan(step, z0, jax.random.split(jax.random.PRNGKey(1), 400))
     zs = np.asarray(zs).reshape(400, -1)
     lag1 = np.mean(zs[1:] * zs[:-1]) / np.mean(zs * zs)
@@ -187,7 +188,7 @@ def test_coherent_sac_head_follows_the_beta_chain():
     assert abs(np.var(zs) - 1.0) < 0.05
     # An episode start redraws z independently of the previous one.
     firsts = jnp.ones((n,), bool)
-    _, z_new = strategy.offpolicy_act(jax.random.PRNGKey(5), actor, params, hp, z0, obs, firsts)
+    _, z_new = behaviour.act(jax.random.PRNGKey(5), actor, params, hp, z0, obs, firsts)
     corr = np.corrcoef(np.asarray(z_new).ravel(), np.asarray(z0).ravel())[0, 1]
     assert abs(corr) < 0.05
 

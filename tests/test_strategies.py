@@ -1,4 +1,4 @@
-"""Exploration strategies (issue 5): noise statistics, resampling, stored log-probs.
+"""Exploration strategies: noise statistics, resampling, stored log-probs.
 
 Statistics are checked against independent float64 numpy references (the chain's
 stationary autocorrelation, the coloured spectrum's autocorrelation, gSDE's
@@ -14,7 +14,7 @@ import pytest
 from coherent_jax.agents.onpolicy import OnPolicyTrainer
 from coherent_jax.config import parse_overrides
 from coherent_jax.envs import VecEnv
-from coherent_jax.exploration import make_exploration
+from coherent_jax.exploration import make_behaviour, make_strategy
 from coherent_jax.exploration.noisynet import factorised, noisy_dense
 from coherent_jax.exploration.pink import autocorrelation, coloured_noise
 from coherent_jax.exploration.psne import perturb
@@ -26,7 +26,12 @@ OBS_SIZE = 6
 
 def build(*overrides, action_size=2):
     cfg = parse_overrides(["env=pointmass", "policy_hidden=[16,16]", *overrides])
-    return make_exploration(cfg, action_size), cfg
+    return make_strategy(cfg, action_size), cfg
+
+
+def build_behaviour(*overrides, action_size=2):
+    cfg = parse_overrides(["env=pointmass", "algo=sac", "policy_hidden=[16,16]", *overrides])
+    return make_behaviour(cfg, action_size)
 
 
 def run_fixed_state(strategy, num_envs, steps, first_every=0, seed=0):
@@ -233,17 +238,20 @@ def test_psne_perturbation_is_fixed_per_episode():
 
 @pytest.mark.parametrize("delta,factor", [(1e3, 1.5), (1e-6, 1 / 1.5)])
 def test_psne_sigma_adapts_by_rule_451(delta, factor):
-    """end_segment applies (4.51): sigma * alpha if the distance (4.50) < delta, else sigma / alpha."""
+    """adapt applies (4.51): sigma * alpha if the distance (4.50) < delta, else sigma / alpha;
+    scoring the segment leaves PSNE's log-probabilities as collection stored them."""
     strategy, _ = build("explore=psne", "sigma_init=0.2", f"sigma_delta={delta}", "sigma_alpha=1.5")
     params = strategy.init(jax.random.PRNGKey(0), OBS_SIZE)
     hp = strategy.init_hparams()
     carry = strategy.init_carry(jax.random.PRNGKey(1), params, hp, 4)
     obs = jax.random.normal(jax.random.PRNGKey(2), (8, 4, OBS_SIZE))
     logp = jnp.zeros((8, 4))
-    end = jax.jit(lambda c, o, lp: strategy.end_segment(params, hp, c, c, o, None, None, lp))
-    out_logp, new = end(carry, obs, logp)
+    new = jax.jit(lambda c, o: strategy.adapt(params, hp, c, o))(carry, obs)
     np.testing.assert_allclose(new.sigma, 0.2 * factor, rtol=1e-6)
+    np.testing.assert_array_equal(new.key, carry.key)
+    out_logp, same = strategy.score_segment(params, hp, carry, carry, obs, None, None, logp)
     np.testing.assert_array_equal(out_logp, logp)
+    np.testing.assert_array_equal(same.sigma, carry.sigma)
 
 
 # ----------------------------------------------- stored log-prob equals the recompute
@@ -278,9 +286,10 @@ def test_behaviour_log_prob_equals_segment_recompute(overrides):
     @jax.jit
     def collect_and_score(env_state, carry, key):
         env_state, carry_end, data = unroll(env, act, env_state, carry, key, 10)
-        log_prob, carry_end = strategy.end_segment(
+        log_prob, carry_end = strategy.score_segment(
             params, hp, carry, carry_end, data.obs, data.action, data.first, data.log_prob
         )
+        carry_end = strategy.adapt(params, hp, carry_end, data.obs)
         recomputed = jax.vmap(strategy.log_prob, in_axes=(None, None, 0, 1, 1, 1, 1), out_axes=1)(
             params, hp, carry, data.obs, data.action, data.first, data.extras
         )
@@ -301,14 +310,14 @@ def test_behaviour_log_prob_equals_segment_recompute(overrides):
 # ------------------------------------------------------------- off-policy (SAC) hooks
 
 
-def offpolicy_run(strategy, steps, first_every, num_envs=8, seed=0):
-    """Behaviour actions of the SAC hooks at one fixed state; returns actions [T, n, p], carries, actor."""
-    actor = SquashedGaussianActor(2, (16, 16), "relu", layer_norm=strategy.actor_layer_norm)
+def offpolicy_run(behaviour, steps, first_every, num_envs=8, seed=0):
+    """SAC's behaviour actions at one fixed state; returns actions [T, n, p], carries, actor."""
+    actor = SquashedGaussianActor(2, (16, 16), "relu", layer_norm=behaviour.actor_layer_norm)
     key = jax.random.PRNGKey(seed)
     k_p, k_c, k_o, k_run = jax.random.split(key, 4)
     actor_params = actor.init(k_p, OBS_SIZE)
-    hp = strategy.offpolicy_init_hparams()
-    carry = strategy.offpolicy_init_carry(k_c, actor, actor_params, hp, num_envs)
+    hp = behaviour.init_hparams()
+    carry = behaviour.init_carry(k_c, actor, actor_params, hp, num_envs)
     obs = jnp.broadcast_to(jax.random.normal(k_o, (OBS_SIZE,)), (num_envs, OBS_SIZE))
     firsts = jnp.arange(steps) % first_every == 0
 
@@ -316,7 +325,7 @@ def offpolicy_run(strategy, steps, first_every, num_envs=8, seed=0):
     def go(carry):
         def step(c, inp):
             k, f = inp
-            action, c = strategy.offpolicy_act(k, actor, actor_params, hp, c, obs, jnp.full((num_envs,), f))
+            action, c = behaviour.act(k, actor, actor_params, hp, c, obs, jnp.full((num_envs,), f))
             return c, (action, c)
 
         return jax.lax.scan(step, carry, (jax.random.split(k_run, steps), firsts))[1]
@@ -327,8 +336,8 @@ def offpolicy_run(strategy, steps, first_every, num_envs=8, seed=0):
 
 def test_sac_pink_uses_the_coloured_sequence():
     """a = tanh(mean + std xi) with xi the episode's sequence at the step index."""
-    strategy, _ = build("explore=pink", "episode_length=20", "pink_exponent=1")
-    actions, carries, actor, actor_params, _, obs = offpolicy_run(strategy, 30, first_every=20)
+    behaviour = build_behaviour("explore=pink", "episode_length=20", "pink_exponent=1")
+    actions, carries, actor, actor_params, _, obs = offpolicy_run(behaviour, 30, first_every=20)
     dist = actor.dist(actor_params, obs)
     noise, step = np.asarray(carries.noise), np.asarray(carries.step)
     for t in (0, 7, 19, 20, 29):
@@ -339,20 +348,20 @@ def test_sac_pink_uses_the_coloured_sequence():
 
 
 def test_sac_gsde_noise_held_for_n_steps():
-    strategy, _ = build("explore=gsde", "gsde_resample_every=4")
-    actions, *_ = offpolicy_run(strategy, 12, first_every=100)
+    behaviour = build_behaviour("explore=gsde", "gsde_resample_every=4")
+    actions, *_ = offpolicy_run(behaviour, 12, first_every=100)
     change = np.abs(np.diff(actions, axis=0)).max(axis=(1, 2)) > 1e-7
     assert [t for t in range(1, 12) if change[t - 1]] == [4, 8]
 
 
 def test_sac_psne_fixed_per_episode_and_sigma_rule():
-    strategy, _ = build("explore=psne", "sigma_init=0.3", "sigma_alpha=1.5", "sigma_delta=1000")
-    assert strategy.actor_layer_norm
-    _, keys, actor, actor_params, hp, obs = offpolicy_run(strategy, 12, first_every=5)
+    behaviour = build_behaviour("explore=psne", "sigma_init=0.3", "sigma_alpha=1.5", "sigma_delta=1000")
+    assert behaviour.actor_layer_norm
+    _, keys, actor, actor_params, hp, obs = offpolicy_run(behaviour, 12, first_every=5)
     keys = np.asarray(keys)
     assert [t for t in range(1, 12) if not np.array_equal(keys[t], keys[t - 1])] == [5, 10]
-    new_hp, metrics = strategy.offpolicy_adapt(jax.random.PRNGKey(3), actor, actor_params, hp, obs)
+    new_hp, metrics = behaviour.adapt(jax.random.PRNGKey(3), actor, actor_params, hp, obs)
     assert float(new_hp["sigma"]) == pytest.approx(0.45) and float(metrics["policy_distance"]) > 0
     hp_small = {**hp, "sigma_delta": jnp.asarray(1e-9)}
-    new_hp, _ = strategy.offpolicy_adapt(jax.random.PRNGKey(3), actor, actor_params, hp_small, obs)
+    new_hp, _ = behaviour.adapt(jax.random.PRNGKey(3), actor, actor_params, hp_small, obs)
     assert float(new_hp["sigma"]) == pytest.approx(0.2)

@@ -2,15 +2,26 @@
 
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from coherent_jax import sweep, train
-from coherent_jax.config import SWEEPABLE, ConfigError, parse_overrides
+from coherent_jax.config import (
+    ALGOS,
+    EXPLORES,
+    SUPPORTED_ALGOS,
+    SWEEPABLE,
+    ConfigError,
+    parse_overrides,
+    sweepable,
+)
+from coherent_jax.runs import read_metrics
 
 TINY = [
     "env=pointmass",
@@ -59,6 +70,7 @@ def test_sweep_point_equals_single_run(tmp_path):
             "metrics.jsonl",
             "params.msgpack",
             "summary.json",
+            "tb",
         ]
     single = tmp_path / "single"
     assert train.main([*TINY, "seed=1", "ent_coef=0.5", "lr=1e-3", f"run_dir={single}"]) == 0
@@ -191,3 +203,138 @@ def test_sweepable_keys_enter_only_through_state_hparams():
             )
             assert differs, (base.algo, key)
             assert jaxpr == jaxpr0, (base.algo, key)
+
+
+def test_sweepable_declarations_match_every_trainer():
+    """For every valid (algo, explore) pair, the fields' declarations name exactly the keys that reach the
+    trainer's hyperparameters: a trainer built with every sweepable key changed holds the base trainer's
+    hyperparameters with just the declared keys' leaves replaced (`sweep.point_hparams`), each of them
+    changed. So a sweep needs no trainer per point, and refuses an axis a pair does not read."""
+    import jax
+
+    from coherent_jax.agents import make_trainer
+    from coherent_jax.envs.vec_env import VecEnv
+
+    changed = {"lr": 1e-3, "gamma": 0.9, "gae_lambda": 0.8, "clip_eps": 0.3, "target_kl": 0.02}
+    changed.update({"vf_coef": 0.7, "ent_coef": 0.01, "beta": 0.5, "tau": 0.01, "temperature": 0.1})
+    changed.update({"sigma_init": 0.2, "sigma_delta": 0.2, "sigma_alpha": 1.05})
+    assert set(changed) == set(SWEEPABLE)
+    env = VecEnv("pointmass", 4, 50)
+    eval_env = VecEnv("pointmass", 2, 50)
+    small = ["policy_hidden=[4]", "value_hidden=[4]", "batch_size=8", "utd_ratio=0.25"]
+    for explore in EXPLORES:
+        for algo in SUPPORTED_ALGOS[explore]:
+            assert algo in ALGOS
+            args = [*TINY, f"algo={algo}", f"explore={explore}", *small]
+            base_hp = make_trainer(parse_overrides(args), env, eval_env).init_hparams()
+            cfg = parse_overrides([*args, *(f"{k}={v}" for k, v in changed.items())])
+            own = make_trainer(cfg, env, eval_env).init_hparams()
+            declared = {k: v for k, v in changed.items() if sweepable(k).read_by(algo, explore)}
+            derived = sweep.point_hparams(base_hp, sweep.Point(index=0, values=declared, seed=0, cfg=cfg))
+            assert jax.tree.structure(derived) == jax.tree.structure(own)
+            for a, b in zip(jax.tree.leaves(derived), jax.tree.leaves(own), strict=True):
+                assert a.dtype == b.dtype and np.array_equal(a, b), (algo, explore)
+            for key in declared:  # each declared key's leaf really moved
+                one = sweep.point_hparams(base_hp, sweep.Point(0, {key: changed[key]}, 0, cfg))
+                moved = [
+                    not np.array_equal(a, b)
+                    for a, b in zip(jax.tree.leaves(one), jax.tree.leaves(base_hp), strict=True)
+                ]
+                assert sum(moved) == 1, (algo, explore, key)
+
+
+# A2C with tiny networks: a few seconds to compile. 60 iterations per point.
+SMALL = [
+    "env=pointmass",
+    "algo=a2c",
+    "num_envs=2",
+    "num_minibatches=1",
+    "unroll_length=4",
+    "eval_episodes=2",
+    "episode_length=20",
+    "policy_hidden=[8]",
+    "value_hidden=[8]",
+    "progress=false",
+    "total_steps=480",
+    "eval_every=7",
+    "checkpoint_every=3",
+]
+
+
+def spawn_sweep(args, cwd):
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[1]) + os.pathsep + env.get("PYTHONPATH", "")
+    return subprocess.Popen(
+        [sys.executable, "-m", "coherent_jax.sweep", *args],
+        cwd=cwd,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def point_rows(out):
+    return {
+        p.name: [{k: v for k, v in r.items() if k != "time_s"} for r in read_metrics(p / "metrics.jsonl")]
+        for p in sorted(out.iterdir())
+        if p.is_dir()
+    }
+
+
+@pytest.mark.slow
+def test_sweep_killed_and_resumed_equals_an_uninterrupted_one(tmp_path):
+    """SIGKILL a 2x2 sweep mid-run, resume=SWEEP_DIR: every point's metrics and parameters equal those
+    of the same sweep run without interruption."""
+    grid = [*SMALL, "lr=[3e-4,1e-3]", "seeds=2"]
+    out = tmp_path / "sweep"
+    proc = spawn_sweep([*grid, f"run_dir={out}"], tmp_path)
+    first = out / "p000-lr=0.0003-seed=0" / "metrics.jsonl"
+    t_end = time.monotonic() + 600
+    while not (first.exists() and len(read_metrics(first)) >= 8):
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < t_end, "no progress"
+        time.sleep(0.002)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    killed_at = len(read_metrics(first))
+    assert 8 <= killed_at < 60 and not (out / "sweep.json").exists()
+
+    assert sweep.main([f"resume={out}"]) == 0
+    ref = tmp_path / "ref"
+    assert sweep.main([*grid, f"run_dir={ref}"]) == 0
+    resumed, reference = point_rows(out), point_rows(ref)
+    assert list(resumed) == list(reference) and len(reference) == 4
+    for name, rows in reference.items():
+        assert [r["iteration"] for r in rows] == list(range(1, 61)), name
+        assert resumed[name] == rows, name
+        assert (out / name / "params.msgpack").read_bytes() == (ref / name / "params.msgpack").read_bytes()
+    result = json.loads((out / "sweep.json").read_text())
+    assert result["resumed_from"] is not None and 0 < result["resumed_from"] <= killed_at
+    assert result["rows"] == json.loads((ref / "sweep.json").read_text())["rows"]
+
+
+@pytest.mark.slow
+def test_diverged_point_is_named_and_the_others_continue(tmp_path, capsys):
+    """lr=1e30 diverges at iteration 2; the sweep names that point, stops its rows, keeps the other
+    point's metrics equal to its single run, and exits with status 3."""
+    out = tmp_path / "sweep"
+    args = [*SMALL, "total_steps=80", "checkpoint_every=4"]
+    assert sweep.main([*args, "lr=[3e-4,1e30]", f"run_dir={out}"]) == 3
+    captured = capsys.readouterr()
+    bad = "p001-lr=1e+30-seed=0"
+    assert f"point {bad} diverged at iteration 2" in captured.err
+    rows = point_rows(out)
+    assert [r["iteration"] for r in rows[bad]] == [1]
+    assert [r["iteration"] for r in rows["p000-lr=0.0003-seed=0"]] == list(range(1, 11))
+    result = json.loads((out / "sweep.json").read_text())
+    assert list(result["diverged"]) == [bad]
+    summary = json.loads((out / bad / "summary.json").read_text())
+    assert summary["final_eval_return"] is None and "iteration 2" in summary["diverged"]
+    assert [r["non_finite"] for r in result["rows"]] == [0, 1]
+
+    single = tmp_path / "single"
+    assert train.main([*args, "lr=3e-4", f"run_dir={single}"]) == 0
+    assert_rows_close(
+        read_metrics(out / "p000-lr=0.0003-seed=0" / "metrics.jsonl"), read_metrics(single / "metrics.jsonl")
+    )

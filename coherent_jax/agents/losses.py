@@ -1,17 +1,27 @@
-"""Pure on-policy loss terms: GAE, the PPO-Clip and A2C policy objectives, value loss.
+"""Pure on-policy losses: GAE, the PPO-Clip and A2C policy objectives, the value loss,
+and `onpolicy_loss`, the whole loss of a minibatch of segments.
 
-All functions are elementwise over leading batch axes (time-major ``[T, ...]``
-for `gae`) and return scalars as means, so they can be checked against hand
-computations.
+The terms are elementwise over leading batch axes (time-major ``[T, ...]`` for `gae`)
+and return scalars as means, so they can be checked against hand computations.
+`onpolicy_loss` combines them in the manner of Brax's ``compute_ppo_loss(params, ...,
+data) -> (loss, metrics)``: parameters, hyperparameters and a typed minibatch in,
+the scalar to differentiate and its diagnostics out; the strategy and the value
+network are static arguments (bind them with ``functools.partial``).
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import chex
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
+
+from coherent_jax.exploration.base import OnPolicyStrategy
+
+if TYPE_CHECKING:
+    from coherent_jax.agents.onpolicy import AgentParams, HParams
 
 
 def gae(
@@ -108,3 +118,70 @@ def value_loss(values: jax.Array, targets: jax.Array) -> jax.Array:
 def standardize(x: jax.Array, eps: float = 1e-8) -> jax.Array:
     """(x - mean) / (std + eps) over all elements."""
     return (x - x.mean()) / (x.std() + eps)
+
+
+class SegmentBatch(NamedTuple):
+    """A minibatch of m whole env segments in time order, as the on-policy loss reads it.
+
+    Attributes:
+      obs: [T, m, o] normalised observations s_t.
+      action: [T, m, p] actions taken.
+      first: [T, m] bool, s_t starts an episode.
+      extras: the strategy's stored per-step noise (`ActOutput.extras`), [T, m, ...].
+      behaviour_log_prob: [T, m] log pi_old(a_t | history) of collection.
+      advantages: [T, m] GAE advantages.
+      targets: [T, m] value targets.
+      carry0: the strategy's carry at each segment's start, [m, ...].
+    """
+
+    obs: jax.Array
+    action: jax.Array
+    first: jax.Array
+    extras: Any
+    behaviour_log_prob: jax.Array
+    advantages: jax.Array
+    targets: jax.Array
+    carry0: Any
+
+
+def onpolicy_loss(
+    params: AgentParams,
+    hparams: HParams,
+    batch: SegmentBatch,
+    *,
+    strategy: OnPolicyStrategy,
+    value_net: nn.Module,
+    clipped: bool,
+    normalize_advantages: bool,
+) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """Policy + value loss of one minibatch of whole segments (Algorithms 1, 2, 4, 5).
+
+        L = L_pi + vf_coef L_V - ent_coef mean_t H_t
+
+    with L_pi the PPO-Clip objective (2.41 / 4.53) if ``clipped`` else A2C's, on the
+    strategy's log-probabilities of each stored segment (for coherent: the marginals
+    log p(a_t | a_<t, s_<=t), 4.37), and L_V the value loss.
+
+    Returns:
+      (L, metrics: policy_loss, value_loss, entropy, approx_kl, clip_fraction).
+    """
+    chex.assert_rank([batch.behaviour_log_prob, batch.advantages, batch.targets], 2)
+    seg = jax.vmap(strategy.log_prob, in_axes=(None, None, 0, 1, 1, 1, 1), out_axes=1)(
+        params.policy, hparams.explore, batch.carry0, batch.obs, batch.action, batch.first, batch.extras
+    )
+    adv = standardize(batch.advantages) if normalize_advantages else batch.advantages
+    if clipped:
+        pi_loss, info = ppo_clip_loss(seg.log_prob, batch.behaviour_log_prob, adv, hparams.clip_eps)
+    else:
+        pi_loss, info = a2c_loss(seg.log_prob, batch.behaviour_log_prob, adv)
+    v_loss = value_loss(value_net.apply(params.value, batch.obs), batch.targets)
+    entropy = jnp.mean(seg.entropy)
+    total = pi_loss + hparams.vf_coef * v_loss - hparams.ent_coef * entropy
+    metrics = {
+        "policy_loss": pi_loss,
+        "value_loss": v_loss,
+        "entropy": entropy,
+        "approx_kl": info.approx_kl,
+        "clip_fraction": info.clip_fraction,
+    }
+    return total, metrics

@@ -12,6 +12,7 @@ hidden state), treated as a constant by the loss.
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import jax
@@ -22,10 +23,10 @@ from flax import struct
 from coherent_jax.agents import losses
 from coherent_jax.config import Config
 from coherent_jax.envs.vec_env import EnvState, VecEnv
-from coherent_jax.exploration import make_exploration
-from coherent_jax.exploration.base import Exploration
+from coherent_jax.exploration import make_strategy
+from coherent_jax.exploration.base import OnPolicyStrategy
 from coherent_jax.networks import RunningStats, ValueNetwork, normalize, update_stats
-from coherent_jax.rollout import Transition, episode_metrics, evaluation_metrics, unroll
+from coherent_jax.rollout import episode_metrics, evaluation_metrics, unroll
 
 
 @struct.dataclass
@@ -75,6 +76,45 @@ class TrainState:
     env_steps: jax.Array
 
 
+def make_optimizer(cfg: Config) -> optax.GradientTransformation:
+    """Gradient clipping then Adam's scaling; the learning rate (sweepable) is applied by hand."""
+    return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.scale_by_adam(eps=1e-5))
+
+
+def init_learner(
+    strategy: OnPolicyStrategy,
+    value_net: ValueNetwork,
+    optimizer: optax.GradientTransformation,
+    k_policy: jax.Array,
+    k_value: jax.Array,
+    obs_size: int,
+) -> tuple[AgentParams, Any, RunningStats]:
+    """The leading fields of `TrainState`: (params, opt_state, obs_stats) at initialisation."""
+    params = AgentParams(
+        policy=strategy.init(k_policy, obs_size),
+        value=value_net.init(k_value, jnp.zeros((1, obs_size))),
+    )
+    return params, optimizer.init(params), RunningStats.create(obs_size)
+
+
+def learner_template(cfg: Config, obs_size: int, action_size: int) -> tuple[AgentParams, Any, RunningStats]:
+    """Shapes and dtypes of (params, opt_state, obs_stats), the leading fields of `TrainState`.
+
+    No environment, no compile: what a checkpoint's policy is read with.
+    """
+    strategy = make_strategy(cfg, action_size)
+    value_net = ValueNetwork(tuple(cfg.value_hidden), cfg.activation)
+    key = jax.random.PRNGKey(0)
+    return jax.eval_shape(
+        lambda k: init_learner(strategy, value_net, make_optimizer(cfg), k, k, obs_size), key
+    )
+
+
+def export(params: AgentParams, obs_stats: RunningStats) -> dict[str, Any]:
+    """What evaluation needs (``params.msgpack``): policy, value and observation statistics."""
+    return {"policy": params.policy, "value": params.value, "obs_stats": obs_stats}
+
+
 class OnPolicyTrainer:
     """Builds the pure functions of an A2C/PPO run from a `Config`.
 
@@ -89,11 +129,16 @@ class OnPolicyTrainer:
         self.eval_env = eval_env or VecEnv(
             cfg.env, cfg.eval_episodes, cfg.episode_length, cfg.physics, cfg.physics_threads
         )
-        self.strategy: Exploration = make_exploration(cfg, self.env.action_size)
+        self.strategy: OnPolicyStrategy = make_strategy(cfg, self.env.action_size)
         self.value_net = ValueNetwork(tuple(cfg.value_hidden), cfg.activation)
-        self.optimizer = optax.chain(
-            optax.clip_by_global_norm(cfg.max_grad_norm), optax.scale_by_adam(eps=1e-5)
+        self.loss = functools.partial(
+            losses.onpolicy_loss,
+            strategy=self.strategy,
+            value_net=self.value_net,
+            clipped=cfg.algo == "ppo",
+            normalize_advantages=cfg.normalize_advantages,
         )
+        self.optimizer = make_optimizer(cfg)
         if cfg.algo == "ppo":
             self.num_epochs, self.num_minibatches = cfg.num_epochs, cfg.num_minibatches
         else:  # A2C: one gradient step on the whole batch (Algorithm 1)
@@ -117,15 +162,13 @@ class OnPolicyTrainer:
     def init(self, key: jax.Array, hparams: HParams | None = None) -> TrainState:
         hparams = self.init_hparams() if hparams is None else hparams
         k_pol, k_val, k_env, k_carry, key = jax.random.split(key, 5)
-        obs_size = self.env.observation_size
-        params = AgentParams(
-            policy=self.strategy.init(k_pol, obs_size),
-            value=self.value_net.init(k_val, jnp.zeros((1, obs_size))),
+        params, opt_state, obs_stats = init_learner(
+            self.strategy, self.value_net, self.optimizer, k_pol, k_val, self.env.observation_size
         )
         return TrainState(
             params=params,
-            opt_state=self.optimizer.init(params),
-            obs_stats=RunningStats.create(obs_size),
+            opt_state=opt_state,
+            obs_stats=obs_stats,
             env_state=self.env.reset(k_env),
             carry=self.strategy.init_carry(k_carry, params.policy, hparams.explore, self.env.num_envs),
             hparams=hparams,
@@ -137,33 +180,6 @@ class OnPolicyTrainer:
     # ------------------------------------------------------------- iteration
     def _norm(self, stats: RunningStats, obs: jax.Array) -> jax.Array:
         return normalize(stats, obs, self.cfg.normalize_obs)
-
-    def _loss(self, params: AgentParams, hp: HParams, stats: RunningStats, batch: dict):
-        """Policy + value loss of one minibatch of whole segments, data [T, m, ...]."""
-        data: Transition = batch["data"]
-        obs = self._norm(stats, data.obs)
-        seg = jax.vmap(self.strategy.log_prob, in_axes=(None, None, 0, 1, 1, 1, 1), out_axes=1)(
-            params.policy, hp.explore, batch["carry0"], obs, data.action, data.first, data.extras
-        )
-        adv = batch["advantages"]
-        if self.cfg.normalize_advantages:
-            adv = losses.standardize(adv)
-        if self.cfg.algo == "ppo":
-            pi_loss, info = losses.ppo_clip_loss(seg.log_prob, data.log_prob, adv, hp.clip_eps)
-        else:
-            pi_loss, info = losses.a2c_loss(seg.log_prob, data.log_prob, adv)
-        values = self.value_net.apply(params.value, obs)
-        v_loss = losses.value_loss(values, batch["targets"])
-        entropy = jnp.mean(seg.entropy)
-        total = pi_loss + hp.vf_coef * v_loss - hp.ent_coef * entropy
-        aux = {
-            "policy_loss": pi_loss,
-            "value_loss": v_loss,
-            "entropy": entropy,
-            "approx_kl": info.approx_kl,
-            "clip_fraction": info.clip_fraction,
-        }
-        return total, aux
 
     def iteration(self, state: TrainState) -> tuple[TrainState, dict[str, jax.Array]]:
         """Collect, estimate advantages, update (one jit-able step)."""
@@ -177,36 +193,37 @@ class OnPolicyTrainer:
         carry0 = state.carry
         env_state, carry, data = unroll(self.env, act, state.env_state, carry0, k_roll, cfg.unroll_length)
         obs = self._norm(stats, data.obs)
-        # Strategies may score the whole segment at once (coherent: joint Gaussian).
-        behaviour_log_prob, carry = strategy.end_segment(
-            params.policy,
-            hp.explore,
-            carry0,
-            carry,
-            obs,
-            data.action,
-            data.first,
-            data.log_prob,
+        # Strategies may score the whole segment at once (coherent: joint Gaussian), and
+        # adapt their noise on its states (PSNE).
+        behaviour_log_prob, carry = strategy.score_segment(
+            params.policy, hp.explore, carry0, carry, obs, data.action, data.first, data.log_prob
         )
+        carry = strategy.adapt(params.policy, hp.explore, carry, obs)
         data = data._replace(log_prob=behaviour_log_prob)
         values = self.value_net.apply(params.value, obs)
         next_values = self.value_net.apply(params.value, self._norm(stats, data.final_obs))
         advantages, targets = losses.gae(
             data.reward, values, next_values, data.terminated, data.done, hp.gamma, hp.gae_lambda
         )
-        batch = {"data": data, "carry0": carry0, "advantages": advantages, "targets": targets}
+        batch = losses.SegmentBatch(
+            obs=obs,
+            action=data.action,
+            first=data.first,
+            extras=data.extras,
+            behaviour_log_prob=behaviour_log_prob,
+            advantages=advantages,
+            targets=targets,
+            carry0=carry0,
+        )
         n, mb = self.env.num_envs, self.num_minibatches
-        grad_fn = jax.value_and_grad(self._loss, has_aux=True)
+        grad_fn = jax.value_and_grad(self.loss, has_aux=True)
 
         def sgd_step(c, env_idx):
             params, opt_state, stopped = c
-            sub = {
-                "data": jax.tree.map(lambda x: x[:, env_idx], batch["data"]),
-                "carry0": jax.tree.map(lambda x: x[env_idx], batch["carry0"]),
-                "advantages": batch["advantages"][:, env_idx],
-                "targets": batch["targets"][:, env_idx],
-            }
-            (_, aux), grads = grad_fn(params, hp, stats, sub)
+            # Time-major fields split on their env axis (1), the carry on its own (0).
+            sub = jax.tree.map(lambda x: x[:, env_idx], batch._replace(carry0=()))
+            sub = sub._replace(carry0=jax.tree.map(lambda x: x[env_idx], batch.carry0))
+            (_, aux), grads = grad_fn(params, hp, sub)
             # Algorithm 2/5: stop the epochs once the approximate KL is too large.
             too_far = jnp.logical_and(hp.target_kl > 0, aux["approx_kl"] > 1.5 * hp.target_kl)
             stop = jnp.logical_or(stopped, too_far)
@@ -256,8 +273,8 @@ class OnPolicyTrainer:
         return new_state, metrics
 
     def export_params(self, state: TrainState) -> dict[str, Any]:
-        """What evaluation needs: policy, value and observation statistics."""
-        return {"policy": state.params.policy, "value": state.params.value, "obs_stats": state.obs_stats}
+        """What evaluation needs: policy, value and observation statistics (`export`)."""
+        return export(state.params, state.obs_stats)
 
     # ------------------------------------------------------------ evaluation
     def evaluate(self, state: TrainState, key: jax.Array) -> dict[str, jax.Array]:

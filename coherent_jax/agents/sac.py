@@ -17,7 +17,8 @@ Each gradient update (Algorithm 3, steps 9-14):
 and, with ``auto_temperature``, alpha follows the entropy target (Haarnoja et al.
 2018b): L(log alpha) = -E[log alpha (log pi(a~|s) + target_entropy)].
 
-The exploration strategy only shapes behaviour (`Exploration.offpolicy_act`): for
+The losses are `coherent_jax.agents.sac_losses`. The exploration strategy only shapes
+behaviour (`coherent_jax.exploration.base.OffPolicyBehaviour`): for
 ``explore=action`` that is SAC's own sample; for ``explore=coherent`` the actor's
 mean head follows the beta-chain around its learned weights with scale sigma, and
 sigma adapts by (4.50)-(4.51). Training of Q and actor is plain SAC either way.
@@ -25,26 +26,20 @@ sigma adapts by (4.50)-(4.51). Training of Q and actor is plain SAC either way.
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
-import chex
 import jax
 import jax.numpy as jnp
 import optax
 from flax import struct
 
+from coherent_jax.agents import sac_losses
 from coherent_jax.config import Config
 from coherent_jax.envs.vec_env import EnvState, VecEnv
-from coherent_jax.exploration import make_exploration
-from coherent_jax.exploration.base import ActOutput, Exploration
-from coherent_jax.networks import (
-    QNetwork,
-    RunningStats,
-    SquashedGaussianActor,
-    normalize,
-    squash,
-    update_stats,
-)
+from coherent_jax.exploration import make_behaviour
+from coherent_jax.exploration.base import ActOutput, OffPolicyBehaviour
+from coherent_jax.networks import QNetwork, RunningStats, SquashedGaussianActor, normalize, update_stats
 from coherent_jax.replay import Experience, ReplayBuffer, replay_add, replay_init, replay_sample
 from coherent_jax.rollout import episode_metrics, evaluation_metrics, unroll
 
@@ -106,23 +101,56 @@ def polyak_update(target: Any, online: Any, tau: jax.Array) -> Any:
     return jax.tree.map(lambda t, o: (1.0 - tau) * t + tau * o, target, online)
 
 
-def soft_target(
-    reward: jax.Array,
-    terminated: jax.Array,
-    next_q: jax.Array,
-    next_log_prob: jax.Array,
-    gamma: jax.Array,
-    alpha: jax.Array,
-) -> jax.Array:
-    """y = r + gamma (1 - d) (min_i Q_targ,i(s', a') - alpha log pi(a'|s')) (2.47).
+def make_actor(cfg: Config, action_size: int, behaviour: OffPolicyBehaviour) -> SquashedGaussianActor:
+    """SAC's actor; LayerNorm between its layers if the behaviour asks for it (PSNE)."""
+    return SquashedGaussianActor(
+        action_size, cfg.policy_hidden, cfg.activation, layer_norm=behaviour.actor_layer_norm
+    )
 
-    Args:
-      reward, terminated, next_log_prob: [B].
-      next_q: [2, B] target Q-values of the twin critics at (s', a').
+
+def init_learner(
+    actor: SquashedGaussianActor,
+    critic: QNetwork,
+    adam: optax.GradientTransformation,
+    k_actor: jax.Array,
+    k_critic: jax.Array,
+    obs_size: int,
+    action_size: int,
+    temperature: jax.Array,
+) -> tuple[SACParams, SACOptState, RunningStats]:
+    """The leading fields of `SACTrainState`: (params, opt_state, obs_stats) at initialisation."""
+    actor_params = actor.init(k_actor, obs_size)
+    dummy_obs, dummy_act = jnp.zeros((1, obs_size)), jnp.zeros((1, action_size))
+    critic_params = jax.vmap(lambda k: critic.init(k, dummy_obs, dummy_act))(jax.random.split(k_critic))
+    params = SACParams(
+        actor=actor_params, critic=critic_params, target_critic=critic_params, log_alpha=jnp.log(temperature)
+    )
+    opt_state = SACOptState(
+        actor=adam.init(actor_params), critic=adam.init(critic_params), alpha=adam.init(params.log_alpha)
+    )
+    return params, opt_state, RunningStats.create(obs_size)
+
+
+def learner_template(
+    cfg: Config, obs_size: int, action_size: int
+) -> tuple[SACParams, SACOptState, RunningStats]:
+    """Shapes and dtypes of (params, opt_state, obs_stats), the leading fields of `SACTrainState`.
+
+    No environment, no replay buffer, no compile: what a checkpoint's actor is read with.
     """
-    chex.assert_rank([reward, terminated, next_log_prob, next_q], [1, 1, 1, 2])
-    soft_value = jnp.min(next_q, axis=0) - alpha * next_log_prob
-    return reward + gamma * (1.0 - terminated) * soft_value
+    actor = make_actor(cfg, action_size, make_behaviour(cfg, action_size))
+    critic = QNetwork(tuple(cfg.value_hidden), cfg.activation)
+    return jax.eval_shape(
+        lambda k: init_learner(
+            actor, critic, optax.scale_by_adam(), k, k, obs_size, action_size, jnp.ones((), jnp.float32)
+        ),
+        jax.random.PRNGKey(0),
+    )
+
+
+def export(params: SACParams, obs_stats: RunningStats) -> dict[str, Any]:
+    """What evaluation needs (``params.msgpack``): actor, critics and observation statistics."""
+    return {"actor": params.actor, "critic": params.critic, "obs_stats": obs_stats}
 
 
 class SACTrainer:
@@ -142,11 +170,13 @@ class SACTrainer:
             cfg.env, cfg.eval_episodes, cfg.episode_length, cfg.physics, cfg.physics_threads
         )
         self.action_size = self.env.action_size
-        self.strategy: Exploration = make_exploration(cfg, self.action_size)
-        self.actor = SquashedGaussianActor(
-            self.action_size, cfg.policy_hidden, cfg.activation, layer_norm=self.strategy.actor_layer_norm
-        )
+        self.behaviour: OffPolicyBehaviour = make_behaviour(cfg, self.action_size)
+        self.actor = make_actor(cfg, self.action_size, self.behaviour)
         self.critic = QNetwork(tuple(cfg.value_hidden), cfg.activation)
+        nets = {"actor": self.actor, "critic": self.critic}
+        self.critic_target = functools.partial(sac_losses.critic_target, **nets)
+        self.critic_loss = functools.partial(sac_losses.critic_loss, critic=self.critic)
+        self.actor_loss = functools.partial(sac_losses.actor_loss, **nets)
         self.adam = optax.scale_by_adam()
         self.num_updates = cfg.updates_per_iteration
         self.batch_size = cfg.batch_size
@@ -162,31 +192,22 @@ class SACTrainer:
             tau=f(c.tau),
             temperature=f(c.temperature),
             target_entropy=f(target_entropy),
-            explore=self.strategy.offpolicy_init_hparams(),
+            explore=self.behaviour.init_hparams(),
         )
 
     def init(self, key: jax.Array, hparams: SACHParams | None = None) -> SACTrainState:
         hp = self.init_hparams() if hparams is None else hparams
         k_actor, k_critic, k_env, k_carry, key = jax.random.split(key, 5)
         obs_size, p = self.env.observation_size, self.action_size
-        actor = self.actor.init(k_actor, obs_size)
-        dummy_obs, dummy_act = jnp.zeros((1, obs_size)), jnp.zeros((1, p))
-        critic = jax.vmap(lambda k: self.critic.init(k, dummy_obs, dummy_act))(jax.random.split(k_critic))
-        params = SACParams(
-            actor=actor, critic=critic, target_critic=critic, log_alpha=jnp.log(hp.temperature)
+        params, opt_state, obs_stats = init_learner(
+            self.actor, self.critic, self.adam, k_actor, k_critic, obs_size, p, hp.temperature
         )
         return SACTrainState(
             params=params,
-            opt_state=SACOptState(
-                actor=self.adam.init(actor),
-                critic=self.adam.init(critic),
-                alpha=self.adam.init(params.log_alpha),
-            ),
-            obs_stats=RunningStats.create(obs_size),
+            opt_state=opt_state,
+            obs_stats=obs_stats,
             env_state=self.env.reset(k_env),
-            carry=self.strategy.offpolicy_init_carry(
-                k_carry, self.actor, actor, hp.explore, self.env.num_envs
-            ),
+            carry=self.behaviour.init_carry(k_carry, self.actor, params.actor, hp.explore, self.env.num_envs),
             buffer=replay_init(self.cfg.buffer_size, obs_size, p),
             hparams=hp,
             key=key,
@@ -197,10 +218,6 @@ class SACTrainer:
     # --------------------------------------------------------------- helpers
     def _norm(self, stats: RunningStats, obs: jax.Array) -> jax.Array:
         return normalize(stats, obs, self.cfg.normalize_obs)
-
-    def q_values(self, critic_params: Any, obs: jax.Array, action: jax.Array) -> jax.Array:
-        """Both critics' Q(s, a), [2, B]."""
-        return jax.vmap(self.critic.apply, in_axes=(0, None, None))(critic_params, obs, action)
 
     def _apply_adam(self, grads, opt_state, params, lr):
         updates, opt_state = self.adam.update(grads, opt_state, params)
@@ -216,32 +233,19 @@ class SACTrainer:
         """
         k_next, k_pi = jax.random.split(key)
         alpha = jnp.exp(params.log_alpha)
-
-        next_action, next_log_prob = squash(k_next, self.actor.dist(params.actor, batch.next_obs))
-        next_q = self.q_values(params.target_critic, batch.next_obs, next_action)
-        y = jax.lax.stop_gradient(
-            soft_target(batch.reward, batch.terminated, next_q, next_log_prob, hp.gamma, alpha)
-        )
-
-        def critic_loss(critic):  # (2.46), summed over the twin critics
-            q = self.q_values(critic, batch.obs, batch.action)
-            return jnp.sum(jnp.mean(jnp.square(q - y[None]), axis=1)), q
-
-        (c_loss, q), c_grads = jax.value_and_grad(critic_loss, has_aux=True)(params.critic)
+        y = self.critic_target(params.actor, params.target_critic, batch, k_next, hp.gamma, alpha)
+        (c_loss, q), c_grads = jax.value_and_grad(self.critic_loss, has_aux=True)(params.critic, batch, y)
         critic, opt_critic = self._apply_adam(c_grads, opt.critic, params.critic, hp.lr)
 
-        def actor_loss(actor):  # -J(theta) of (2.51), with the updated critics
-            action, log_prob = squash(k_pi, self.actor.dist(actor, batch.obs))
-            q_pi = jnp.min(self.q_values(critic, batch.obs, action), axis=0)
-            return jnp.mean(alpha * log_prob - q_pi), log_prob
-
-        (a_loss, log_prob), a_grads = jax.value_and_grad(actor_loss, has_aux=True)(params.actor)
+        # The actor's objective uses the updated critics (Algorithm 3, steps 12-13).
+        (a_loss, log_prob), a_grads = jax.value_and_grad(self.actor_loss, has_aux=True)(
+            params.actor, critic, batch, k_pi, alpha
+        )
         actor, opt_actor = self._apply_adam(a_grads, opt.actor, params.actor, hp.lr)
 
         log_alpha, opt_alpha = params.log_alpha, opt.alpha
         if self.cfg.auto_temperature:
-            gap = jax.lax.stop_gradient(log_prob + hp.target_entropy)
-            alpha_grad = jax.grad(lambda la: -jnp.mean(la * gap))(params.log_alpha)
+            alpha_grad = jax.grad(sac_losses.temperature_loss)(params.log_alpha, log_prob, hp.target_entropy)
             log_alpha, opt_alpha = self._apply_adam(alpha_grad, opt.alpha, params.log_alpha, hp.lr)
 
         new_params = SACParams(
@@ -273,7 +277,7 @@ class SACTrainer:
 
         def act(k, carry, obs, first):
             k_act, k_uniform = jax.random.split(k)
-            action, carry = self.strategy.offpolicy_act(
+            action, carry = self.behaviour.act(
                 k_act, self.actor, actor_params, hp.explore, carry, self._norm(stats, obs), first
             )
             uniform = jax.random.uniform(k_uniform, (n, p), minval=-1.0, maxval=1.0)
@@ -314,7 +318,7 @@ class SACTrainer:
                 one_update, (params, opt), jax.random.split(k_updates, self.num_updates)
             )
             m = jax.tree.map(jnp.mean, m)
-            explore, adapt_m = self.strategy.offpolicy_adapt(
+            explore, adapt_m = self.behaviour.adapt(
                 k_adapt, self.actor, params.actor, explore, sample(k_batch).obs
             )
             return params, opt, explore, m, adapt_m
@@ -353,8 +357,8 @@ class SACTrainer:
         return new_state, metrics
 
     def export_params(self, state: SACTrainState) -> dict[str, Any]:
-        """What evaluation needs: actor, critics and observation statistics."""
-        return {"actor": state.params.actor, "critic": state.params.critic, "obs_stats": state.obs_stats}
+        """What evaluation needs: actor, critics and observation statistics (`export`)."""
+        return export(state.params, state.obs_stats)
 
     # ------------------------------------------------------------ evaluation
     def evaluate(self, state: SACTrainState, key: jax.Array) -> dict[str, jax.Array]:

@@ -1,82 +1,69 @@
-"""Exploration strategies: one module per strategy, one interface (`base.Exploration`)."""
+"""Exploration strategies: one module per strategy, two small interfaces (`base`).
+
+`make_strategy` builds the on-policy strategy (A2C/PPO) and `make_behaviour` the
+off-policy behaviour (SAC) named by ``cfg.explore``. Each class reads its own settings
+(``from_config``), so adding a strategy is a module and a line in each table below,
+never a change to an algorithm.
+"""
 
 from __future__ import annotations
 
-from coherent_jax.exploration.base import ActOutput, Exploration, SegmentLogProb
+import importlib
+
+from coherent_jax.exploration.base import ActOutput, OffPolicyBehaviour, OnPolicyStrategy, SegmentLogProb
+
+# explore name -> "module:Class", imported on first use.
+_ON_POLICY = {
+    "action": "action:ActionNoise",
+    "coherent": "coherent:CoherentExploration",
+    "coherent-mc": "coherent_mc:CoherentMC",
+    "coherent-all": "coherent_mc:CoherentAllLayers",
+    "noisynet": "noisynet:NoisyNet",
+    "psne": "psne:ParameterNoise",
+    "gsde": "gsde:GeneralizedSDE",
+    "pink": "pink:PinkNoise",
+}
+_OFF_POLICY = {
+    "action": "base:OffPolicyBehaviour",
+    "coherent": "coherent:CoherentBehaviour",
+    "psne": "psne:PsneBehaviour",
+    "gsde": "gsde:GsdeBehaviour",
+    "pink": "pink:PinkBehaviour",
+}
 
 
-def make_exploration(cfg, action_size: int) -> Exploration:
-    """The strategy named by ``cfg.explore``, built for ``action_size`` actions."""
-    if cfg.explore == "action":
-        from coherent_jax.exploration.action import ActionNoise
+def _load(table: dict[str, str], name: str, kind: str):
+    if name not in table:
+        raise ValueError(f"unknown {kind} explore {name!r}; valid: {', '.join(sorted(table))}")
+    module, cls = table[name].split(":")
+    return getattr(importlib.import_module(f"coherent_jax.exploration.{module}"), cls)
 
-        return ActionNoise(action_size, cfg.policy_hidden, cfg.activation, cfg.init_std)
+
+def strategy_name(cfg) -> str:
+    """The on-policy strategy of ``cfg``: ``cfg.explore``, or a coherent ablation (thesis §5)."""
     if cfg.explore == "coherent" and cfg.coherent.layers == "all":
-        from coherent_jax.exploration.coherent_mc import CoherentAllLayers
-
-        return CoherentAllLayers(
-            action_size,
-            cfg.policy_hidden,
-            cfg.activation,
-            beta=cfg.beta,
-            w_std_init=cfg.w_std_init,
-            action_std=cfg.action_std,
-            learn_action_std=cfg.learn_action_std,
-        )
-    if cfg.explore == "coherent":
-        from coherent_jax.exploration.coherent import CoherentExploration
-        from coherent_jax.exploration.coherent_mc import CoherentMC
-
-        cls = CoherentMC if cfg.coherent.integration == "mc" else CoherentExploration
-        return cls(
-            action_size,
-            cfg.policy_hidden,
-            cfg.activation,
-            beta=cfg.beta,
-            w_std_init=cfg.w_std_init,
-            action_std=cfg.action_std,
-            learn_action_std=cfg.learn_action_std,
-            remat=cfg.remat,
-            inference=cfg.coherent_inference,
-            gradient=cfg.coherent.gradient,
-            sigma_init=cfg.sigma_init,
-            sigma_delta=cfg.sigma_delta,
-            sigma_alpha=cfg.sigma_alpha,
-        )
-    if cfg.explore == "noisynet":
-        from coherent_jax.exploration.noisynet import NoisyNet
-
-        return NoisyNet(action_size, cfg.policy_hidden, cfg.activation, cfg.init_std, cfg.noisynet_sigma0)
-    if cfg.explore == "psne":
-        from coherent_jax.exploration.psne import ParameterNoise
-
-        return ParameterNoise(
-            action_size,
-            cfg.policy_hidden,
-            cfg.activation,
-            cfg.init_std,
-            sigma_init=cfg.sigma_init,
-            sigma_delta=cfg.sigma_delta,
-            sigma_alpha=cfg.sigma_alpha,
-        )
-    if cfg.explore == "gsde":
-        from coherent_jax.exploration.gsde import GeneralizedSDE
-
-        return GeneralizedSDE(
-            action_size, cfg.policy_hidden, cfg.activation, cfg.init_std, cfg.gsde_resample_every
-        )
-    if cfg.explore == "pink":
-        from coherent_jax.exploration.pink import PinkNoise
-
-        return PinkNoise(
-            action_size,
-            cfg.policy_hidden,
-            cfg.activation,
-            cfg.init_std,
-            cfg.pink_exponent,
-            cfg.episode_length,
-        )
-    raise ValueError(f"unknown explore {cfg.explore!r}")
+        return "coherent-all"
+    if cfg.explore == "coherent" and cfg.coherent.integration == "mc":
+        return "coherent-mc"
+    return cfg.explore
 
 
-__all__ = ["ActOutput", "Exploration", "SegmentLogProb", "make_exploration"]
+def make_strategy(cfg, action_size: int) -> OnPolicyStrategy:
+    """The on-policy strategy named by ``cfg``, built for ``action_size`` actions."""
+    return _load(_ON_POLICY, strategy_name(cfg), "on-policy").from_config(cfg, action_size)
+
+
+def make_behaviour(cfg, action_size: int) -> OffPolicyBehaviour:
+    """The off-policy (SAC) behaviour named by ``cfg.explore``."""
+    return _load(_OFF_POLICY, cfg.explore, "off-policy").from_config(cfg, action_size)
+
+
+__all__ = [
+    "ActOutput",
+    "OffPolicyBehaviour",
+    "OnPolicyStrategy",
+    "SegmentLogProb",
+    "make_behaviour",
+    "make_strategy",
+    "strategy_name",
+]

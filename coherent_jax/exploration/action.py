@@ -11,12 +11,11 @@ from __future__ import annotations
 import math
 
 import chex
-import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from coherent_jax.exploration.base import ActOutput, Exploration, SegmentLogProb
-from coherent_jax.networks import MLP
+from coherent_jax.exploration.base import ActOutput, OnPolicyStrategy, SegmentLogProb
+from coherent_jax.networks import MeanHead
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -32,28 +31,22 @@ def gaussian_entropy(log_std: jax.Array) -> jax.Array:
     return jnp.sum(log_std + 0.5 * (_LOG_2PI + 1.0), axis=-1)
 
 
-class _MeanHead(nn.Module):
-    """Trunk followed by the linear last layer (small init, as in CleanRL/SB3)."""
-
-    hidden: tuple[int, ...]
-    activation: str
-    action_size: int
-
-    @nn.compact
-    def __call__(self, obs: jax.Array) -> jax.Array:
-        x = MLP(self.hidden, self.activation)(obs)
-        return nn.Dense(self.action_size, kernel_init=nn.initializers.orthogonal(0.01))(x)
-
-
-class ActionNoise(Exploration):
+class ActionNoise(OnPolicyStrategy):
     """Diagonal Gaussian policy with state-independent learned log-std."""
 
     name = "action"
 
     def __init__(self, action_size: int, hidden, activation: str, init_std: float):
         self.action_size = int(action_size)
-        self.net = _MeanHead(tuple(hidden), activation, self.action_size)
+        self.net = MeanHead(tuple(hidden), activation, self.action_size)
         self.init_std = float(init_std)
+
+    @classmethod
+    def from_config(cls, cfg, action_size: int):
+        return cls(action_size, cfg.policy_hidden, cfg.activation, cfg.init_std)
+
+    def _mean(self, params, obs):
+        return self.net.apply(params["mean"], obs)[1]
 
     def init(self, key, obs_size):
         return {
@@ -63,19 +56,19 @@ class ActionNoise(Exploration):
 
     def act(self, key, params, hparams, carry, obs, first):
         chex.assert_rank(obs, 2)
-        mean = self.net.apply(params["mean"], obs)
+        mean = self._mean(params, obs)
         log_std = jnp.broadcast_to(params["log_std"], mean.shape)
         action = mean + jnp.exp(log_std) * jax.random.normal(key, mean.shape, mean.dtype)
         return ActOutput(action, gaussian_log_prob(action, mean, log_std), carry)
 
     def log_prob(self, params, hparams, carry0, obs, actions, first, extras=()):
         chex.assert_rank([obs, actions], 2)
-        mean = self.net.apply(params["mean"], obs)
+        mean = self._mean(params, obs)
         log_std = jnp.broadcast_to(params["log_std"], mean.shape)
         return SegmentLogProb(gaussian_log_prob(actions, mean, log_std), gaussian_entropy(log_std))
 
     def mean_action(self, params, obs):
-        return self.net.apply(params["mean"], obs)
+        return self._mean(params, obs)
 
     def metrics(self, params, hparams):
         return {"action_std": jnp.mean(jnp.exp(params["log_std"]))}

@@ -1,22 +1,22 @@
-"""The interface every exploration strategy implements.
+"""The two interfaces of exploration: an on-policy strategy and an off-policy behaviour.
 
-A strategy owns the stochastic part of the policy: given the policy trunk
-(`coherent_jax.networks.MLP`), it defines the last layer, how actions are drawn
-during collection (carrying any per-env noise or belief state explicitly, as
-rlax's Ornstein-Uhlenbeck noise does), the log-probability of a stored segment
-that on-policy losses differentiate, and the deterministic action used for
-evaluation. Algorithms only call these methods, so adding a strategy never
-touches an algorithm.
+An on-policy strategy (`OnPolicyStrategy`, for A2C/PPO) owns the stochastic part of the
+policy: given the policy trunk (`coherent_jax.networks.MLP`), it defines the last
+layer, how actions are drawn during collection (carrying any per-env noise or belief
+state explicitly, as rlax's Ornstein-Uhlenbeck noise does), the log-probability of a
+stored segment that the losses differentiate, and the deterministic action used for
+evaluation.
 
+An off-policy behaviour (`OffPolicyBehaviour`, for SAC) only shapes how the actor
+(`coherent_jax.networks.SquashedGaussianActor`, trained as plain SAC) is perturbed
+while collecting, carrying per-env state, and how a noise scale adapts after each
+iteration (thesis §4.3). The base class is plain SAC: a = tanh(mean + std xi), nothing
+adapts.
+
+Algorithms only call these members, so adding a strategy never touches an algorithm.
 Conventions: ``obs`` is already normalised; ``first`` marks the first step of an
-episode; collection methods work on a batch of envs ``[n, ...]``; `log_prob`
-works on ONE env's time segment ``[T, ...]`` (the caller vmaps over envs).
-
-Off-policy algorithms (SAC) own their actor (`coherent_jax.networks.SquashedGaussianActor`)
-and train it as usual; a strategy only shapes *behaviour* there, through the
-``offpolicy_*`` hooks: how a collection step perturbs the actor (carrying per-env
-state), and how a noise scale adapts after each iteration (thesis §4.3). The
-defaults are plain SAC: sample a = tanh(mean + std xi) and adapt nothing.
+episode; collection members work on a batch of envs ``[n, ...]``; `log_prob` works on
+ONE env's time segment ``[T, ...]`` (the caller vmaps over envs).
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ class ActOutput(NamedTuple):
     Attributes:
       action: [n, p] the action taken, before clipping to the action bounds.
       log_prob: [n] log-probability of ``action`` under the behaviour policy, as
-        the on-policy ratio needs it (for coherent: the filter's marginal).
+        the on-policy ratio needs it (NaN where `score_segment` computes it instead).
       carry: per-env strategy state after this step.
       extras: per-env noise that `log_prob` needs again (leading axis n; the
         rollout stores it per step as ``Transition.extras``), e.g. NoisyNet's noise
@@ -58,10 +58,15 @@ class SegmentLogProb(NamedTuple):
     entropy: jax.Array
 
 
-class Exploration(abc.ABC):
-    """A stochastic policy head with its exploration process."""
+class OnPolicyStrategy(abc.ABC):
+    """A stochastic policy head with its exploration process (A2C/PPO)."""
 
     name: str = "base"
+
+    @classmethod
+    @abc.abstractmethod
+    def from_config(cls, cfg: Any, action_size: int) -> OnPolicyStrategy:
+        """The strategy with the settings ``cfg`` gives it, for ``action_size`` actions."""
 
     @abc.abstractmethod
     def init(self, key: jax.Array, obs_size: int) -> Params:
@@ -88,6 +93,37 @@ class Exploration(abc.ABC):
     ) -> ActOutput:
         """Draws actions for a batch of envs, obs [n, o], first [n]."""
 
+    def score_segment(
+        self,
+        params: Params,
+        hparams: Any,
+        carry0: Carry,
+        carry: Carry,
+        obs: jax.Array,
+        actions: jax.Array,
+        first: jax.Array,
+        log_prob: jax.Array,
+    ) -> tuple[jax.Array, Carry]:
+        """Behaviour log-probabilities of a whole collected segment (time-major [T, n, ...]).
+
+        For strategies that score a segment at once rather than step by step in `act`
+        (coherent's joint Gaussian); they also finish the carry the next segment starts
+        from. ``carry0`` / ``carry`` are the carries at the segment's start / end,
+        ``log_prob`` [T, n] what `act` returned. Returns (log_prob [T, n], carry).
+        Default: both unchanged.
+        """
+        del params, hparams, carry0, obs, actions, first
+        return log_prob, carry
+
+    def adapt(self, params: Params, hparams: Any, carry: Carry, obs: jax.Array) -> Carry:
+        """Adapts the exploration noise after a segment, on its states obs [T, n, o].
+
+        For strategies whose noise scale is not learned (PSNE: eq. 4.51). Returns the
+        carry the next segment starts from. Default: unchanged.
+        """
+        del params, hparams, obs
+        return carry
+
     @abc.abstractmethod
     def log_prob(
         self,
@@ -112,26 +148,6 @@ class Exploration(abc.ABC):
         it when that is smaller (psne), and the algorithms stay strategy-agnostic.
         """
 
-    def end_segment(
-        self,
-        params: Params,
-        hparams: Any,
-        carry0: Carry,
-        carry: Carry,
-        data_obs: jax.Array,
-        data_actions: jax.Array,
-        data_first: jax.Array,
-        data_log_prob: jax.Array,
-    ) -> tuple[jax.Array, Carry]:
-        """Called once per collected segment (time-major [T, n, ...], obs normalised).
-
-        May compute the behaviour log-probabilities of the whole segment at once
-        instead of step by step in `act`, and finish the carry that the next segment
-        starts from. Returns (log_prob [T, n], carry). Default: both unchanged.
-        """
-        del params, hparams, carry0, data_obs, data_actions, data_first
-        return data_log_prob, carry
-
     @abc.abstractmethod
     def mean_action(self, params: Params, obs: jax.Array) -> jax.Array:
         """The deterministic (evaluation) action, obs [..., o] -> [..., p]."""
@@ -141,15 +157,25 @@ class Exploration(abc.ABC):
         del params, hparams
         return {}
 
-    # ------------------------------------------------------ off-policy (SAC)
-    #: the off-policy actor should put LayerNorm between its layers (PSNE).
+
+class OffPolicyBehaviour:
+    """How SAC's actor explores while collecting; this base class is plain SAC."""
+
+    name: str = "action"
+    #: the actor should put LayerNorm between its layers (PSNE).
     actor_layer_norm: bool = False
 
-    def offpolicy_init_hparams(self) -> dict[str, jax.Array]:
-        """Sweepable scalars of the off-policy behaviour (e.g. beta and sigma)."""
+    @classmethod
+    def from_config(cls, cfg: Any, action_size: int) -> OffPolicyBehaviour:
+        """The behaviour with the settings ``cfg`` gives it (plain SAC has none)."""
+        del cfg, action_size
+        return cls()
+
+    def init_hparams(self) -> dict[str, jax.Array]:
+        """Sweepable scalars of the behaviour (e.g. beta and sigma)."""
         return {}
 
-    def offpolicy_init_carry(
+    def init_carry(
         self,
         key: jax.Array,
         actor: SquashedGaussianActor,
@@ -161,7 +187,7 @@ class Exploration(abc.ABC):
         del key, actor, actor_params, hparams, num_envs
         return ()
 
-    def offpolicy_act(
+    def act(
         self,
         key: jax.Array,
         actor: SquashedGaussianActor,
@@ -179,7 +205,7 @@ class Exploration(abc.ABC):
         action, _ = squash(key, actor.dist(actor_params, obs))
         return action, carry
 
-    def offpolicy_adapt(
+    def adapt(
         self,
         key: jax.Array,
         actor: SquashedGaussianActor,

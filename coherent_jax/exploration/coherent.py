@@ -35,8 +35,9 @@ import jax
 import jax.numpy as jnp
 
 from coherent_jax.exploration.adaptive import adapt_sigma, policy_distance
-from coherent_jax.exploration.base import ActOutput, Exploration, SegmentLogProb
-from coherent_jax.networks import MLP, squash
+from coherent_jax.exploration.base import ActOutput, OffPolicyBehaviour, OnPolicyStrategy, SegmentLogProb
+from coherent_jax.exploration.chain import chain_step, innovation_var
+from coherent_jax.networks import MLP, augment, squash
 
 _LOG_2PI = math.log(2.0 * math.pi)
 #: largest w_std / action_std per action dimension that the strategy runs with (see
@@ -58,28 +59,6 @@ class Belief(NamedTuple):
 
     mean: chex.Array
     cov: chex.Array
-
-
-def _augment(x: chex.Array) -> chex.Array:
-    """xh = [x; 1] along the last axis."""
-    ones = jnp.ones(x.shape[:-1] + (1,), dtype=x.dtype)
-    return jnp.concatenate([x, ones], axis=-1)
-
-
-def _innovation_var(beta: chex.Array) -> chex.Array:
-    """2 beta - beta^2 = beta (2 - beta), clipped at 0 for beta a rounding below 0.
-
-    ``where`` rather than ``maximum`` keeps the derivative 2 - 2 beta at beta = 0.
-    """
-    v = beta * (2.0 - beta)
-    return jnp.where(v >= 0.0, v, jnp.zeros_like(v))
-
-
-def _innovation_std(beta: chex.Array) -> chex.Array:
-    """sqrt(2 beta - beta^2) with a finite (zero) gradient at beta = 0."""
-    v = _innovation_var(beta)
-    positive = v > 0.0
-    return jnp.where(positive, jnp.sqrt(jnp.where(positive, v, jnp.ones_like(v))), 0.0)
 
 
 def _check_params(mu: chex.Array, w_std: chex.Array, action_std: chex.Array) -> tuple[int, int]:
@@ -179,7 +158,7 @@ def filter_step_with_variance(
     mean = jnp.where(first, prior.mean, belief.mean)
     cov = jnp.where(first, prior.cov, belief.cov)
 
-    xh = _augment(x)
+    xh = augment(x)
     noise_var = jnp.square(action_std)
     cov_xh = cov @ xh  # [p, n], P_i xh
     pred_mean = mean @ xh  # [p]
@@ -202,7 +181,7 @@ def filter_step_with_variance(
 
     decay = 1.0 - beta
     new_mean = decay * post_mean + beta * mu
-    new_cov = jnp.square(decay) * post_cov + _innovation_var(beta) * prior.cov
+    new_cov = jnp.square(decay) * post_cov + innovation_var(beta) * prior.cov
     return Belief(mean=new_mean, cov=new_cov), logp, pred_var
 
 
@@ -339,7 +318,7 @@ def log_marginals(
 
 
 def sample_initial_weights(key: chex.PRNGKey, mu: chex.Array, w_std: chex.Array) -> chex.Array:
-    """w_0 = mu + w_std * eps, eps ~ N(0, I) (4.5).
+    """w_0 = mu + w_std * eps, eps ~ N(0, I) (4.5): `step_weights` at an episode start.
 
     Args:
       key: PRNG key.
@@ -351,9 +330,7 @@ def sample_initial_weights(key: chex.PRNGKey, mu: chex.Array, w_std: chex.Array)
     """
     chex.assert_rank([mu, w_std], 2)
     chex.assert_equal_shape([mu, w_std])
-    dtype = jnp.result_type(mu, w_std)
-    eps = jax.random.normal(key, mu.shape, dtype=dtype)
-    return mu + w_std * eps
+    return chain_step(key, mu, True, 0.0, mean=mu, std=w_std)
 
 
 def sample_next_weights(
@@ -381,11 +358,7 @@ def sample_next_weights(
     """
     chex.assert_rank([w_prev, mu, w_std], 2)
     chex.assert_equal_shape([w_prev, mu, w_std])
-    chex.assert_rank(beta, 0)
-    dtype = jnp.result_type(w_prev, mu, w_std)
-    beta = jnp.asarray(beta).astype(dtype)
-    eps = jax.random.normal(key, mu.shape, dtype=dtype)
-    return (1.0 - beta) * w_prev + beta * mu + _innovation_std(beta) * w_std * eps
+    return chain_step(key, w_prev, False, beta, mean=mu, std=w_std)
 
 
 def step_weights(
@@ -413,9 +386,8 @@ def step_weights(
       w_t [p, q+1].
     """
     chex.assert_rank(first, 0)
-    initial = sample_initial_weights(key, mu, w_std)
-    following = sample_next_weights(key, w_prev, mu, w_std, beta)
-    return jnp.where(first, initial, following)
+    chex.assert_rank([w_prev, mu, w_std], 2)
+    return chain_step(key, w_prev, first, beta, mean=mu, std=w_std)
 
 
 def sample_action(key: chex.PRNGKey, w: chex.Array, x: chex.Array, action_std: chex.Array) -> chex.Array:
@@ -434,7 +406,7 @@ def sample_action(key: chex.PRNGKey, w: chex.Array, x: chex.Array, action_std: c
     p, n = w.shape
     chex.assert_shape(x, (n - 1,))
     chex.assert_shape(action_std, (p,))
-    mean = w @ _augment(x)
+    mean = w @ augment(x)
     eps = jax.random.normal(key, (p,), dtype=jnp.result_type(mean, action_std))
     return mean + action_std * eps
 
@@ -493,7 +465,7 @@ def segment_marginals_joint(
     m0, p0 = belief0.mean, belief0.cov
     dtype = x.dtype
 
-    xh = _augment(x)  # [T, n]
+    xh = augment(x)  # [T, n]
     var_w = jnp.square(w_std)  # [p, n]
     decay = 1.0 - beta
     # (1-beta)^k for k = 0..T, gathered below: a power per element of the [T, T]
@@ -585,7 +557,7 @@ def _to_standard(belief: Belief, mu: chex.Array, w_std: chex.Array) -> tuple[che
     return (belief.mean - mu) / w_std, belief.cov / (w_std[:, :, None] * w_std[:, None, :])
 
 
-class CoherentExploration(Exploration):
+class CoherentExploration(OnPolicyStrategy):
     """Deep Coherent Exploration of the policy's last layer (thesis §4.1-4.2).
 
     Parameters: the trunk f_theta, the last-layer mean ``mu`` [p, q+1] and per-weight
@@ -595,7 +567,7 @@ class CoherentExploration(Exploration):
 
     Collection samples w_t from the chain and a_t ~ N(w_t xh_t, action_std^2)
     (Algorithm 5, steps 4-8). The behaviour log-probabilities are the analytic
-    marginals (steps 12-14): with ``inference="joint"`` (default) `end_segment`
+    marginals (steps 12-14): with ``inference="joint"`` (default) `score_segment`
     scores the whole segment at once from its joint Gaussian and stores the belief
     that starts the next one; with ``"filter"`` `act` runs the filter step by step.
     `log_prob` recomputes the marginals of a stored segment under the current
@@ -632,9 +604,6 @@ class CoherentExploration(Exploration):
         remat: bool = False,
         inference: str = "joint",
         gradient: str = "exact",
-        sigma_init: float = 0.1,
-        sigma_delta: float = 0.1,
-        sigma_alpha: float = 1.01,
     ):
         if inference not in ("joint", "filter"):
             raise ValueError(f"inference must be 'joint' or 'filter', got {inference!r}")
@@ -650,9 +619,21 @@ class CoherentExploration(Exploration):
         self.remat = bool(remat)
         self.inference = inference
         self.gradient = gradient
-        self.sigma_init = float(sigma_init)
-        self.sigma_delta = float(sigma_delta)
-        self.sigma_alpha = float(sigma_alpha)
+
+    @classmethod
+    def from_config(cls, cfg, action_size: int):
+        return cls(
+            action_size,
+            cfg.policy_hidden,
+            cfg.activation,
+            beta=cfg.beta,
+            w_std_init=cfg.w_std_init,
+            action_std=cfg.action_std,
+            learn_action_std=cfg.learn_action_std,
+            remat=cfg.remat,
+            inference=cfg.coherent_inference,
+            gradient=cfg.coherent.gradient,
+        )
 
     # ---------------------------------------------------------------- params
     def init(self, key, obs_size):
@@ -706,20 +687,17 @@ class CoherentExploration(Exploration):
         x = self.trunk.apply(params["trunk"], obs)  # [n, q]
         num_envs = x.shape[0]
         k_w, k_a = jax.random.split(key)
-        # z chain (4.1-4.4) in standard coordinates; a fresh draw (4.5) at an episode
-        # start or a restart.
+        # The chain in standard coordinates; a fresh draw at an episode start or a restart.
         first = jnp.logical_or(first, carry.restart)
-        eps = jax.random.normal(k_w, carry.z.shape, carry.z.dtype)
-        z_next = (1.0 - beta) * carry.z + _innovation_std(beta) * eps
-        z = jnp.where(first[:, None, None], eps, z_next)
+        z = chain_step(k_w, carry.z, first, beta)
         carry = carry._replace(restart=jnp.zeros_like(carry.restart))
         w = mu + w_std * z  # [n, p, q+1]
-        xh = _augment(x)
+        xh = augment(x)
         mean_action = jnp.einsum("npk,nk->np", w, xh)
         action = mean_action + action_std * jax.random.normal(k_a, mean_action.shape, mean_action.dtype)
 
         if self.inference == "joint":
-            # The segment is scored at once in `end_segment`; only the chain moves here.
+            # The segment is scored at once in `score_segment`; only the chain moves here.
             logp = jnp.full((num_envs,), jnp.nan, action.dtype)
             return ActOutput(action, logp, carry._replace(z=z))
 
@@ -749,13 +727,13 @@ class CoherentExploration(Exploration):
             return chained_marginals(belief0, x, a, first, mu, w_std, action_std, beta, from_prior=from_prior)
         return segment_marginals_joint(belief0, x, a, first, mu, w_std, action_std, beta, from_prior)
 
-    def end_segment(self, params, hparams, carry0, carry, data_obs, data_actions, data_first, data_log_prob):
+    def score_segment(self, params, hparams, carry0, carry, obs, actions, first, log_prob):
         # With the exact gradient the next segment restarts the chain (Algorithm 5, steps 4-5).
         carry = carry._replace(restart=jnp.full_like(carry.restart, self.gradient == "exact"))
         if self.inference == "filter":
-            return data_log_prob, carry
+            return log_prob, carry  # scored step by step in `act`
         mu, w_std, action_std = self._head(params, hparams)
-        x = self.trunk.apply(params["trunk"], data_obs)  # [T, n, q]
+        x = self.trunk.apply(params["trunk"], obs)  # [T, n, q]
 
         def score(c0, x_e, a_e, f_e):
             f_e = self._segment_first(f_e, c0.restart)
@@ -764,9 +742,7 @@ class CoherentExploration(Exploration):
             )
             return logp, _to_standard(belief, mu, w_std)
 
-        logp, (mean, cov) = jax.vmap(score, in_axes=(0, 1, 1, 1), out_axes=(1, 0))(
-            carry0, x, data_actions, data_first
-        )
+        logp, (mean, cov) = jax.vmap(score, in_axes=(0, 1, 1, 1), out_axes=(1, 0))(carry0, x, actions, first)
         if self.gradient == "exact":
             return logp, carry  # the next segment starts from the prior: no belief to keep
         return logp, carry._replace(mean=mean, cov=cov)
@@ -788,7 +764,7 @@ class CoherentExploration(Exploration):
 
     def mean_action(self, params, obs):
         x = self.trunk.apply(params["trunk"], obs)
-        return jnp.einsum("pk,...k->...p", params["mu"], _augment(x))
+        return jnp.einsum("pk,...k->...p", params["mu"], augment(x))
 
     def metrics(self, params, hparams):
         _, w_std, action_std = self._head(params, hparams)
@@ -798,11 +774,32 @@ class CoherentExploration(Exploration):
             "beta": jnp.asarray(hparams["beta"]),
         }
 
-    # ------------------------------------------------ off-policy: Coherent-SAC
-    # Thesis §4.3 and §4.4.3: the actor's mean head [p, q+1] follows the beta-chain
-    # around its learned value with one scale, w_t = mu + sigma z_t (w_std = sigma),
-    # and sigma adapts by (4.50)-(4.51). The actor itself trains as plain SAC.
-    def offpolicy_init_hparams(self):
+
+# --------------------------------------------------------------------------------------
+# Coherent-SAC (thesis §4.3 and §4.4.3).
+
+
+class CoherentBehaviour(OffPolicyBehaviour):
+    """The SAC actor's mean head [p, q+1] follows the beta-chain around its learned value.
+
+    One scale instead of per-weight w_std: W_t = W + sigma z_t, with z_t the
+    standardised chain (4.1-4.5), and sigma adapts by (4.50)-(4.51). The actor itself
+    trains as plain SAC.
+    """
+
+    name = "coherent"
+
+    def __init__(self, beta: float, sigma_init: float, sigma_delta: float, sigma_alpha: float):
+        self.beta = float(beta)
+        self.sigma_init = float(sigma_init)
+        self.sigma_delta = float(sigma_delta)
+        self.sigma_alpha = float(sigma_alpha)
+
+    @classmethod
+    def from_config(cls, cfg, action_size: int):
+        return cls(cfg.beta, cfg.sigma_init, cfg.sigma_delta, cfg.sigma_alpha)
+
+    def init_hparams(self):
         return {
             "beta": jnp.asarray(self.beta, jnp.float32),
             "sigma": jnp.asarray(self.sigma_init, jnp.float32),
@@ -810,34 +807,32 @@ class CoherentExploration(Exploration):
             "sigma_alpha": jnp.asarray(self.sigma_alpha, jnp.float32),
         }
 
-    def offpolicy_init_carry(self, key, actor, actor_params, hparams, num_envs):
+    def init_carry(self, key, actor, actor_params, hparams, num_envs):
         # z_0 ~ N(0, I) for every env; `first` at the first step redraws it anyway.
         return jax.random.normal(key, (num_envs,) + actor_params["mu"].shape, jnp.float32)
 
-    def offpolicy_act(self, key, actor, actor_params, hparams, carry, obs, first):
+    def act(self, key, actor, actor_params, hparams, carry, obs, first):
         chex.assert_rank([obs, first], [2, 1])
         chex.assert_shape(carry, (obs.shape[0],) + actor_params["mu"].shape)
         # ``key`` draws xi exactly as plain SAC does, so sigma = 0 reproduces its actions.
         k_z, k_a = jax.random.fold_in(key, 1), key
-        beta = hparams["beta"]
-        eps = jax.random.normal(k_z, carry.shape, carry.dtype)
-        z = jnp.where(first[:, None, None], eps, (1.0 - beta) * carry + _innovation_std(beta) * eps)
+        z = chain_step(k_z, carry, first, hparams["beta"])
         x = actor.features(actor_params, obs)
         # (mu + sigma z_t) xh = mu xh + sigma z_t xh: the first term is the unperturbed
         # actor's, computed the same way, so sigma = 0 gives its actions bit for bit.
         dist = actor.dist_from_features(actor_params, x)
-        dist = dist._replace(mean=dist.mean + hparams["sigma"] * jnp.einsum("npk,nk->np", z, _augment(x)))
+        dist = dist._replace(mean=dist.mean + hparams["sigma"] * jnp.einsum("npk,nk->np", z, augment(x)))
         action, _ = squash(k_a, dist)
         return action, z
 
-    def offpolicy_adapt(self, key, actor, actor_params, hparams, obs):
+    def adapt(self, key, actor, actor_params, hparams, obs):
         chex.assert_rank(obs, 2)
         x = actor.features(actor_params, obs)
         # One perturbed actor: a draw from the chain's stationary law N(mu, sigma^2 I).
         z = jax.random.normal(key, actor_params["mu"].shape, actor_params["mu"].dtype)
         pre = actor.dist_from_features(actor_params, x).mean
         mean = jnp.tanh(pre)
-        perturbed = jnp.tanh(pre + hparams["sigma"] * jnp.einsum("pk,nk->np", z, _augment(x)))
+        perturbed = jnp.tanh(pre + hparams["sigma"] * jnp.einsum("pk,nk->np", z, augment(x)))
         distance = policy_distance(mean, perturbed)
         sigma = adapt_sigma(hparams["sigma"], distance, hparams["sigma_delta"], hparams["sigma_alpha"])
         metrics = {"sigma": hparams["sigma"], "policy_distance": distance, "beta": hparams["beta"]}

@@ -29,27 +29,17 @@ import jax
 import jax.numpy as jnp
 
 from coherent_jax.exploration.action import gaussian_entropy, gaussian_log_prob
-from coherent_jax.exploration.base import ActOutput, Exploration, SegmentLogProb
-from coherent_jax.exploration.coherent import CoherentExploration, _augment, _innovation_std
-from coherent_jax.networks import ACTIVATIONS
-
-
-def chain_step(key: chex.PRNGKey, z_prev: chex.Array, first: chex.Array, beta: chex.Array) -> chex.Array:
-    """z_t = (1-beta) z_{t-1} + sqrt(2 beta - beta^2) eps (4.1-4.4); z_t = eps where ``first`` (4.5).
-
-    z_prev [n, ...], first [n]; z_t ~ N(0, I) marginally.
-    """
-    chex.assert_rank(first, 1)
-    eps = jax.random.normal(key, z_prev.shape, z_prev.dtype)
-    follow = (1.0 - beta) * z_prev + _innovation_std(beta) * eps
-    return jnp.where(first.reshape((-1,) + (1,) * (z_prev.ndim - 1)), eps, follow)
+from coherent_jax.exploration.base import ActOutput, OnPolicyStrategy, SegmentLogProb
+from coherent_jax.exploration.chain import chain_step
+from coherent_jax.exploration.coherent import CoherentExploration
+from coherent_jax.networks import ACTIVATIONS, augment
 
 
 class CoherentMC(CoherentExploration):
     """Coherent exploration of the last layer scored by single-sample Monte Carlo.
 
-    Parameters, hyperparameters, the evaluation action and the off-policy hooks are
-    those of `CoherentExploration`; only the per-env carry (the chain's z) and the
+    Parameters, hyperparameters and the evaluation action are those of
+    `CoherentExploration`; only the per-env carry (the chain's z) and the
     log-probability differ.
     """
 
@@ -60,7 +50,7 @@ class CoherentMC(CoherentExploration):
 
     def _action_log_prob(self, params, hparams, z, x, actions):
         mu, w_std, action_std = self._head(params, hparams)
-        mean = jnp.einsum("...pk,...k->...p", mu + w_std * z, _augment(x))
+        mean = jnp.einsum("...pk,...k->...p", mu + w_std * z, augment(x))
         log_std = jnp.broadcast_to(jnp.log(action_std), mean.shape)
         return gaussian_log_prob(actions, mean, log_std), log_std
 
@@ -70,13 +60,13 @@ class CoherentMC(CoherentExploration):
         mu, w_std, action_std = self._head(params, hparams)
         z = chain_step(k_z, carry, first, hparams["beta"])
         x = self.trunk.apply(params["trunk"], obs)
-        mean = jnp.einsum("npk,nk->np", mu + w_std * z, _augment(x))
+        mean = jnp.einsum("npk,nk->np", mu + w_std * z, augment(x))
         action = mean + action_std * jax.random.normal(k_a, mean.shape, mean.dtype)
         logp, _ = self._action_log_prob(params, hparams, z, x, action)
         return ActOutput(action, logp, z, extras=z)
 
-    def end_segment(self, params, hparams, carry0, carry, data_obs, data_actions, data_first, data_log_prob):
-        return data_log_prob, carry  # scored step by step in `act`
+    # Scored step by step in `act`: no segment-wide scoring.
+    score_segment = OnPolicyStrategy.score_segment
 
     def log_prob(self, params, hparams, carry0, obs, actions, first, extras=()):
         chex.assert_rank([obs, actions, extras], [2, 2, 3])
@@ -85,7 +75,7 @@ class CoherentMC(CoherentExploration):
         return SegmentLogProb(logp, gaussian_entropy(log_std))
 
 
-class CoherentAllLayers(Exploration):
+class CoherentAllLayers(OnPolicyStrategy):
     """The beta-chain over every layer's weights, single-sample gradients (thesis §5 ablation)."""
 
     name = "coherent-all"
@@ -107,6 +97,18 @@ class CoherentAllLayers(Exploration):
         self.w_std_init = float(w_std_init)
         self.action_std = float(action_std)
         self.learn_action_std = bool(learn_action_std)
+
+    @classmethod
+    def from_config(cls, cfg, action_size: int):
+        return cls(
+            action_size,
+            cfg.policy_hidden,
+            cfg.activation,
+            beta=cfg.beta,
+            w_std_init=cfg.w_std_init,
+            action_std=cfg.action_std,
+            learn_action_std=cfg.learn_action_std,
+        )
 
     def init(self, key, obs_size):
         sizes = (obs_size, *self.hidden, self.action_size)

@@ -25,15 +25,13 @@ import math
 from typing import NamedTuple
 
 import chex
-import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from coherent_jax.exploration.action import gaussian_log_prob
-from coherent_jax.exploration.base import ActOutput, Exploration, SegmentLogProb
-from coherent_jax.networks import MLP, ActorDist, squash
+from coherent_jax.exploration.action import gaussian_entropy, gaussian_log_prob
+from coherent_jax.exploration.base import ActOutput, OffPolicyBehaviour, OnPolicyStrategy, SegmentLogProb
+from coherent_jax.networks import ActorDist, MeanHead, squash
 
-_LOG_2PI = math.log(2.0 * math.pi)
 _VAR_FLOOR = 1e-6
 
 
@@ -57,20 +55,23 @@ class GsdeCarry(NamedTuple):
     step: jax.Array
 
 
-class _Trunk(nn.Module):
-    hidden: tuple[int, ...]
-    activation: str
-    action_size: int
-
-    @nn.compact
-    def __call__(self, obs):
-        x = MLP(self.hidden, self.activation)(obs)
-        mean = nn.Dense(self.action_size, kernel_init=nn.initializers.orthogonal(0.01))(x)
-        return x, mean
+def next_z(key: chex.PRNGKey, carry: GsdeCarry, first: chex.Array, resample_every: int):
+    """The z of this step: redrawn at an episode start and every ``resample_every`` steps."""
+    chex.assert_rank(first, 1)
+    redraw = jnp.logical_or(first, carry.step % resample_every == 0)
+    fresh = jax.random.normal(key, carry.z.shape, carry.z.dtype)
+    z = jnp.where(redraw[:, None, None], fresh, carry.z)
+    step = jnp.where(redraw, 0, carry.step) + 1
+    return z, GsdeCarry(z=z, step=step)
 
 
-class GeneralizedSDE(Exploration):
-    """gSDE for A2C/PPO, and its noise function for SAC's behaviour.
+def init_gsde_carry(key: chex.PRNGKey, num_envs: int, feature_size: int, action_size: int) -> GsdeCarry:
+    z = jax.random.normal(key, (num_envs, feature_size, action_size), jnp.float32)
+    return GsdeCarry(z=z, step=jnp.zeros((num_envs,), jnp.int32))
+
+
+class GeneralizedSDE(OnPolicyStrategy):
+    """gSDE for A2C/PPO.
 
     ``log_sigma`` starts at log(init_std / sqrt(q)): with features of unit mean square
     the initial action std is init_std.
@@ -81,9 +82,13 @@ class GeneralizedSDE(Exploration):
     def __init__(self, action_size: int, hidden, activation: str, init_std: float, resample_every: int):
         self.action_size = int(action_size)
         self.feature_size = int(hidden[-1])
-        self.net = _Trunk(tuple(hidden), activation, self.action_size)
+        self.net = MeanHead(tuple(hidden), activation, self.action_size)
         self.init_std = float(init_std)
         self.resample_every = int(resample_every)
+
+    @classmethod
+    def from_config(cls, cfg, action_size: int):
+        return cls(action_size, cfg.policy_hidden, cfg.activation, cfg.init_std, cfg.gsde_resample_every)
 
     def init(self, key, obs_size):
         q, p = self.feature_size, self.action_size
@@ -93,20 +98,7 @@ class GeneralizedSDE(Exploration):
         }
 
     def init_carry(self, key, params, hparams, num_envs):
-        return self._init_carry(key, num_envs)
-
-    def _init_carry(self, key, num_envs):
-        z = jax.random.normal(key, (num_envs, self.feature_size, self.action_size), jnp.float32)
-        return GsdeCarry(z=z, step=jnp.zeros((num_envs,), jnp.int32))
-
-    def _next_z(self, key, carry: GsdeCarry, first):
-        """The z of this step: redrawn at an episode start and every ``resample_every`` steps."""
-        chex.assert_rank(first, 1)
-        redraw = jnp.logical_or(first, carry.step % self.resample_every == 0)
-        fresh = jax.random.normal(key, carry.z.shape, carry.z.dtype)
-        z = jnp.where(redraw[:, None, None], fresh, carry.z)
-        step = jnp.where(redraw, 0, carry.step) + 1
-        return z, GsdeCarry(z=z, step=step)
+        return init_gsde_carry(key, num_envs, self.feature_size, self.action_size)
 
     def _dist(self, params, obs):
         x, mean = self.net.apply(params["net"], obs)
@@ -116,7 +108,7 @@ class GeneralizedSDE(Exploration):
     def act(self, key, params, hparams, carry, obs, first):
         chex.assert_rank([obs, first], [2, 1])
         x, mean, log_std = self._dist(params, obs)
-        z, carry = self._next_z(key, carry, first)
+        z, carry = next_z(key, carry, first, self.resample_every)
         noise = jnp.einsum("nq,nqp->np", x, jnp.exp(params["log_sigma"]) * z)
         action = mean + noise
         return ActOutput(action, gaussian_log_prob(action, mean, log_std), carry)
@@ -124,8 +116,7 @@ class GeneralizedSDE(Exploration):
     def log_prob(self, params, hparams, carry0, obs, actions, first, extras=()):
         chex.assert_rank([obs, actions], 2)
         _, mean, log_std = self._dist(params, obs)
-        entropy = jnp.sum(log_std + 0.5 * (_LOG_2PI + 1.0), axis=-1)
-        return SegmentLogProb(gaussian_log_prob(actions, mean, log_std), entropy)
+        return SegmentLogProb(gaussian_log_prob(actions, mean, log_std), gaussian_entropy(log_std))
 
     def mean_action(self, params, obs):
         return self.net.apply(params["net"], obs)[1]
@@ -133,18 +124,31 @@ class GeneralizedSDE(Exploration):
     def metrics(self, params, hparams):
         return {"gsde_sigma": jnp.mean(jnp.exp(params["log_sigma"]))}
 
-    # ---------------------------------------------------- off-policy (SAC)
-    # SAC's actor keeps its own state-dependent std; gSDE supplies the xi of its
-    # sample tanh(mean + std xi) as the normalised noise function
-    # xi_j(s) = z_j . x(s) / |x(s)|, which is N(0, 1) for each state and, with z held
-    # for n steps, smooth along the trajectory (Raffin et al. §3 with sigma_ij = 1/|x|).
-    def offpolicy_init_carry(self, key, actor, actor_params, hparams, num_envs):
-        z = jax.random.normal(key, (num_envs, actor.feature_size, actor.action_size), jnp.float32)
-        return GsdeCarry(z=z, step=jnp.zeros((num_envs,), jnp.int32))
 
-    def offpolicy_act(self, key, actor, actor_params, hparams, carry, obs, first):
+class GsdeBehaviour(OffPolicyBehaviour):
+    """gSDE's noise function as the xi of SAC's sample tanh(mean + std xi).
+
+    SAC's actor keeps its own state-dependent std; gSDE supplies its xi as the
+    normalised noise function xi_j(s) = z_j . x(s) / |x(s)|, which is N(0, 1) for each
+    state and, with z held for n steps, smooth along the trajectory (Raffin et al. §3
+    with sigma_ij = 1/|x|).
+    """
+
+    name = "gsde"
+
+    def __init__(self, resample_every: int):
+        self.resample_every = int(resample_every)
+
+    @classmethod
+    def from_config(cls, cfg, action_size: int):
+        return cls(cfg.gsde_resample_every)
+
+    def init_carry(self, key, actor, actor_params, hparams, num_envs):
+        return init_gsde_carry(key, num_envs, actor.feature_size, actor.action_size)
+
+    def act(self, key, actor, actor_params, hparams, carry, obs, first):
         chex.assert_rank([obs, first], [2, 1])
-        z, carry = self._next_z(key, carry, first)
+        z, carry = next_z(key, carry, first, self.resample_every)
         x = actor.features(actor_params, obs)
         xi = jnp.einsum("nq,nqp->np", x, z) / jnp.sqrt(jnp.sum(jnp.square(x), -1, keepdims=True) + _VAR_FLOOR)
         dist: ActorDist = actor.dist_from_features(actor_params, x)

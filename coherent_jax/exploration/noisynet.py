@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 
 from coherent_jax.exploration.action import gaussian_entropy, gaussian_log_prob
-from coherent_jax.exploration.base import ActOutput, Exploration, SegmentLogProb
+from coherent_jax.exploration.base import ActOutput, OnPolicyStrategy, SegmentLogProb
 from coherent_jax.networks import ACTIVATIONS
 
 
@@ -49,7 +49,7 @@ def noisy_dense(layer: dict, x: chex.Array, eps_in: chex.Array | None, eps_out: 
     return y + ((x * f_in) @ layer["w_sigma"]) * f_out + layer["b_sigma"] * f_out
 
 
-class NoisyNet(Exploration):
+class NoisyNet(OnPolicyStrategy):
     """Gaussian policy whose every linear layer is a factorised NoisyNet layer."""
 
     name = "noisynet"
@@ -60,6 +60,10 @@ class NoisyNet(Exploration):
         self.activation = ACTIVATIONS[activation]
         self.init_std = float(init_std)
         self.sigma0 = float(sigma0)
+
+    @classmethod
+    def from_config(cls, cfg, action_size: int):
+        return cls(action_size, cfg.policy_hidden, cfg.activation, cfg.init_std, cfg.noisynet_sigma0)
 
     def _sizes(self, obs_size):
         sizes = (obs_size, *self.hidden, self.action_size)

@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from coherent_jax.exploration.action import ActionNoise, gaussian_log_prob
-from coherent_jax.exploration.base import ActOutput
+from coherent_jax.exploration.base import ActOutput, OffPolicyBehaviour
 from coherent_jax.networks import squash
 
 
@@ -102,6 +102,37 @@ class PinkCarry(NamedTuple):
     step: jax.Array
 
 
+def draw_episode_noise(key: chex.PRNGKey, exponent: float, length: int, num_envs: int, action_size: int):
+    """One coloured sequence per env for a whole episode, [n, L, p]."""
+    noise = coloured_noise(key, exponent, length, (num_envs, action_size))
+    return jnp.moveaxis(noise, 0, 1)
+
+
+def init_pink_carry(key: chex.PRNGKey, exponent: float, length: int, num_envs: int, action_size: int):
+    return PinkCarry(
+        noise=draw_episode_noise(key, exponent, length, num_envs, action_size),
+        step=jnp.zeros((num_envs,), jnp.int32),
+    )
+
+
+def next_noise(key: chex.PRNGKey, carry: PinkCarry, first: chex.Array, exponent: float):
+    """xi [n, p] for this step of every env, drawing a new sequence where an episode starts."""
+    chex.assert_rank(first, 1)
+    num_envs, length, action_size = carry.noise.shape
+    noise = jax.lax.cond(
+        jnp.any(first),
+        lambda: jnp.where(
+            first[:, None, None],
+            draw_episode_noise(key, exponent, length, num_envs, action_size),
+            carry.noise,
+        ),
+        lambda: carry.noise,
+    )
+    step = jnp.where(first, 0, carry.step)
+    xi = noise[jnp.arange(num_envs), step % length]  # [n, p]
+    return xi, PinkCarry(noise=noise, step=step + 1)
+
+
 class PinkNoise(ActionNoise):
     """Gaussian policy whose collection noise is coloured, one sequence per episode.
 
@@ -118,41 +149,42 @@ class PinkNoise(ActionNoise):
         self.exponent = float(exponent)
         self.length = int(length)
 
-    def _draw(self, key, num_envs):
-        noise = coloured_noise(key, self.exponent, self.length, (num_envs, self.action_size))
-        return jnp.moveaxis(noise, 0, 1)  # [n, L, p]
+    @classmethod
+    def from_config(cls, cfg, action_size: int):
+        hidden, activation = cfg.policy_hidden, cfg.activation
+        return cls(action_size, hidden, activation, cfg.init_std, cfg.pink_exponent, cfg.episode_length)
 
     def init_carry(self, key, params, hparams, num_envs):
-        return PinkCarry(noise=self._draw(key, num_envs), step=jnp.zeros((num_envs,), jnp.int32))
-
-    def _next_noise(self, key, carry: PinkCarry, first):
-        """xi for this step of every env, drawing a new sequence where an episode starts."""
-        chex.assert_rank(first, 1)
-        num_envs = first.shape[0]
-        noise = jax.lax.cond(
-            jnp.any(first),
-            lambda: jnp.where(first[:, None, None], self._draw(key, num_envs), carry.noise),
-            lambda: carry.noise,
-        )
-        step = jnp.where(first, 0, carry.step)
-        xi = noise[jnp.arange(num_envs), step % self.length]  # [n, p]
-        return xi, PinkCarry(noise=noise, step=step + 1)
+        return init_pink_carry(key, self.exponent, self.length, num_envs, self.action_size)
 
     def act(self, key, params, hparams, carry, obs, first):
         chex.assert_rank([obs, first], [2, 1])
-        mean = self.net.apply(params["mean"], obs)
+        mean = self._mean(params, obs)
         log_std = jnp.broadcast_to(params["log_std"], mean.shape)
-        xi, carry = self._next_noise(key, carry, first)
+        xi, carry = next_noise(key, carry, first, self.exponent)
         action = mean + jnp.exp(log_std) * xi
         return ActOutput(action, gaussian_log_prob(action, mean, log_std), carry)
 
-    # ---------------------------------------------------- off-policy (SAC)
-    # SAC's own sample tanh(mean + std xi) with the coloured xi (Eberhard et al. §4).
-    def offpolicy_init_carry(self, key, actor, actor_params, hparams, num_envs):
-        return self.init_carry(key, actor_params, hparams, num_envs)
 
-    def offpolicy_act(self, key, actor, actor_params, hparams, carry, obs, first):
+class PinkBehaviour(OffPolicyBehaviour):
+    """SAC's own sample tanh(mean + std xi) with the coloured xi (Eberhard et al. §4)."""
+
+    name = "pink"
+
+    def __init__(self, action_size: int, exponent: float, length: int):
+        self.action_size = int(action_size)
+        self.exponent = float(exponent)
+        self.length = int(length)
+
+    @classmethod
+    def from_config(cls, cfg, action_size: int):
+        return cls(action_size, cfg.pink_exponent, cfg.episode_length)
+
+    def init_carry(self, key, actor, actor_params, hparams, num_envs):
+        return init_pink_carry(key, self.exponent, self.length, num_envs, self.action_size)
+
+    def act(self, key, actor, actor_params, hparams, carry, obs, first):
         chex.assert_rank([obs, first], [2, 1])
-        xi, carry = self._next_noise(key, carry, first)
+        xi, carry = next_noise(key, carry, first, self.exponent)
         action, _ = squash(key, actor.dist(actor_params, obs), noise=xi)
         return action, carry

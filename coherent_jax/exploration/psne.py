@@ -16,12 +16,12 @@ state-independent std, and the loss uses the single-sample estimate (4.8): the
 log-probability under the perturbed network of collection. The perturbation is
 stored as the key it was drawn from (two integers per step instead of one float per
 weight) and regenerated in the loss; sigma lives in the carry (one copy per env), so
-the loss of a segment uses the sigma of its collection, and `end_segment` adapts it
-on the segment's states, using each env's current perturbation.
+the loss of a segment uses the sigma of its collection, and `ParameterNoise.adapt`
+adapts it on the segment's states, using each env's current perturbation.
 
-SAC: the actor is built with LayerNorm (``actor_layer_norm``); behaviour perturbs its
-trunk and mean head (not the log-std head) with sigma per episode and samples
-tanh(mean~ + std xi); `offpolicy_adapt` applies (4.50)-(4.51) on a replay batch.
+SAC (`PsneBehaviour`): the actor is built with LayerNorm (``actor_layer_norm``);
+behaviour perturbs its trunk and mean head (not the log-std head) with sigma per episode and samples
+tanh(mean~ + std xi); `PsneBehaviour.adapt` applies (4.50)-(4.51) on a replay batch.
 """
 
 from __future__ import annotations
@@ -30,15 +30,14 @@ import math
 from typing import NamedTuple
 
 import chex
-import flax.linen as nn
 import jax
 import jax.numpy as jnp
 from flax import traverse_util
 
 from coherent_jax.exploration.action import gaussian_entropy, gaussian_log_prob
 from coherent_jax.exploration.adaptive import adapt_sigma, policy_distance
-from coherent_jax.exploration.base import ActOutput, Exploration, SegmentLogProb
-from coherent_jax.networks import MLP, squash
+from coherent_jax.exploration.base import ActOutput, OffPolicyBehaviour, OnPolicyStrategy, SegmentLogProb
+from coherent_jax.networks import MeanHead, squash
 
 
 def perturb(params, key: chex.PRNGKey, sigma: chex.Array, skip=("LayerNorm",)):
@@ -60,17 +59,10 @@ def perturb(params, key: chex.PRNGKey, sigma: chex.Array, skip=("LayerNorm",)):
     return traverse_util.unflatten_dict(out)
 
 
-class _PolicyNet(nn.Module):
-    """Trunk with LayerNorm between layers, then the linear mean head."""
-
-    hidden: tuple[int, ...]
-    activation: str
-    action_size: int
-
-    @nn.compact
-    def __call__(self, obs):
-        x = MLP(self.hidden, self.activation, layer_norm=True)(obs)
-        return nn.Dense(self.action_size, kernel_init=nn.initializers.orthogonal(0.01))(x)
+def episode_keys(key: chex.PRNGKey, carry_keys: chex.Array, first: chex.Array) -> chex.Array:
+    """Each env's perturbation key [n, 2]: a fresh one where an episode starts, else the held one."""
+    fresh = jax.random.split(key, first.shape[0])
+    return jnp.where(first[:, None], fresh, carry_keys)
 
 
 class PsneCarry(NamedTuple):
@@ -85,11 +77,10 @@ class PsneCarry(NamedTuple):
     sigma: jax.Array
 
 
-class ParameterNoise(Exploration):
-    """PSNE: every layer perturbed with one adaptive scalar sigma, LayerNorm in between."""
+class ParameterNoise(OnPolicyStrategy):
+    """PSNE for A2C/PPO: every layer perturbed with one adaptive scalar sigma, LayerNorm in between."""
 
     name = "psne"
-    actor_layer_norm = True
 
     def __init__(
         self,
@@ -102,11 +93,23 @@ class ParameterNoise(Exploration):
         sigma_alpha: float,
     ):
         self.action_size = int(action_size)
-        self.net = _PolicyNet(tuple(hidden), activation, self.action_size)
+        self.net = MeanHead(tuple(hidden), activation, self.action_size, layer_norm=True)
         self.init_std = float(init_std)
         self.sigma_init = float(sigma_init)
         self.sigma_delta = float(sigma_delta)
         self.sigma_alpha = float(sigma_alpha)
+
+    @classmethod
+    def from_config(cls, cfg, action_size: int):
+        return cls(
+            action_size,
+            cfg.policy_hidden,
+            cfg.activation,
+            cfg.init_std,
+            sigma_init=cfg.sigma_init,
+            sigma_delta=cfg.sigma_delta,
+            sigma_alpha=cfg.sigma_alpha,
+        )
 
     def init(self, key, obs_size):
         return {
@@ -126,39 +129,37 @@ class ParameterNoise(Exploration):
             sigma=jnp.full((num_envs,), self.sigma_init, jnp.float32),
         )
 
-    @staticmethod
-    def _new_episode_keys(key, carry_key, first):
-        fresh = jax.random.split(key, first.shape[0])
-        return jnp.where(first[:, None], fresh, carry_key)
+    def _mean(self, net_params, obs):
+        return self.net.apply(net_params, obs)[1]
 
     def _perturbed_mean(self, params, keys, sigma, obs):
         """f_theta~(s) per env: keys [n, 2], sigma [n], obs [n, ..., o]."""
 
         def one(k, s, o):
-            return self.net.apply(perturb(params["net"], k, s), o)
+            return self._mean(perturb(params["net"], k, s), o)
 
         return jax.vmap(one)(keys, sigma, obs)
 
     def act(self, key, params, hparams, carry, obs, first):
         chex.assert_rank([obs, first], [2, 1])
         k_ep, k_a = jax.random.split(key)
-        keys = self._new_episode_keys(k_ep, carry.key, first)
+        keys = episode_keys(k_ep, carry.key, first)
         mean = self._perturbed_mean(params, keys, carry.sigma, obs)
         log_std = jnp.broadcast_to(params["log_std"], mean.shape)
         action = mean + jnp.exp(log_std) * jax.random.normal(k_a, mean.shape, mean.dtype)
         carry = carry._replace(key=keys)
         return ActOutput(action, gaussian_log_prob(action, mean, log_std), carry, extras=keys)
 
-    def end_segment(self, params, hparams, carry0, carry, data_obs, data_actions, data_first, data_log_prob):
+    def adapt(self, params, hparams, carry, obs):
         # (4.50) on the segment's states, each env under its current perturbation; (4.51).
-        chex.assert_rank(data_obs, 3)
-        mean = self.net.apply(params["net"], data_obs)  # [T, n, p]
-        perturbed = self._perturbed_mean(params, carry.key, carry.sigma, jnp.swapaxes(data_obs, 0, 1))
+        chex.assert_rank(obs, 3)
+        mean = self._mean(params["net"], obs)  # [T, n, p]
+        perturbed = self._perturbed_mean(params, carry.key, carry.sigma, jnp.swapaxes(obs, 0, 1))
         distance = policy_distance(
             mean.reshape(-1, mean.shape[-1]), jnp.swapaxes(perturbed, 0, 1).reshape(-1, mean.shape[-1])
         )
         sigma = adapt_sigma(carry.sigma, distance, hparams["sigma_delta"], hparams["sigma_alpha"])
-        return data_log_prob, carry._replace(sigma=sigma)
+        return carry._replace(sigma=sigma)
 
     def log_prob(self, params, hparams, carry0, obs, actions, first, extras=()):
         chex.assert_rank([obs, actions, extras], 2)
@@ -168,44 +169,59 @@ class ParameterNoise(Exploration):
         return SegmentLogProb(gaussian_log_prob(actions, mean, log_std), gaussian_entropy(log_std))
 
     def mean_action(self, params, obs):
-        return self.net.apply(params["net"], obs)
+        return self._mean(params["net"], obs)
 
     def metrics(self, params, hparams):
         return {"action_std": jnp.mean(jnp.exp(params["log_std"]))}
 
-    # ---------------------------------------------------- off-policy (SAC)
-    def offpolicy_init_hparams(self):
+
+def _perturb_actor(actor_params, key, sigma):
+    """The SAC actor with trunk and mean head perturbed (log-std head untouched)."""
+    noisy = perturb({"trunk": actor_params["trunk"], "mu": actor_params["mu"]}, key, sigma)
+    return {**actor_params, "trunk": noisy["trunk"], "mu": noisy["mu"]}
+
+
+class PsneBehaviour(OffPolicyBehaviour):
+    """PSNE for SAC: the LayerNorm actor's trunk and mean head perturbed per episode."""
+
+    name = "psne"
+    actor_layer_norm = True
+
+    def __init__(self, sigma_init: float, sigma_delta: float, sigma_alpha: float):
+        self.sigma_init = float(sigma_init)
+        self.sigma_delta = float(sigma_delta)
+        self.sigma_alpha = float(sigma_alpha)
+
+    @classmethod
+    def from_config(cls, cfg, action_size: int):
+        return cls(cfg.sigma_init, cfg.sigma_delta, cfg.sigma_alpha)
+
+    def init_hparams(self):
         return {
             "sigma": jnp.asarray(self.sigma_init, jnp.float32),
             "sigma_delta": jnp.asarray(self.sigma_delta, jnp.float32),
             "sigma_alpha": jnp.asarray(self.sigma_alpha, jnp.float32),
         }
 
-    def offpolicy_init_carry(self, key, actor, actor_params, hparams, num_envs):
+    def init_carry(self, key, actor, actor_params, hparams, num_envs):
         return jax.random.split(key, num_envs)  # [n, 2] episode keys
 
-    @staticmethod
-    def _perturb_actor(actor_params, key, sigma):
-        """The SAC actor with trunk and mean head perturbed (log-std head untouched)."""
-        noisy = perturb({"trunk": actor_params["trunk"], "mu": actor_params["mu"]}, key, sigma)
-        return {**actor_params, "trunk": noisy["trunk"], "mu": noisy["mu"]}
-
-    def offpolicy_act(self, key, actor, actor_params, hparams, carry, obs, first):
+    def act(self, key, actor, actor_params, hparams, carry, obs, first):
         chex.assert_rank([obs, first], [2, 1])
         k_ep, k_a = jax.random.split(key)
-        keys = self._new_episode_keys(k_ep, carry, first)
+        keys = episode_keys(k_ep, carry, first)
 
         def one(k, o):
-            return actor.dist(self._perturb_actor(actor_params, k, hparams["sigma"]), o[None])
+            return actor.dist(_perturb_actor(actor_params, k, hparams["sigma"]), o[None])
 
         dist = jax.tree.map(lambda v: v[:, 0], jax.vmap(one)(keys, obs))
         action, _ = squash(k_a, dist)
         return action, keys
 
-    def offpolicy_adapt(self, key, actor, actor_params, hparams, obs):
+    def adapt(self, key, actor, actor_params, hparams, obs):
         chex.assert_rank(obs, 2)
         mean = actor.mode(actor_params, obs)
-        perturbed = actor.mode(self._perturb_actor(actor_params, key, hparams["sigma"]), obs)
+        perturbed = actor.mode(_perturb_actor(actor_params, key, hparams["sigma"]), obs)
         distance = policy_distance(mean, perturbed)
         sigma = adapt_sigma(hparams["sigma"], distance, hparams["sigma_delta"], hparams["sigma_alpha"])
         return {**hparams, "sigma": sigma}, {"sigma": hparams["sigma"], "policy_distance": distance}

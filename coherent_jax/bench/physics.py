@@ -1,6 +1,6 @@
-"""Physics throughput on CPU: MJX settings against native MuJoCo, in one run.
+"""The ``physics`` suite: MJX settings against native MuJoCo on CPU, in one run.
 
-    python -m coherent_jax.bench_physics [env=halfcheetah] [envs=[16,64,256]] [steps=...]
+    python -m coherent_jax.bench physics [env=halfcheetah] [envs=[16,64,256]] [steps=...]
         [variants=[...]] [repeats=3] [out=bench_results/physics.json]
 
 Every measurement steps `VecEnv` (the code path training uses: physics, time limit,
@@ -36,9 +36,14 @@ import statistics
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
+
+from coherent_jax import cli
+from coherent_jax.bench import measure
+from coherent_jax.config import ConfigError
+from coherent_jax.envs.native import NATIVE_TASKS
 
 VARIANTS: dict[str, dict[str, Any]] = {
     "mjx_ls50": {"physics": "mjx", "ls_iterations": 50},
@@ -49,71 +54,36 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "native_all": {"physics": "native", "nthread": 0},
     "native_raw": {"physics": "raw"},
 }
-DEFAULTS: dict[str, Any] = {
-    "env": "halfcheetah",
-    "envs": [16, 64, 256],
-    "steps": 0,  # 0: chosen per row so that one timed call takes about a second
-    "variants": list(VARIANTS),
-    "repeats": 3,
-    "out": "bench_results/physics.json",
-}
 # Rough env steps/s used only to size a timed call when steps=0.
 _GUESS = {"mjx": 3000, "native": 30000, "raw": 30000}
 
 
-class BenchError(ValueError):
-    """A bad key=value setting."""
+KEYS: dict[str, cli.Key] = {
+    "env": cli.Key("halfcheetah", cli.choice(tuple(NATIVE_TASKS)), ", ".join(NATIVE_TASKS), "the task"),
+    "envs": cli.Key([16, 64, 256], cli.int_list(1), "a list of integers >= 1, e.g. [16,64]", "env counts"),
+    "steps": cli.Key(
+        0,
+        cli.int_at_least(0),
+        "an integer >= 0",
+        "env steps per timed call; 0: chosen per row so that a call takes about a second",
+    ),
+    "variants": cli.Key(list(VARIANTS), cli.choice_list(tuple(VARIANTS)), ", ".join(VARIANTS), "rows"),
+    "repeats": cli.Key(3, cli.int_at_least(1), "an integer >= 1", "timed calls per row (median)"),
+    "out": cli.Key(
+        "bench_results/physics.json", cli.output_file, "a writable file path", "where the JSON goes"
+    ),
+}
 
 
-def _int_list(key: str, text: str) -> list[int]:
-    items = [s.strip() for s in text.strip().strip("[]").split(",") if s.strip()]
-    try:
-        values = [int(s) for s in items]
-    except ValueError:
-        values = []
-    if not values or min(values) < 1:
-        raise BenchError(
-            f"invalid value for {key!r}: {text!r} (allowed: a list of integers >= 1, e.g. [16,64])"
-        )
-    return values
-
-
-def parse_settings(argv: Sequence[str]) -> dict[str, Any]:
-    """``key=value`` strings to settings; raises `BenchError` naming the bad key or value."""
-    from coherent_jax.envs.native import NATIVE_TASKS
-
-    settings = dict(DEFAULTS)
-    for item in argv:
-        if "=" not in item or item.startswith("="):
-            raise BenchError(f"malformed setting {item!r}: expected key=value")
-        key, text = (s.strip() for s in item.split("=", 1))
-        if key not in DEFAULTS:
-            raise BenchError(f"unknown key {key!r}; valid keys: {', '.join(DEFAULTS)}")
-        if key == "env":
-            if text not in NATIVE_TASKS:
-                raise BenchError(f"invalid value for 'env': {text!r} (allowed: {', '.join(NATIVE_TASKS)})")
-            settings[key] = text
-        elif key == "envs":
-            settings[key] = _int_list(key, text)
-        elif key == "variants":
-            names = [s.strip() for s in text.strip().strip("[]").split(",") if s.strip()]
-            if not names or any(n not in VARIANTS for n in names):
-                raise BenchError(f"invalid value for 'variants': {text!r} (allowed: {', '.join(VARIANTS)})")
-            settings[key] = names
-        elif key in ("steps", "repeats"):
-            low = 0 if key == "steps" else 1
-            if not text.isdigit() or int(text) < low:
-                raise BenchError(f"invalid value for {key!r}: {text!r} (allowed: an integer >= {low})")
-            settings[key] = int(text)
-        else:  # out
-            if not text or Path(text).is_dir():
-                raise BenchError(f"invalid value for 'out': {text!r} (allowed: a file path)")
-            settings[key] = text
+def parse(items: Sequence[str]) -> cli.Parsed:
+    """The suite's settings (no training config); `ConfigError` in one line for bad input."""
+    parsed = cli.parse_command(items, KEYS, command="the physics suite", config=False)
+    settings = parsed.settings
     if "mjx_2dev" in settings["variants"] and any(n % 2 for n in settings["envs"]):
-        raise BenchError(
+        raise ConfigError(
             f"invalid value for 'envs': {settings['envs']} (allowed: even counts with variant mjx_2dev)"
         )
-    return settings
+    return parsed
 
 
 # ------------------------------------------------------------------ one measurement (subprocess)
@@ -225,7 +195,7 @@ def _run_row(settings: dict[str, Any], name: str, n: int) -> dict[str, Any]:
     if flags:
         env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " " + flags).strip()
     proc = subprocess.run(
-        [sys.executable, "-m", "coherent_jax.bench_physics", "--worker", json.dumps(spec)],
+        [sys.executable, "-m", "coherent_jax.bench.physics", "--worker", json.dumps(spec)],
         env=env,
         capture_output=True,
         text=True,
@@ -237,14 +207,16 @@ def _run_row(settings: dict[str, Any], name: str, n: int) -> dict[str, Any]:
     return json.loads(lines[-1])
 
 
-def run(settings: dict[str, Any]) -> dict[str, Any]:
-    """Measures every (variant, env count) row; prints each as it is done."""
+def run(items: Sequence[str], log: Callable[[str], None] = measure.print_log) -> dict[str, Any]:
+    """Measures every (variant, env count) row, logging each as it is done; writes and returns
+    the results. Raises `ConfigError` for bad input before anything runs."""
+    settings = parse(items).settings
     import jax
     import mujoco
 
     rows = []
     total = len(settings["variants"]) * len(settings["envs"])
-    print(f"physics bench: {settings['env']}, {total} measurements, one subprocess each", flush=True)
+    log(f"physics bench: {settings['env']}, {total} measurements, one subprocess each")
     for n in settings["envs"]:
         for name in settings["variants"]:
             t0 = time.perf_counter()
@@ -252,17 +224,14 @@ def run(settings: dict[str, Any]) -> dict[str, Any]:
             rows.append(row)
             status = row.get("error") or f"{row['env_steps_per_s']:,.0f} env steps/s"
             took = time.perf_counter() - t0
-            print(
-                f"  [{len(rows)}/{total}] {name:<11} {n:>5} envs: {status} ({took:.0f} s)",
-                flush=True,
-            )
+            log(f"  [{len(rows)}/{total}] {name:<11} {n:>5} envs: {status} ({took:.0f} s)")
     for row in rows:
         base = next(
             (r for r in rows if r["variant"] == "mjx" and r["n"] == row["n"] and "error" not in r), None
         )
         if base and "error" not in row:
             row["speedup_vs_mjx"] = row["env_steps_per_s"] / base["env_steps_per_s"]
-    return {
+    result = {
         "suite": "physics",
         "env": settings["env"],
         "settings": settings,
@@ -270,9 +239,13 @@ def run(settings: dict[str, Any]) -> dict[str, Any]:
         "machine": {"cpu_count": os.cpu_count(), "jax": jax.__version__, "mujoco": mujoco.__version__},
         "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
     }
+    measure.write_json_atomic(Path(settings["out"]), result)
+    log(f"wrote {settings['out']}")
+    return result
 
 
 def format_table(result: dict[str, Any]) -> str:
+    """The human-readable summary of `run`'s result."""
     lines = [
         f"physics bench: {result['env']} on {result['machine']['cpu_count']} CPUs, "
         f"jax {result['machine']['jax']}, mujoco {result['machine']['mujoco']}",
@@ -290,26 +263,7 @@ def format_table(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if argv[:1] == ["--worker"]:
-        print(json.dumps(_worker(json.loads(argv[1]))), flush=True)
-        return 0
-    try:
-        settings = parse_settings(argv)
-    except BenchError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    result = run(settings)
-    print(format_table(result))
-    out = Path(settings["out"])
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".tmp")
-    tmp.write_text(json.dumps(result, indent=2))
-    os.replace(tmp, out)
-    print(f"wrote {out}")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+if __name__ == "__main__":  # one measurement in a fresh process: ``--worker SPEC_JSON``
+    if sys.argv[1:2] != ["--worker"] or len(sys.argv) != 3:
+        sys.exit("usage: python -m coherent_jax.bench.physics --worker SPEC_JSON (run by the physics suite)")
+    print(json.dumps(_worker(json.loads(sys.argv[2]))), flush=True)

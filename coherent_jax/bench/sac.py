@@ -15,73 +15,49 @@ strategy's adaptation) with ``explore=action`` (SAC) and ``explore=coherent``
 - peak memory of each compiled iteration (XLA's ``memory_analysis()``), the
   replay buffer included.
 
-Settings are every `Config` key (``algo`` is sac, ``explore`` and ``warmup_steps``
-are set by the suite) plus ``iterations`` and ``out``. Results go to a JSON file
+Settings are every training key (``algo`` is sac, ``explore`` and ``warmup_steps``
+are set by the suite) plus `KEYS`. Results go to a JSON file
 (default ``bench_results/sac.json``), written atomically.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import datetime
-import os
 import statistics
-import sys
 import time
 from collections.abc import Callable, Sequence
-from pathlib import Path
 from typing import Any
 
-from coherent_jax.bench import (
-    _compile,
-    _cpu_model,
-    _load,
-    _mb,
-    _memory,
-    _parse_int,
-    _parse_path,
-    _peak,
-    write_json_atomic,
-)
-from coherent_jax.config import Config, ConfigError, parse_overrides, to_dict
+from coherent_jax import cli
+from coherent_jax.bench import measure
+from coherent_jax.config import Config, to_dict, validate
 
-_SET_BY_SUITE = ("algo", "explore", "warmup_steps")
-_BENCH_KEYS = {
-    "iterations": (5, _parse_int, "an integer >= 1", "timed iterations per strategy and mode"),
-    "out": ("bench_results/sac.json", _parse_path, "a file path", "where the JSON goes"),
+KEYS: dict[str, cli.Key] = {
+    "iterations": cli.Key(
+        5, cli.int_at_least(1), "an integer >= 1", "timed iterations per strategy and mode"
+    ),
+    "out": cli.Key("bench_results/sac.json", cli.output_file, "a writable file path", "where the JSON goes"),
 }
+# SAC, with the strategy and the warm-up set per measured program.
+FIXED: dict[str, str | None] = {"algo": "sac", "explore": None, "warmup_steps": "0"}
 # Halfcheetah with SAC's defaults, but a replay buffer of 100k transitions: the
 # buffer's size does not change the cost of an iteration, only its memory.
-_DEFAULTS = ["env=halfcheetah", "buffer_size=100000"]
+CONFIG_DEFAULTS = ("env=halfcheetah", "buffer_size=100000")
+STRATEGIES = ("action", "coherent")  # SAC and Coherent-SAC
 
 
-def parse_sac_bench_overrides(overrides: Sequence[str]) -> tuple[Config, dict[str, Any]]:
-    """Splits ``key=value`` strings into a validated SAC `Config` and the bench settings."""
-    bench = {k: v[0] for k, v in _BENCH_KEYS.items()}
-    config_items = []
-    config_keys = {f.name for f in dataclasses.fields(Config)}
-    for item in overrides:
-        if "=" not in item or item.startswith("="):
-            raise ConfigError(f"malformed override {item!r}: expected key=value")
-        key, text = (s.strip() for s in item.split("=", 1))
-        if key in _SET_BY_SUITE:
-            raise ConfigError(
-                f"invalid key {key!r}: the sac suite sets it itself "
-                f"(allowed: any key except {', '.join(_SET_BY_SUITE)})"
-            )
-        if key in _BENCH_KEYS:
-            _, parse, allowed, _ = _BENCH_KEYS[key]
-            try:
-                bench[key] = parse(text)
-            except ValueError:
-                raise ConfigError(f"invalid value for {key!r}: {text!r} (allowed: {allowed})") from None
-        elif key in config_keys:
-            config_items.append(item)
-        else:
-            valid = sorted((config_keys - set(_SET_BY_SUITE)) | set(_BENCH_KEYS))
-            raise ConfigError(f"unknown key {key!r}; valid keys: {', '.join(valid)}")
-    cfg = parse_overrides(["algo=sac", *_DEFAULTS, *config_items, "warmup_steps=0"])
-    return cfg, bench
+def parse(items: Sequence[str]) -> cli.Parsed:
+    """The suite's settings and SAC config; `ConfigError` in one line for bad input.
+
+    The config is checked with each strategy the suite runs, so that a setting
+    Coherent-SAC refuses stops the suite before it compiles anything.
+    """
+    parsed = cli.parse_command(
+        items, KEYS, command="the sac suite", fixed=FIXED, config_defaults=CONFIG_DEFAULTS
+    )
+    for explore in STRATEGIES:
+        validate(dataclasses.replace(parsed.config, explore=explore))
+    return parsed
 
 
 def _bench(cfg: Config, iterations: int, log) -> dict:
@@ -92,16 +68,16 @@ def _bench(cfg: Config, iterations: int, log) -> dict:
 
     env = VecEnv(cfg.env, cfg.num_envs, cfg.episode_length, cfg.physics, cfg.physics_threads)
     runs: dict[str, dict] = {}
-    for explore in ("action", "coherent"):
+    for explore in STRATEGIES:
         for mode, warmup in (("iteration", 0), ("collect_only", 2**31 - 1)):
             name = f"{explore}/{mode}"
             run_cfg = dataclasses.replace(cfg, explore=explore, warmup_steps=warmup)
             trainer = SACTrainer(run_cfg, env=env, eval_env=env)
             state = jax.jit(trainer.init)(jax.random.PRNGKey(cfg.seed))
             log(f"[bench] compiling the SAC {mode.replace('_', ' ')}, explore={explore} ...")
-            step, compile_s = _compile(trainer.iteration, state)
-            mem = _memory(step)
-            log(f"[bench]   compiled in {compile_s:.1f} s; peak memory {_mb(_peak(mem))} MB")
+            step, compile_s = measure.compile_timed(trainer.iteration, state)
+            mem = measure.memory(step)
+            log(f"[bench]   compiled in {compile_s:.1f} s; peak memory {measure.peak_mb(mem)} MB")
             t0 = time.perf_counter()
             state, _ = jax.block_until_ready(step(state))  # warm-up call, not timed
             runs[name] = {
@@ -112,24 +88,16 @@ def _bench(cfg: Config, iterations: int, log) -> dict:
                 "warmup_call_s": time.perf_counter() - t0,
                 "times": [],
             }
-    names = list(runs)
-    for i in range(iterations):
-        order = names if i % 2 == 0 else names[::-1]
-        for name in order:
-            run = runs[name]
-            t0 = time.perf_counter()
-            run["state"], metrics = jax.block_until_ready(run["step"](run["state"]))
-            run["times"].append(time.perf_counter() - t0)
-            if name.endswith("/iteration"):
-                run.setdefault("updates_applied", []).append(float(metrics["train/updates_applied"]))
-        log(
-            f"[bench] round {i + 1}/{iterations}: "
-            + ", ".join(f"{n} {runs[n]['times'][-1]:.3f} s" for n in order)
-        )
+
+    def count_updates(name: str, metrics: dict) -> None:
+        if name.endswith("/iteration"):
+            runs[name].setdefault("updates_applied", []).append(float(metrics["train/updates_applied"]))
+
+    measure.time_interleaved(runs, list(runs), iterations, log, count_updates)
 
     steps, updates = cfg.steps_per_iteration, cfg.updates_per_iteration
     results: dict[str, Any] = {"env_steps_per_iteration": steps, "updates_per_iteration": updates}
-    for explore in ("action", "coherent"):
+    for explore in STRATEGIES:
         full, collect = runs[f"{explore}/iteration"], runs[f"{explore}/collect_only"]
         if any(u != updates for u in full["updates_applied"]):
             raise RuntimeError(
@@ -158,43 +126,27 @@ def _bench(cfg: Config, iterations: int, log) -> dict:
     return results
 
 
-def run_sac_bench(overrides: Sequence[str], log: Callable[[str], None] | None = None) -> dict:
-    """Runs the ``sac`` suite; writes and returns the results. Bad overrides raise `ConfigError` first."""
-    cfg, bench = parse_sac_bench_overrides(list(overrides))
-    log = log or (lambda msg: print(msg, flush=True))
-    import jax
+def run(items: Sequence[str], log: Callable[[str], None] = measure.print_log) -> dict:
+    """Runs the suite with ``key=value`` items; writes and returns the results.
 
-    t_start = time.perf_counter()
-    device = jax.devices()[0]
-    load_start = _load()
-    log(f"[bench] sac suite: jax {jax.__version__} on {device.platform} ({_cpu_model()}), load {load_start}")
-    result = {
-        "suite": "sac",
-        "timestamp": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "jax_version": jax.__version__,
-        "device": str(device),
-        "cpu": _cpu_model(),
-        "cpu_count": os.cpu_count(),
-        "load_average_start": load_start,
-        "settings": {"config": to_dict(cfg), **bench},
-        "training": _bench(cfg, bench["iterations"], log),
-        "load_average_end": _load(),
-    }
-    result["wall_s"] = time.perf_counter() - t_start
-    write_json_atomic(Path(bench["out"]), result)
-    log(f"[bench] wrote {bench['out']} ({result['wall_s']:.0f} s)")
-    return result
+    Raises `ConfigError` for bad input before anything runs.
+    """
+    bench, cfg, _ = parse(items)
+    info, t_start = measure.start("sac", log)
+    figures = {"training": _bench(cfg, bench["iterations"], log)}
+    settings = {"config": to_dict(cfg), **bench}
+    return measure.finish("sac", info, t_start, settings, figures, bench["out"], log)
 
 
-def format_sac_table(result: dict) -> str:
+def format_table(result: dict) -> str:
+    """The human-readable summary of `run`'s result."""
     cfg, tr = result["settings"]["config"], result["training"]
     hidden = ",".join(map(str, cfg["policy_hidden"]))
     lines = [
         f"sac bench: {cfg['env']}, {cfg['num_envs']} envs x {cfg['unroll_length']} steps = "
         f"{tr['env_steps_per_iteration']} env steps and {tr['updates_per_iteration']} updates "
         f"(batch {cfg['batch_size']}) per iteration, networks [{hidden}], beta={cfg['beta']}",
-        f"jax {result['jax_version']} on {result['device']} ({result['cpu']}, {result['cpu_count']} CPUs); "
-        f"load average {result['load_average_start']} -> {result['load_average_end']}",
+        measure.machine_line(result),
         f"median of {len(tr['action']['iteration_s'])} interleaved iterations",
         "",
         f"  {'':<10}{'compile s':>10}{'iter s':>9}{'env steps/s':>13}{'updates/s':>11}"
@@ -205,23 +157,10 @@ def format_sac_table(result: dict) -> str:
         lines.append(
             f"  {label:<10}{e['compile_s']:>10.1f}{e['iteration_s_median']:>9.3f}"
             f"{e['env_steps_per_s']:>13,.0f}{e['gradient_updates_per_s']:>11,.0f}{e['collect_env_steps_per_s']:>22,.0f}"
-            f"{e['update_only_updates_per_s']:>19,.0f}{_mb(_peak(e['memory'])):>10}"
+            f"{e['update_only_updates_per_s']:>19,.0f}{measure.peak_mb(e['memory']):>10}"
         )
     lines.append(
         f"  Coherent-SAC / SAC: {tr['ratio_coherent_over_action']:.2f}x (collection alone "
         f"{tr['ratio_collect_coherent_over_action']:.2f}x)"
     )
     return "\n".join(lines)
-
-
-def main(argv: Sequence[str]) -> int:
-    """``argv`` are the overrides after the suite name."""
-    try:
-        parse_sac_bench_overrides(argv)
-    except ConfigError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    result = run_sac_bench(argv)
-    print()
-    print(format_sac_table(result), flush=True)
-    return 0

@@ -1,0 +1,18 @@
+"""Benchmarks: ``python -m coherent_jax.bench [SUITE] [key=value ...]``.
+
+One module per suite, each with the same shape: ``KEYS`` (its own settings, as
+`coherent_jax.cli.Key`s), ``parse(items)`` (every check, before any work),
+``run(items, log)`` (measures, writes its JSON atomically, returns the results)
+and ``format_table(result)``.
+
+* `throughput` (the default): raw env, our trainers and Brax's PPO, env steps/s;
+* `coherent`: what coherent exploration costs next to action noise (training, the
+  filter against the dense reference of `dense`, the loss's segment log-prob);
+* `sac`: SAC and Coherent-SAC iterations, collection and updates apart;
+* `physics`: MJX settings against native MuJoCo, one subprocess per row.
+
+`measure` holds what every suite records (times, memory, machine, JSON).
+"""
+
+SUITES = ("throughput", "coherent", "sac", "physics")
+DEFAULT_SUITE = "throughput"  # what ``python -m coherent_jax.bench`` runs with no suite named

@@ -1,0 +1,63 @@
+"""``python -m coherent_jax.bench [SUITE] [key=value ...]``: parse, refuse bad input in one line, run."""
+
+from __future__ import annotations
+
+import importlib
+import sys
+from collections.abc import Sequence
+from types import ModuleType
+
+from coherent_jax import cli
+from coherent_jax.bench import DEFAULT_SUITE, SUITES
+from coherent_jax.config import ConfigError
+
+
+def suite_module(name: str) -> ModuleType:
+    """The module of suite ``name`` (`coherent_jax.bench.<name>`)."""
+    return importlib.import_module(f"coherent_jax.bench.{name}")
+
+
+def help_text() -> str:
+    """Every suite's own settings with their defaults."""
+    lines = [
+        "usage: python -m coherent_jax.bench [SUITE] [key=value ...]",
+        f"suites: {', '.join(SUITES)} (default: {DEFAULT_SUITE})",
+    ]
+    for name in SUITES:
+        module = suite_module(name)
+        lines += ["", f"{name} suite options (key=default):", *cli.help_lines(module.KEYS)]
+        fixed = getattr(module, "FIXED", None)
+        if fixed is not None:
+            lines.append(
+                "  and every training option of `python -m coherent_jax.train --help` except "
+                + ", ".join(fixed)
+            )
+    return "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Runs one suite; returns the exit status (2 for bad input, before anything runs)."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if any(a in ("-h", "--help", "help") for a in argv):
+        print(help_text())
+        return 0
+    if not argv or "=" in argv[0]:  # no suite named: the default one
+        argv = [DEFAULT_SUITE, *argv]
+    name, items = argv[0], argv[1:]
+    if name not in SUITES:
+        print(f"error: unknown suite {name!r}; valid suites: {', '.join(SUITES)}", file=sys.stderr)
+        return cli.EXIT_BAD_INPUT
+    suite = suite_module(name)
+    try:
+        suite.parse(items)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return cli.EXIT_BAD_INPUT
+    result = suite.run(items)
+    print()
+    print(suite.format_table(result), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

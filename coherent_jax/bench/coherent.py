@@ -1,0 +1,441 @@
+"""The ``coherent`` suite: ``python -m coherent_jax.bench coherent [key=value ...]``.
+
+Measures, in one process and on one set of settings, what coherent exploration
+costs next to Gaussian action noise:
+
+1. *Training throughput.* The real jitted PPO iteration (`OnPolicyTrainer`) with
+   ``explore=action`` and ``explore=coherent`` on the same task, envs, unroll and
+   network. Compile time is reported apart. After one warm-up iteration each, the
+   two are timed interleaved (A B, B A, A B, ...) so that a load change on a shared
+   machine hits both, and the median iteration time gives env steps/s. Peak memory
+   of each compiled iteration comes from XLA's ``memory_analysis()``, also for
+   ``remat=true``.
+2. *The filter alone.* `coherent.log_marginals` (p independent (q+1)-dimensional
+   Kalman filters, DESIGN.md §2) against `dense.dense_log_marginals`, the thesis's
+   recursion (4.33)-(4.49) over the flattened p(q+1) weight vector, forward and
+   forward+gradient, with a check that both give the same log-probabilities.
+3. *The loss's segment log-prob.* ``strategy.log_prob`` as the trainer's loss
+   calls it (vmapped over a minibatch of env segments, with its gradient), for
+   coherent and for action noise.
+
+Settings are ``key=value``: every training key except ``explore`` and ``remat``
+(the suite sets those), plus `KEYS`. The results go to a JSON file (default
+``bench_results/coherent.json``), written atomically.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import statistics
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from coherent_jax import cli
+from coherent_jax.bench import measure
+from coherent_jax.bench.dense import dense_log_marginals, sample_segments
+from coherent_jax.config import Config, to_dict, validate
+
+_count = cli.int_at_least(1)
+KEYS: dict[str, cli.Key] = {
+    "iterations": cli.Key(5, _count, "an integer >= 1", "timed PPO iterations per strategy"),
+    "out": cli.Key(
+        "bench_results/coherent.json", cli.output_file, "a writable file path", "where the JSON goes"
+    ),
+    "filter_q": cli.Key(
+        [64, 256], cli.int_list(1), "a list of integers >= 1, e.g. [64,256]", "trunk widths q"
+    ),
+    "filter_p": cli.Key(6, _count, "an integer >= 1", "action dimensions p of the filter benchmark"),
+    "filter_T": cli.Key(256, _count, "an integer >= 1", "sequence length T of the filter benchmark"),
+    "filter_batch": cli.Key(8, _count, "an integer >= 1", "sequences per call (vmapped)"),
+    "filter_repeats": cli.Key(5, _count, "an integer >= 1", "timed calls per filter measurement"),
+    "dense_budget_s": cli.Key(
+        60.0, cli.positive_float, "a number > 0", "fewer dense repeats if they would take longer than this"
+    ),
+    "dense_mem_gb": cli.Key(
+        3.0,
+        cli.positive_float,
+        "a number > 0",
+        "dense gradient: checkpoint the scan (then map over the batch) above this peak memory",
+    ),
+    "seg_envs": cli.Key(8, _count, "an integer >= 1", "env segments in the log_prob minibatch"),
+    "seg_repeats": cli.Key(10, _count, "an integer >= 1", "timed calls per log_prob measurement"),
+}
+# Training keys the suite sets itself: it runs both strategies, and remat on and off.
+FIXED: dict[str, str | None] = {"explore": None, "remat": None}
+
+
+def parse(items: Sequence[str]) -> cli.Parsed:
+    """The suite's settings and training config; `ConfigError` in one line for bad input.
+
+    The config is checked with both strategies the suite runs, so that a setting
+    one of them refuses stops the suite before it compiles anything.
+    """
+    parsed = cli.parse_command(items, KEYS, command="the coherent suite", fixed=FIXED)
+    for explore in ("action", "coherent"):
+        validate(dataclasses.replace(parsed.config, explore=explore))
+    return parsed
+
+
+def _bench_training(cfg: Config, iterations: int, log) -> tuple[dict, dict]:
+    """Compiles and times the PPO iteration for both strategies; returns (results, trainers)."""
+    import jax
+
+    from coherent_jax.agents.onpolicy import OnPolicyTrainer
+    from coherent_jax.envs.vec_env import VecEnv
+
+    shape = f"{cfg.env}, {cfg.num_envs} envs x {cfg.unroll_length} steps"
+    # One env object for all trainers (building an MJX model takes seconds); no
+    # evaluation runs here, so it also stands in for the evaluation env.
+    env = VecEnv(cfg.env, cfg.num_envs, cfg.episode_length, cfg.physics, cfg.physics_threads)
+    runs: dict[str, dict] = {}
+    for name, explore, remat in (
+        ("action", "action", False),
+        ("coherent", "coherent", False),
+        ("coherent_remat", "coherent", True),
+    ):
+        # The remat row is the sequential-filter form of the loss with its scan
+        # rematerialised (remat only applies there), compiled for its memory.
+        inference = "filter" if remat else cfg.coherent_inference
+        run_cfg = dataclasses.replace(cfg, explore=explore, remat=remat, coherent_inference=inference)
+        log(f"[bench] compiling the {cfg.algo} iteration, explore={explore} remat={remat} ({shape}) ...")
+        trainer = OnPolicyTrainer(run_cfg, env=env, eval_env=env)
+        if remat:  # same state as without remat; only the compiled backward pass differs
+            state = runs["coherent"]["state"]
+        else:
+            state = jax.jit(trainer.init)(jax.random.PRNGKey(cfg.seed))
+        step, compile_s = measure.compile_timed(trainer.iteration, state)
+        mem = measure.memory(step)
+        log(f"[bench]   compiled in {compile_s:.1f} s; peak memory {measure.peak_mb(mem)} MB")
+        if remat:  # compiled only for its memory
+            trainer = state = step = None
+        runs[name] = {"trainer": trainer, "state": state, "step": step, "compile_s": compile_s, "memory": mem}
+
+    timed = ("action", "coherent")
+    for name in timed:
+        log(f"[bench] warm-up iteration, explore={name} ...")
+        run = runs[name]
+        t0 = time.perf_counter()
+        run["state"], _ = jax.block_until_ready(run["step"](run["state"]))
+        run["warmup_s"] = time.perf_counter() - t0
+        run["times"] = []
+    measure.time_interleaved(runs, timed, iterations, log)
+
+    steps = cfg.num_envs * cfg.unroll_length
+    results: dict[str, Any] = {}
+    for name, run in runs.items():
+        entry = {"compile_s": run["compile_s"], "memory": run["memory"]}
+        if name in timed:
+            median = statistics.median(run["times"])
+            entry.update(
+                warmup_iteration_s=run["warmup_s"],
+                iteration_s=run["times"],
+                iteration_s_median=median,
+                env_steps_per_s=steps / median,
+                env_steps_per_s_total=len(run["times"]) * steps / sum(run["times"]),
+            )
+        results[name] = entry
+    results["env_steps_per_iteration"] = steps
+    results["ratio_coherent_over_action"] = (
+        results["coherent"]["env_steps_per_s"] / results["action"]["env_steps_per_s"]
+    )
+    peaks = {n: measure.peak(results[n]["memory"]) for n in ("action", "coherent", "coherent_remat")}
+    if all(peaks.values()):
+        results["memory_ratio_coherent_over_action"] = peaks["coherent"] / peaks["action"]
+        results["memory_ratio_remat_over_coherent"] = peaks["coherent_remat"] / peaks["coherent"]
+    trainers = {n: (runs[n]["trainer"], runs[n]["state"]) for n in timed}
+    return results, trainers
+
+
+# ---------------------------------------------------------- 2. the filter
+def _bench_filter(cfg: Config, bench: dict, log) -> dict:
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from coherent_jax.exploration.coherent import log_marginals
+
+    p, num_steps, batch = bench["filter_p"], bench["filter_T"], bench["filter_batch"]
+    in_axes = (0, 0, 0, None, None, None, None)
+
+    def forward(impl, chunk=0):
+        def f(x, a, first, mu, w_std, action_std, beta):
+            single = lambda *args: impl(*args, checkpoint_chunk=chunk) if chunk else impl(*args)
+            return jax.vmap(single, in_axes)(x, a, first, mu, w_std, action_std, beta)
+
+        return f
+
+    def with_grad(impl, chunk=0, sequential=False):
+        """value and d/d(mu, w_std) of sum log p over the batch."""
+
+        def total(mu, w_std, x, a, first, action_std, beta):
+            if sequential:  # one sequence at a time: 1/batch of the memory
+
+                def one(inputs):
+                    xi, ai, fi = inputs
+                    logp = lambda m, s: jnp.sum(
+                        impl(xi, ai, fi, m, s, action_std, beta, checkpoint_chunk=chunk)
+                    )
+                    return jax.value_and_grad(logp, argnums=(0, 1))(mu, w_std)
+
+                values, (g_mu, g_std) = jax.lax.map(one, (x, a, first))
+                return values.sum(), (g_mu.sum(0), g_std.sum(0))
+            fwd = forward(impl, chunk)
+            logp = lambda m, s: jnp.sum(fwd(x, a, first, m, s, action_std, beta))
+            return jax.value_and_grad(logp, argnums=(0, 1))(mu, w_std)
+
+        return total
+
+    cases = []
+    for q in bench["filter_q"]:
+        inputs = sample_segments(
+            jax.random.PRNGKey(cfg.seed + q), batch, num_steps, q, p, cfg.w_std_init, cfg.action_std, cfg.beta
+        )
+        x, a, first, mu, w_std, action_std, beta = inputs
+        grad_args = (mu, w_std, x, a, first, action_std, beta)
+        case: dict[str, Any] = {"q": q, "state_dim": p * (q + 1)}
+        outputs = {}
+        for method in ("block", "dense"):
+            log(f"[bench] filter q={q} {method}: compiling forward and forward+gradient ...")
+            impl = log_marginals if method == "block" else dense_log_marginals
+            fwd, fwd_compile_s = measure.compile_timed(forward(impl), *inputs)
+            grad_mode = "vmap"
+            grad, grad_compile_s = measure.compile_timed(with_grad(impl), *grad_args)
+            tried = [
+                {
+                    "mode": grad_mode,
+                    "peak_bytes": measure.peak(measure.memory(grad)),
+                    "compile_s": grad_compile_s,
+                }
+            ]
+            if method == "dense":
+                # The dense belief is p(q+1) squared per step and sequence; keeping one per
+                # step for the backward pass can exceed the machine, so checkpoint if needed.
+                budget = bench["dense_mem_gb"] * 2**30
+                chunk = max(1, round(math.sqrt(num_steps)))
+                for mode, kwargs in (
+                    (f"vmap, checkpoint every {chunk} steps", {"chunk": chunk}),
+                    (
+                        f"lax.map over the batch, checkpoint every {chunk} steps",
+                        {"chunk": chunk, "sequential": True},
+                    ),
+                ):
+                    if (tried[-1]["peak_bytes"] or 0) <= budget:
+                        break
+                    log(
+                        f"[bench]   dense gradient needs {measure.mb(tried[-1]['peak_bytes'])} MB; "
+                        f"trying {mode}"
+                    )
+                    grad, grad_compile_s = measure.compile_timed(with_grad(impl, **kwargs), *grad_args)
+                    grad_mode = mode
+                    tried.append(
+                        {
+                            "mode": mode,
+                            "peak_bytes": measure.peak(measure.memory(grad)),
+                            "compile_s": grad_compile_s,
+                        }
+                    )
+            # First calls (warm-up) also estimate how many repeats fit in the budget.
+            t0 = time.perf_counter()
+            logp = jax.block_until_ready(fwd(*inputs))
+            fwd_first = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            value, grads = jax.block_until_ready(grad(*grad_args))
+            grad_first = time.perf_counter() - t0
+            repeats, first_call_only = bench["filter_repeats"], False
+            if method == "dense":
+                # The dense recursion can take minutes: fit the repeats into the budget,
+                # and if even one round does not fit, report the first call's time.
+                rounds = int(bench["dense_budget_s"] // max(fwd_first + grad_first, 1e-9))
+                repeats, first_call_only = max(1, min(repeats, rounds)), rounds == 0
+            if first_call_only:
+                log(f"[bench] filter q={q} {method}: one round > dense_budget_s; timed the first call")
+                fwd_times, grad_times = [fwd_first], [grad_first]
+            else:
+                log(f"[bench] filter q={q} {method}: timing {repeats} x (forward, forward+gradient) ...")
+                fwd_times = measure.time_calls(fwd, inputs, repeats)
+                grad_times = measure.time_calls(grad, grad_args, repeats)
+            outputs[method] = (np.asarray(logp), value, [np.asarray(g) for g in grads])
+            case[method] = {
+                "forward_ms": 1e3 * statistics.median(fwd_times),
+                "grad_ms": 1e3 * statistics.median(grad_times),
+                "forward_ms_all": [1e3 * t for t in fwd_times],
+                "grad_ms_all": [1e3 * t for t in grad_times],
+                "repeats": repeats,
+                "first_call_timed": first_call_only,
+                "compile_forward_s": fwd_compile_s,
+                "compile_grad_s": grad_compile_s,
+                "grad_mode": grad_mode,
+                "grad_modes_tried": tried,
+                "memory_forward": measure.memory(fwd),
+                "memory_grad": measure.memory(grad),
+            }
+            log(
+                f"[bench]   forward {case[method]['forward_ms']:.2f} ms, "
+                f"forward+gradient {case[method]['grad_ms']:.2f} ms"
+            )
+        (lp_b, _, g_b), (lp_d, _, g_d) = outputs["block"], outputs["dense"]
+        case["max_abs_logp_diff"] = float(np.max(np.abs(lp_b - lp_d)))
+        case["max_abs_logp"] = float(np.max(np.abs(lp_d)))
+        case["max_rel_grad_diff"] = float(
+            max(
+                np.max(np.abs(gb - gd)) / max(np.max(np.abs(gd)), 1e-30)
+                for gb, gd in zip(g_b, g_d, strict=True)
+            )
+        )
+        case["speedup_forward"] = case["dense"]["forward_ms"] / case["block"]["forward_ms"]
+        case["speedup_grad"] = case["dense"]["grad_ms"] / case["block"]["grad_ms"]
+        log(
+            f"[bench] filter q={q}: max |logp block - dense| = {case['max_abs_logp_diff']:.2e} "
+            f"(|logp| up to {case['max_abs_logp']:.1f}); speedup dense/block: forward "
+            f"{case['speedup_forward']:.1f}x, forward+gradient {case['speedup_grad']:.1f}x"
+        )
+        cases.append(case)
+    return {
+        "p": p,
+        "T": num_steps,
+        "batch": batch,
+        "beta": cfg.beta,
+        "w_std": cfg.w_std_init,
+        "action_std": cfg.action_std,
+        "dtype": "float32",
+        "dense_form": "covariance (Woodbury) form of (4.33)-(4.49), one p x p solve per step",
+        "cases": cases,
+    }
+
+
+# ------------------------------------------------- 3. the loss's segment log-prob
+def _bench_segment_log_prob(cfg: Config, bench: dict, trainers: dict, log) -> dict:
+    import jax
+    import jax.numpy as jnp
+
+    envs, num_steps, repeats = bench["seg_envs"], cfg.unroll_length, bench["seg_repeats"]
+    results: dict[str, Any] = {"envs": envs, "T": num_steps, "repeats": repeats}
+    for name, (trainer, state) in trainers.items():
+        strategy = trainer.strategy
+        params, hparams = state.params.policy, state.hparams.explore
+        obs_size, p = trainer.env.observation_size, trainer.env.action_size
+        k_obs, k_act, k_carry = jax.random.split(jax.random.PRNGKey(cfg.seed), 3)
+        obs = jax.random.normal(k_obs, (envs, num_steps, obs_size))
+        actions = 0.5 * jax.random.normal(k_act, (envs, num_steps, p))
+        first = jnp.zeros((envs, num_steps), bool).at[:, 0].set(True)
+        carry0 = strategy.init_carry(k_carry, params, hparams, envs)
+        segments = jax.vmap(strategy.log_prob, in_axes=(None, None, 0, 0, 0, 0))
+
+        def forward(params, hparams, carry0, obs, actions, first, segments=segments):
+            seg = segments(params, hparams, carry0, obs, actions, first)
+            return seg.log_prob, seg.entropy
+
+        def loss(params, hparams, carry0, obs, actions, first, segments=segments):
+            seg = segments(params, hparams, carry0, obs, actions, first)
+            return jnp.mean(seg.log_prob) + jnp.mean(seg.entropy)
+
+        args = (params, hparams, carry0, obs, actions, first)
+        log(f"[bench] strategy.log_prob explore={name}: {envs} envs x {num_steps} steps, compiling ...")
+        fwd, fwd_compile_s = measure.compile_timed(forward, *args)
+        grad, grad_compile_s = measure.compile_timed(jax.value_and_grad(loss), *args)
+        jax.block_until_ready(fwd(*args))
+        jax.block_until_ready(grad(*args))
+        fwd_times = measure.time_calls(fwd, args, repeats)
+        grad_times = measure.time_calls(grad, args, repeats)
+        results[name] = {
+            "forward_ms": 1e3 * statistics.median(fwd_times),
+            "grad_ms": 1e3 * statistics.median(grad_times),
+            "compile_forward_s": fwd_compile_s,
+            "compile_grad_s": grad_compile_s,
+            "memory_grad": measure.memory(grad),
+        }
+        log(
+            f"[bench]   forward {results[name]['forward_ms']:.2f} ms, "
+            f"forward+gradient {results[name]['grad_ms']:.2f} ms"
+        )
+    results["ratio_forward_coherent_over_action"] = (
+        results["coherent"]["forward_ms"] / results["action"]["forward_ms"]
+    )
+    results["ratio_grad_coherent_over_action"] = results["coherent"]["grad_ms"] / results["action"]["grad_ms"]
+    return results
+
+
+def run(items: Sequence[str], log: Callable[[str], None] = measure.print_log) -> dict:
+    """Runs the suite with ``key=value`` items; writes and returns the results.
+
+    Raises `ConfigError` for bad input before anything runs.
+    """
+    bench, cfg, _ = parse(items)
+    info, t_start = measure.start("coherent", log)
+    training, trainers = _bench_training(cfg, bench["iterations"], log)
+    segment = _bench_segment_log_prob(cfg, bench, trainers, log)
+    del trainers
+    figures = {"training": training, "segment_log_prob": segment, "filter": _bench_filter(cfg, bench, log)}
+    settings = {"config": to_dict(cfg), **bench}
+    return measure.finish("coherent", info, t_start, settings, figures, bench["out"], log)
+
+
+def format_table(result: dict) -> str:
+    """The human-readable summary of `run`'s result."""
+    cfg = result["settings"]["config"]
+    tr, seg, filt = result["training"], result["segment_log_prob"], result["filter"]
+    hidden = ",".join(map(str, cfg["policy_hidden"]))
+    lines = [
+        f"coherent bench: {cfg['env']}, {cfg['num_envs']} envs x {cfg['unroll_length']} steps, "
+        f"{cfg['algo']} {cfg['num_epochs']} epochs x {cfg['num_minibatches']} minibatches, "
+        f"policy [{hidden}], beta={cfg['beta']}"
+        + (f", coherent_inference={cfg['coherent_inference']}" if "coherent_inference" in cfg else ""),
+        measure.machine_line(result),
+        "",
+        f"1. PPO iteration (median of {len(tr['action']['iteration_s'])}, interleaved)",
+        f"  {'explore':<22}{'compile s':>10}{'iter s':>10}{'env steps/s':>13}{'peak MB':>11}",
+    ]
+    for name, label in (
+        ("action", "action"),
+        ("coherent", "coherent"),
+        ("coherent_remat", "coherent filter remat"),
+    ):
+        e = tr[name]
+        iter_s = f"{e['iteration_s_median']:.3f}" if "iteration_s_median" in e else "-"
+        sps = f"{e['env_steps_per_s']:,.0f}" if "env_steps_per_s" in e else "-"
+        lines.append(
+            f"  {label:<22}{e['compile_s']:>10.1f}{iter_s:>10}{sps:>13}{measure.peak_mb(e['memory']):>11}"
+        )
+    ratio = f"  coherent/action: throughput {tr['ratio_coherent_over_action']:.2f}x"
+    if "memory_ratio_coherent_over_action" in tr:
+        ratio += (
+            f", peak memory {tr['memory_ratio_coherent_over_action']:.2f}x"
+            f" (filter+remat / joint {tr['memory_ratio_remat_over_coherent']:.2f}x)"
+        )
+    lines += [ratio, ""]
+    lines += [
+        f"2. filter log p(a_t | history): p={filt['p']}, T={filt['T']}, batch {filt['batch']} (vmapped), "
+        f"{filt['dtype']}, beta={filt['beta']}",
+        f"  {'q':>5} {'method':<7}{'forward ms':>12}{'fwd+grad ms':>13}{'grad peak MB':>14}{'reps':>6}"
+        "  gradient",
+    ]
+    for case in filt["cases"]:
+        for method in ("block", "dense"):
+            e = case[method]
+            reps = f"{e['repeats']}{'*' if e['first_call_timed'] else ''}"
+            lines.append(
+                f"  {case['q']:>5} {method:<7}{e['forward_ms']:>12.2f}{e['grad_ms']:>13.2f}"
+                f"{measure.peak_mb(e['memory_grad']):>14}{reps:>6}  {e['grad_mode']}"
+            )
+        lines.append(
+            f"  {'':>5} speedup dense/block: forward {case['speedup_forward']:.1f}x, "
+            f"fwd+grad {case['speedup_grad']:.1f}x; max |logp diff| {case['max_abs_logp_diff']:.1e} "
+            f"(|logp| <= {case['max_abs_logp']:.1f}), grad rel diff {case['max_rel_grad_diff']:.1e}"
+        )
+    if any(case[m]["first_call_timed"] for case in filt["cases"] for m in ("block", "dense")):
+        lines.append("  * one call, the first after compiling (a round took longer than dense_budget_s)")
+    lines.append("")
+    lines += [
+        f"3. strategy.log_prob as in the loss: vmap over {seg['envs']} envs x {seg['T']} steps "
+        f"(median of {seg['repeats']})",
+        f"  {'explore':<22}{'forward ms':>12}{'fwd+grad ms':>13}",
+    ]
+    for name in ("action", "coherent"):
+        lines.append(f"  {name:<22}{seg[name]['forward_ms']:>12.2f}{seg[name]['grad_ms']:>13.2f}")
+    lines += [
+        f"  coherent/action: forward {seg['ratio_forward_coherent_over_action']:.1f}x, "
+        f"fwd+grad {seg['ratio_grad_coherent_over_action']:.1f}x",
+    ]
+    return "\n".join(lines)

@@ -1,0 +1,209 @@
+"""Videos of evaluation episodes: record env 0's states inside the jitted evaluation, render
+them with MuJoCo's offscreen renderer, and write an MP4 (with ``ffmpeg`` on the PATH) or a GIF.
+
+Recording is a host callback on the evaluation environment's step, so any trainer's
+``evaluate`` is used unchanged and the video shows exactly the episodes whose returns
+are reported. Rendering follows what Gymnasium's MuJoCo renderer does for its
+locomotion tasks: a camera that tracks the agent's root body from the side at a
+distance that fits the body, and a brighter headlight (the task models light the
+scene from straight above, which leaves a side view dark).
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+import shutil
+import subprocess
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from coherent_jax import cli
+
+FORMATS = (".mp4", ".gif")
+# Camera as Gymnasium's locomotion tasks set it: from the side, a little above.
+_AZIMUTH, _ELEVATION = 90.0, -20.0
+# Distance from the tracked body, in units of the body's radius (its farthest geom from the root).
+_DISTANCE_PER_RADIUS, _MIN_DISTANCE = 2.5, 1.5
+
+
+def default_suffix() -> str:
+    """``.mp4`` where ``ffmpeg`` is on the PATH, else ``.gif`` (Pillow writes those)."""
+    return ".mp4" if shutil.which("ffmpeg") else ".gif"
+
+
+PATH_ALLOWED = "a writable .gif path, or .mp4 when ffmpeg is on the PATH"
+
+
+def check_path(text: str) -> str:
+    """A ``video_path`` that can be written: ``.gif``, or ``.mp4`` with ``ffmpeg``; raises `ValueError`."""
+    suffix = Path(text).suffix.lower()
+    if suffix not in FORMATS or (suffix == ".mp4" and not shutil.which("ffmpeg")):
+        raise ValueError(text)
+    return cli.output_file(text)
+
+
+class Recorder:
+    """Host-side sink of (qpos, done) of evaluation env 0, step by step, until its episode ends."""
+
+    def __init__(self, max_frames: int) -> None:
+        self.qpos: list[Any] = []
+        self.max_frames = max_frames
+        self.ended = False
+
+    def __call__(self, qpos: Any, done: Any) -> None:
+        import numpy as np
+
+        if not self.ended and len(self.qpos) < self.max_frames:
+            self.qpos.append(np.array(qpos, dtype=np.float64))
+        self.ended = self.ended or bool(done)
+
+
+def recording_env(
+    task: str,
+    num_envs: int,
+    episode_length: int,
+    recorder: Recorder,
+    physics: str = "auto",
+    threads: int = 1,
+):
+    """A `VecEnv` whose ``step`` also sends env 0's generalized positions to `recorder`."""
+    import jax
+
+    from coherent_jax.envs.vec_env import VecEnv
+
+    class RecordingVecEnv(VecEnv):
+        def step(self, state, action):
+            if hasattr(state.physics, "kin"):  # native MuJoCo physics
+                qpos = state.physics.kin.qpos
+            else:
+                physics = state.physics.pipeline_state
+                qpos = physics.qpos if hasattr(physics, "qpos") else physics.q
+            new_state, outcome = super().step(state, action)
+            jax.debug.callback(recorder, qpos[0], outcome.done[0], ordered=True)
+            return new_state, outcome
+
+    return RecordingVecEnv(task, num_envs, episode_length, physics, threads)
+
+
+def mujoco_model_of(env: Any, task: str) -> Any:
+    """The MuJoCo model behind an evaluation env (MJX's, or native physics' same MJCF)."""
+    if hasattr(env.env, "sys"):
+        return env.env.sys.mj_model
+    from coherent_jax.envs.native import mujoco_model
+
+    return mujoco_model(task)[0]
+
+
+def lit_model(mj_model: Any) -> Any:
+    """A copy of the model with a headlight bright enough for a side view."""
+    model = copy.deepcopy(mj_model)
+    model.vis.headlight.ambient[:] = 0.4
+    model.vis.headlight.diffuse[:] = 0.7
+    model.vis.headlight.specular[:] = 0.1
+    model.vis.headlight.active = 1
+    return model
+
+
+def tracking_camera(model: Any, data: Any) -> Any:
+    """A camera tracking body 1 (the agent's root) from the side, at a distance fitting the body."""
+    import mujoco
+    import numpy as np
+
+    camera = mujoco.MjvCamera()
+    mujoco.mjv_defaultFreeCamera(model, camera)
+    if model.nbody < 2:
+        return camera
+    agent = model.geom_bodyid > 0
+    reach = np.linalg.norm(data.geom_xpos[agent] - data.xpos[1], axis=1) + model.geom_rbound[agent]
+    radius = float(reach.max()) if reach.size else 1.0
+    camera.type = mujoco.mjtCamera.mjCAMERA_TRACKING
+    camera.trackbodyid = 1
+    camera.distance = max(_MIN_DISTANCE, _DISTANCE_PER_RADIUS * radius)
+    camera.azimuth, camera.elevation = _AZIMUTH, _ELEVATION
+    return camera
+
+
+def render_frames(mj_model: Any, qpos: Sequence[Any], width: int, height: int) -> list[Any]:
+    """RGB frames [height, width, 3] of the model at each configuration in `qpos`."""
+    import mujoco
+
+    model = lit_model(mj_model)
+    data = mujoco.MjData(model)
+    frames = []
+    camera = None
+    with mujoco.Renderer(model, height=height, width=width) as renderer:
+        for q in qpos:
+            data.qpos[:] = q
+            mujoco.mj_forward(model, data)
+            camera = camera or tracking_camera(model, data)  # sized on the first frame
+            renderer.update_scene(data, camera=camera)
+            frames.append(renderer.render().copy())
+    return frames
+
+
+def write_gif(path: Path, frames: Sequence[Any], fps: float) -> None:
+    """An animated GIF of `frames`, written through a temporary file and a rename."""
+    from PIL import Image
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    images = [Image.fromarray(f) for f in frames]
+    tmp = path.with_name(path.name + ".tmp")
+    images[0].save(
+        tmp,
+        format="GIF",
+        save_all=True,
+        append_images=images[1:],
+        duration=max(20, int(round(1000.0 / fps))),
+        loop=0,
+    )
+    os.replace(tmp, path)
+
+
+def write_mp4(path: Path, frames: Sequence[Any], fps: float) -> None:
+    """An H.264 MP4 of `frames` through ``ffmpeg`` (raw RGB on its stdin), then a rename."""
+    import numpy as np
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    height, width = frames[0].shape[:2]
+    tmp = path.with_name(path.name + ".tmp.mp4")
+    command = [
+        shutil.which("ffmpeg") or "ffmpeg",
+        "-y",
+        "-loglevel",
+        "error",
+        "-f",
+        "rawvideo",
+        "-pix_fmt",
+        "rgb24",
+        "-s",
+        f"{width}x{height}",
+        "-r",
+        f"{fps:.6g}",
+        "-i",
+        "-",
+        # yuv420p needs even sizes; players outside ffmpeg need yuv420p.
+        "-vf",
+        "pad=ceil(iw/2)*2:ceil(ih/2)*2",
+        "-pix_fmt",
+        "yuv420p",
+        "-c:v",
+        "libx264",
+        str(tmp),
+    ]
+    raw = np.ascontiguousarray(np.stack(frames), dtype=np.uint8).tobytes()
+    proc = subprocess.run(command, input=raw, capture_output=True)
+    if proc.returncode != 0 or not tmp.is_file():
+        tmp.unlink(missing_ok=True)
+        tail = (proc.stderr.decode(errors="replace").strip().splitlines() or ["no output"])[-1]
+        raise RuntimeError(f"ffmpeg failed writing {path}: {tail}")
+    os.replace(tmp, path)
+
+
+def write_video(path: Path, frames: Sequence[Any], fps: float) -> None:
+    """`write_mp4` for a ``.mp4`` path, `write_gif` otherwise."""
+    if path.suffix.lower() == ".mp4":
+        write_mp4(path, frames, fps)
+    else:
+        write_gif(path, frames, fps)

@@ -1,0 +1,266 @@
+"""RESULTS.md from the finished cells: ``python experiments/report.py [--results DIR] [--out FILE]``.
+
+Reads every finished cell under ``experiments/results/`` (see ``reproduce.py``) and
+writes ``experiments/RESULTS.md`` with its figures in ``experiments/results/figures/``:
+
+* learning curves per suite, task and algorithm: the mean of the deterministic
+  evaluation return over seeds and its 95% percentile-bootstrap interval, against
+  env steps (`coherent_jax.plot`);
+* final returns: per cell, the mean final evaluation return over seeds with its
+  bootstrap interval, and the area under the curve (mean evaluation return over
+  training, a measure of learning speed);
+* aggregates with rliable (Agarwal et al. 2021): per algorithm, scores normalised per
+  task (min-max over all cells of that task), IQM and optimality gap with 95%
+  stratified-bootstrap intervals, and the probability that coherent exploration
+  improves on each baseline, for final score and for area under the curve;
+* env steps/s and wall time per cell, and the compute spent in all;
+* for each claim of the thesis, a verdict: *reproduced* when the 95% interval of the
+  probability of improvement lies above 0.5, *not reproduced* when it lies below,
+  *inconclusive* otherwise.
+
+Missing cells are listed, never silently left out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import sys
+from collections import defaultdict
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from coherent_jax import plot  # noqa: E402
+
+_spec = importlib.util.spec_from_file_location("reproduce", ROOT / "experiments" / "reproduce.py")
+reproduce = importlib.util.module_from_spec(_spec)
+sys.modules.setdefault("reproduce", reproduce)
+_spec.loader.exec_module(reproduce)
+
+METRIC = "eval/episode_return"
+REPS = 2000
+BASELINES = ("action", "noisynet", "psne")
+
+
+def cell_runs(cell: reproduce.Cell, results: Path) -> list[plot.Run]:
+    """The seeds' runs of a finished cell (one per sweep point)."""
+    sweep = reproduce.cell_dir(cell, results) / "sweep"
+    return [plot.load_run(p, METRIC) for p in reproduce._point_dirs(sweep)]
+
+
+def auc(run: plot.Run) -> float:
+    """Mean evaluation return over training (trapezoid over env steps)."""
+    if run.steps.size < 2:
+        return float(run.values[-1])
+    return float(np.trapezoid(run.values, run.steps) / (run.steps[-1] - run.steps[0]))
+
+
+def interval(values: np.ndarray, reps: int = REPS, seed: int = 0) -> tuple[float, float, float]:
+    mean, low, high = plot.mean_and_interval(np.asarray(values, np.float64)[:, None], reps, seed)
+    return float(mean[0]), float(low[0]), float(high[0])
+
+
+def probability_of_improvement(
+    x: np.ndarray, y: np.ndarray, reps: int = REPS, seed: int = 0
+) -> dict[str, float]:
+    """P(X > Y) over runs x [n, tasks] and y [m, tasks] with a stratified-bootstrap 95% CI (rliable)."""
+    from rliable import library as rly
+    from rliable import metrics
+
+    point, ci = rly.get_interval_estimates(
+        {"pair": (x, y)},
+        lambda a, b: np.array([metrics.probability_of_improvement(a, b)]),
+        reps=reps,
+        confidence_interval_size=0.95,
+        random_state=np.random.RandomState(seed),
+    )
+    return {"p": float(point["pair"][0]), "low": float(ci["pair"][0, 0]), "high": float(ci["pair"][1, 0])}
+
+
+def verdict(poi: dict[str, float]) -> str:
+    if poi["low"] > 0.5:
+        return "reproduced"
+    if poi["high"] < 0.5:
+        return "not reproduced"
+    return "inconclusive"
+
+
+def normalised(scores: dict[str, dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """strategy -> task -> per-seed scores  =>  strategy -> [seeds, tasks], min-max per task."""
+    tasks = sorted({t for by_task in scores.values() for t in by_task})
+    out = {}
+    for name, by_task in scores.items():
+        if set(by_task) != set(tasks):
+            continue
+        n = min(len(v) for v in by_task.values())
+        cols = []
+        for t in tasks:
+            every = np.concatenate([s[t] for s in scores.values() if t in s])
+            lo, hi = float(every.min()), float(every.max())
+            cols.append((by_task[t][:n] - lo) / (hi - lo) if hi > lo else np.full(n, 0.5))
+        out[name] = np.stack(cols, axis=1)
+    return out
+
+
+def aggregate(norm: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
+    from rliable import library as rly
+    from rliable import metrics
+
+    point, ci = rly.get_interval_estimates(
+        norm,
+        lambda x: np.array([metrics.aggregate_iqm(x), metrics.aggregate_optimality_gap(x)]),
+        reps=REPS,
+        confidence_interval_size=0.95,
+        random_state=np.random.RandomState(0),
+    )
+    return {
+        k: {
+            "iqm": float(point[k][0]),
+            "iqm_low": float(ci[k][0, 0]),
+            "iqm_high": float(ci[k][1, 0]),
+            "gap": float(point[k][1]),
+            "gap_low": float(ci[k][0, 1]),
+            "gap_high": float(ci[k][1, 1]),
+        }
+        for k in norm
+    }
+
+
+def _label(cell: reproduce.Cell, run: plot.Run) -> str:
+    """The strategy (``coherent``, ``psne``, ``coherent-mc``...); a beta grid's points by their beta."""
+    name = cell.name.split("/", 2)[2]
+    if name.endswith("-beta"):
+        return f"beta={float(run.settings['beta']):g}"
+    return name
+
+
+def build(results: Path, out: Path, suites: Sequence[str] = ("thesis", "ablations", "beyond")) -> str:
+    figures = results / "figures"
+    lines = [
+        "# Results",
+        "",
+        f"Generated by `python experiments/report.py` from `{os.path.relpath(results, ROOT)}/`.",
+        "",
+    ]
+    total_wall, missing = 0.0, []
+    claims: list[tuple[str, str, dict[str, float]]] = []
+    for suite in suites:
+        cells = reproduce.SUITES[suite]()
+        done = [c for c in cells if reproduce.cell_state(c, results) == "done"]
+        missing += [f"{suite}: {c.name} ({reproduce.cell_state(c, results)})" for c in cells if c not in done]
+        if not done:
+            continue
+        lines += [f"## Suite `{suite}`", ""]
+        runs = {c.name: cell_runs(c, results) for c in done}
+        # Curves: one figure per algorithm, one panel per task.
+        figures.mkdir(parents=True, exist_ok=True)
+        by_algo: dict[str, list[plot.Run]] = defaultdict(list)
+        for c in done:
+            by_algo[c.setting("algo")] += runs[c.name]
+        for algo, algo_runs in sorted(by_algo.items()):
+            path = figures / f"{suite}-{algo}.png"
+            plot.plot_curves(plot.group_curves(algo_runs), METRIC, path, REPS, 0)
+            lines += [f"![{suite} {algo}]({os.path.relpath(path, out.parent)})", ""]
+        lines += [
+            "| cell | seeds | final return (95% CI) | area under curve (95% CI) | env steps/s | wall |",
+            "|---|---|---|---|---|---|",
+        ]
+        finals: dict[str, dict[str, dict[str, np.ndarray]]] = defaultdict(lambda: defaultdict(dict))
+        aucs: dict[str, dict[str, dict[str, np.ndarray]]] = defaultdict(lambda: defaultdict(dict))
+        for c in done:
+            rs = runs[c.name]
+            f = np.array([r.values[-1] for r in rs])
+            a = np.array([auc(r) for r in rs])
+            for label in sorted({_label(c, r) for r in rs}):
+                keep = [i for i, r in enumerate(rs) if _label(c, r) == label]
+                finals[c.setting("algo")][label][c.setting("env")] = f[keep]
+                aucs[c.setting("algo")][label][c.setting("env")] = a[keep]
+            summary = json.loads((reproduce.cell_dir(c, results) / "sweep" / "sweep.json").read_text())
+            wall = float(summary.get("wall_s", 0.0))
+            total_wall += wall
+            fm, fl, fh = interval(f)
+            am, al, ah = interval(a)
+            lines.append(
+                f"| {c.name} | {len(rs)} | {fm:.0f} ({fl:.0f}, {fh:.0f}) | {am:.0f} ({al:.0f}, {ah:.0f}) | "
+                f"{summary.get('sweep_env_steps_per_s', float('nan')):.0f} | {wall / 3600:.2f} h |"
+            )
+        lines.append("")
+        for algo in sorted(finals):
+            for what, table in (("final return", finals[algo]), ("area under curve", aucs[algo])):
+                norm = normalised(table)
+                if len(norm) < 2:
+                    continue
+                agg = aggregate(norm)
+                num_tasks = next(iter(norm.values())).shape[1]
+                lines += [
+                    f"**{algo}, {what}**, normalised per task over {num_tasks} task(s):",
+                    "",
+                    "| strategy | IQM (95% CI) | optimality gap (95% CI) |",
+                    "|---|---|---|",
+                ]
+                for k, v in sorted(agg.items()):
+                    lines.append(
+                        f"| {k} | {v['iqm']:.2f} ({v['iqm_low']:.2f}, {v['iqm_high']:.2f}) | "
+                        f"{v['gap']:.2f} ({v['gap_low']:.2f}, {v['gap_high']:.2f}) |"
+                    )
+                lines.append("")
+                for coherent, baseline in _pairs(suite, norm):
+                    poi = probability_of_improvement(norm[coherent], norm[baseline])
+                    claims.append(
+                        (f"{suite}, {algo}, {what}: {coherent} improves on {baseline}", verdict(poi), poi)
+                    )
+    if claims:
+        lines += ["## Verdicts", "", "| claim | P(improvement) (95% CI) | verdict |", "|---|---|---|"]
+        lines += [f"| {c} | {p['p']:.2f} ({p['low']:.2f}, {p['high']:.2f}) | {v} |" for c, v, p in claims]
+        lines.append("")
+    lines += [
+        "## Compute",
+        "",
+        f"Wall time of the finished cells: {total_wall / 3600:.1f} h on the 2-core CPU.",
+        "",
+    ]
+    if missing:
+        lines += ["## Cells not finished", ""] + [f"- {m}" for m in missing] + [""]
+    return "\n".join(lines)
+
+
+def _pairs(suite: str, norm: dict[str, np.ndarray]) -> list[tuple[str, str]]:
+    """(coherent variant, what it is compared with) for the claims of each suite."""
+    if suite == "ablations":
+        pairs = [
+            ("beta=0.01", "coherent-mc"),  # analytic vs single-sample Monte Carlo, default beta
+            ("coherent-mc", "coherent-mc-all"),  # last layer vs all layers, both Monte Carlo
+        ]
+        # The chain: intermediate beta vs step-based (1) and trajectory-based (0) exploration.
+        pairs += [(f"beta={b}", f"beta={e}") for b in ("0.01", "0.1", "0.5") for e in ("1", "0")]
+        return [p for p in pairs if p[0] in norm and p[1] in norm]
+    others = [b for b in (*BASELINES, "gsde", "pink") if b in norm]
+    return [("coherent", b) for b in others if "coherent" in norm]
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python experiments/report.py", description=__doc__.split("\n")[0])
+    parser.add_argument("--results", default=str(reproduce.RESULTS))
+    parser.add_argument("--out", default=str(ROOT / "experiments" / "RESULTS.md"))
+    parser.add_argument(
+        "--suites", nargs="+", default=["thesis", "ablations", "beyond"], choices=list(reproduce.SUITES)
+    )
+    args = parser.parse_args(argv)
+    results, out = Path(args.results).resolve(), Path(args.out).resolve()
+    text = build(results, out, args.suites)
+    tmp = out.with_name(out.name + ".tmp")
+    tmp.write_text(text)
+    tmp.replace(out)
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

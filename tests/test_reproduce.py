@@ -1,0 +1,122 @@
+"""experiments/reproduce.py: suites, cell selection, refusals and the state of a cell.
+
+These checks need no training: cells are read from the suite tables, and a cell's
+state is read from files laid out as a sweep writes them.
+"""
+
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+_spec = importlib.util.spec_from_file_location("reproduce", ROOT / "experiments" / "reproduce.py")
+reproduce = importlib.util.module_from_spec(_spec)
+sys.modules["reproduce"] = reproduce
+_spec.loader.exec_module(reproduce)
+
+
+def test_thesis_suite_covers_every_comparison():
+    names = {c.name for c in reproduce.thesis_cells()}
+    for task in ("halfcheetah", "walker2d", "hopper"):
+        for algo in ("ppo", "a2c"):
+            for s in ("action", "coherent", "noisynet", "psne"):
+                assert f"{task}/{algo}/{s}" in names
+        for s in ("action", "coherent", "psne"):
+            assert f"{task}/sac/{s}" in names
+    assert all(c.seeds >= 5 for c in reproduce.thesis_cells())
+
+
+def test_ablations_vary_one_component_each():
+    cells = {c.name: c for c in reproduce.ablation_cells()}
+    beta = cells["halfcheetah/ppo/coherent-beta"]
+    assert beta.setting("beta") == "[0,0.01,0.1,0.5,1]"
+    assert beta.env_steps == 5 * 5 * reproduce.ONPOLICY_STEPS  # five betas x five seeds
+    assert cells["halfcheetah/a2c/coherent-mc"].setting("coherent.integration") == "mc"
+    assert cells["halfcheetah/ppo/coherent-mc-all"].setting("coherent.layers") == "all"
+
+
+def test_smoke_has_one_cell_per_kind_of_cell():
+    smoke = reproduce.smoke_cells()
+    kinds = {c.name.split("/", 1)[1] for c in smoke}
+    full = {c.name.split("/", 1)[1] for s in ("thesis", "ablations", "beyond") for c in reproduce.SUITES[s]()}
+    assert kinds == full
+    assert len(smoke) == len(kinds)
+    assert all(c.setting("env") == "pointmass" for c in smoke)
+
+
+def test_fingerprint_changes_with_the_specification():
+    a = reproduce.Cell("thesis", "x/ppo/action", ("env=x", "algo=ppo"), 5)
+    assert a.fingerprint == reproduce.Cell("thesis", "x/ppo/action", ("env=x", "algo=ppo"), 5).fingerprint
+    assert (
+        a.fingerprint
+        != reproduce.Cell("thesis", "x/ppo/action", ("env=x", "algo=ppo", "lr=1"), 5).fingerprint
+    )
+    assert a.fingerprint != reproduce.Cell("thesis", "x/ppo/action", ("env=x", "algo=ppo"), 6).fingerprint
+
+
+def test_selection_by_glob_and_unknown_names():
+    chosen = reproduce.select("thesis", ["hopper/ppo/*"])
+    assert [c.name for c in chosen] == [f"hopper/ppo/{s}" for s in ("action", "coherent", "noisynet", "psne")]
+    with pytest.raises(reproduce.ReproduceError, match="unknown suite 'paper'.*allowed: smoke"):
+        reproduce.select("paper", [])
+    with pytest.raises(reproduce.ReproduceError, match="unknown cell 'ant/\\*'.*halfcheetah/ppo/action"):
+        reproduce.select("thesis", ["ant/*"])
+
+
+def _fake_sweep(cell, results, finished):
+    d = reproduce.cell_dir(cell, results)
+    point = d / "sweep" / "seed=0"
+    point.mkdir(parents=True)
+    (point / "config.yaml").write_text("seed: 0\n")
+    total = int(cell.setting("total_steps"))
+    rows = [{"iteration": 1, "env_steps": total // 4}, {"iteration": 2, "env_steps": total // 2}]
+    (point / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    (d / "cell.json").write_text(json.dumps({"spec": cell.spec(), "fingerprint": cell.fingerprint}))
+    if finished:
+        (d / "sweep" / "sweep.json").write_text(json.dumps({"sweep_env_steps_per_s": 1000.0}))
+    return d
+
+
+def test_cell_states_and_compute_left(tmp_path):
+    done, stopped, running, missing = reproduce.select("thesis", ["hopper/a2c/*"])
+    _fake_sweep(done, tmp_path, finished=True)
+    _fake_sweep(stopped, tmp_path, finished=False)
+    d = _fake_sweep(running, tmp_path, finished=False)
+    (d / "running.pid").write_text(f"{os.getpid()}\n")
+    assert reproduce.cell_state(done, tmp_path) == "done"
+    assert reproduce.cell_state(stopped, tmp_path) == "stopped"
+    assert reproduce.cell_state(running, tmp_path) == "running"
+    assert reproduce.cell_state(missing, tmp_path) == "missing"
+    # One point of five has run half of its steps: a tenth of the cell.
+    assert reproduce.progress(stopped, tmp_path)[0] == pytest.approx(0.5 / 5)
+    assert reproduce.estimated_seconds(done, tmp_path) == 0.0
+    assert reproduce.estimated_seconds(missing, tmp_path) > reproduce.estimated_seconds(stopped, tmp_path) > 0
+    text = reproduce.status([done, stopped, running, missing], tmp_path)
+    assert "done" in text and "stopped" in text and "running" in text and "missing" in text
+    # A stale lock (its process is gone) reads as stopped.
+    (d / "running.pid").write_text("999999999\n")
+    assert reproduce.cell_state(running, tmp_path) == "stopped"
+    # A stopped cell resumes its sweep; a missing one starts it.
+    assert any(a.startswith("resume=") for a in reproduce.sweep_command(stopped, tmp_path))
+    assert any(a.startswith("run_dir=") for a in reproduce.sweep_command(missing, tmp_path))
+
+
+def test_results_of_another_specification_are_refused(tmp_path):
+    cell = reproduce.select("thesis", ["hopper/ppo/action"])[0]
+    d = _fake_sweep(cell, tmp_path, finished=False)
+    reproduce.check_cell_dir(cell, tmp_path)  # its own results: accepted
+    (d / "cell.json").write_text(json.dumps({"spec": {"seeds": 3}, "fingerprint": "0" * 16}))
+    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "experiments" / "reproduce.py"), "thesis", "--cells", "hopper/ppo/action",
+         "--results", str(tmp_path)],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert proc.returncode == 2
+    assert proc.stderr.count("\n") == 1 and "another specification" in proc.stderr
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
