@@ -47,6 +47,7 @@ REFUSED: dict[tuple[str, str], str] = {
 }
 COHERENT_INTEGRATION = ("analytic", "mc")
 COHERENT_LAYERS = ("last", "all")
+COHERENT_GRADIENT = ("exact", "stored")
 # Defaults that differ by algorithm (applied before the user's overrides): SAC's
 # networks, batch and env count follow Haarnoja et al. 2018 / CleanRL rather than PPO.
 ALGO_DEFAULTS: dict[str, dict[str, Any]] = {
@@ -84,6 +85,14 @@ class CoherentOptions:
         metadata={
             "help": "coherent: last (the beta-chain on the last layer) or all (on every layer's "
             "weights; needs integration=mc, on-policy)"
+        },
+    )
+    gradient: str = dataclasses.field(
+        default="exact",
+        metadata={
+            "help": "coherent, analytic: exact (the chain restarts at each segment start, as at t = 0 "
+            "of Algorithm 5, so the loss has the thesis's gradient) or stored (the chain runs on; a "
+            "segment starts from the belief stored at collection, held constant)"
         },
     )
 
@@ -284,7 +293,8 @@ class Config:
         default_factory=CoherentOptions,
         metadata={
             "group": "exploration",
-            "help": "coherent ablations: coherent.integration=analytic|mc coherent.layers=last|all",
+            "help": "coherent ablations: coherent.integration=analytic|mc coherent.layers=last|all "
+            "coherent.gradient=exact|stored",
         },
     )
     noisynet_sigma0: float = _field(
@@ -465,6 +475,7 @@ def _validate_strategies(cfg: Config) -> None:
         ", ".join(COHERENT_INTEGRATION),
     )
     _check(co.layers in COHERENT_LAYERS, "coherent.layers", co.layers, ", ".join(COHERENT_LAYERS))
+    _check(co.gradient in COHERENT_GRADIENT, "coherent.gradient", co.gradient, ", ".join(COHERENT_GRADIENT))
     if cfg.explore == "coherent":
         _check(
             cfg.algo in ON_POLICY or co.integration == "mc",
