@@ -9,6 +9,7 @@ small tanh trunk, with respect to the trunk, mu, log w_std and action_std.
 """
 
 import contextlib
+import json
 import math
 
 import jax
@@ -382,3 +383,23 @@ def test_float32_loss_stays_finite_and_accurate_at_extreme_weight_to_noise_ratio
             )
         assert logp32.dtype == jnp.float32 and np.isfinite(np.asarray(logp32)).all()
         np.testing.assert_allclose(logp32, logp64, atol=1e-2)
+
+
+def test_gradient_bench_passes_for_exact_forms_and_exposes_stored(tmp_path, capsys):
+    """`python -m coherent_jax.bench gradient` on small shapes: the exact and re-filtered forms
+    meet the bound (exit 0), the stored form is visibly off once the segment has a history,
+    and a bad setting is one line, exit 2, nothing written."""
+    from coherent_jax.bench.__main__ import main
+
+    out = tmp_path / "gradient.json"
+    small = ["q=8", "p=1", "obs_size=3", "segment=8", "w_std=0.3", "action_std=0.1", f"out={out}"]
+    assert main(["gradient", "betas=[0,0.1]", "histories=[0,16]", *small]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    assert all(r["ok"] for r in rows if r["mode"] != "stored")
+    stored = {(r["beta"], r["history"]): r["cos"] for r in rows if r["mode"] == "stored"}
+    assert stored[(0.0, 0)] > 0.9999 and stored[(0.0, 16)] < 0.99
+    out.unlink()
+    capsys.readouterr()
+    assert main(["gradient", "betas=[2]", f"out={out}"]) == 2
+    err = capsys.readouterr().err
+    assert "'betas'" in err and len(err.strip().splitlines()) == 1 and not out.exists()

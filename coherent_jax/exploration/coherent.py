@@ -587,7 +587,7 @@ class CoherentExploration(OnPolicyStrategy):
       mid-episode starts from the belief stored when it was collected, a constant of
       the data mapped onto the current mu and w_std: the right values (the ratio is 1
       at the collection parameters) but not the thesis's gradient (see
-      ``coherent_jax.bench_gradient``). Kept for the ablation.
+      ``python -m coherent_jax.bench gradient``). Kept for the ablation.
     """
 
     name = "coherent"
