@@ -34,7 +34,7 @@ import chex
 import jax
 import jax.numpy as jnp
 
-from coherent_jax.exploration.adaptive import adapt_sigma, policy_distance
+from coherent_jax.exploration.adaptive import SigmaRule, adapt_sigma, policy_distance
 from coherent_jax.exploration.base import ActOutput, OffPolicyBehaviour, OnPolicyStrategy, SegmentLogProb
 from coherent_jax.exploration.chain import chain_step, innovation_var
 from coherent_jax.networks import MLP, augment, squash
@@ -557,7 +557,45 @@ def _to_standard(belief: Belief, mu: chex.Array, w_std: chex.Array) -> tuple[che
     return (belief.mean - mu) / w_std, belief.cov / (w_std[:, :, None] * w_std[:, None, :])
 
 
-class CoherentExploration(OnPolicyStrategy):
+class ChainStrategy(OnPolicyStrategy):
+    """What the strategies on the beta-chain share: beta, the initial w_std, the action noise.
+
+    ``action_std`` (Lambda_a^-1/2) is a fixed, sweepable hyperparameter as in the thesis,
+    or learned (``log_action_std`` in the parameters) with ``learn_action_std``.
+    """
+
+    def __init__(
+        self, action_size: int, beta: float, w_std_init: float, action_std: float, learn_action_std: bool
+    ):
+        self.action_size = int(action_size)
+        self.beta = float(beta)
+        self.w_std_init = float(w_std_init)
+        self.action_std = float(action_std)
+        self.learn_action_std = bool(learn_action_std)
+
+    @staticmethod
+    def chain_settings(cfg) -> dict:
+        """The constructor's chain arguments as ``cfg`` gives them."""
+        return {
+            "beta": cfg.beta,
+            "w_std_init": cfg.w_std_init,
+            "action_std": cfg.action_std,
+            "learn_action_std": cfg.learn_action_std,
+        }
+
+    def init_hparams(self):
+        hp = {"beta": jnp.asarray(self.beta, jnp.float32)}
+        if not self.learn_action_std:
+            hp["action_std"] = jnp.full((self.action_size,), self.action_std, jnp.float32)
+        return hp
+
+    def _action_std(self, params, hparams):
+        if self.learn_action_std:
+            return jnp.exp(params["log_action_std"])
+        return hparams["action_std"]
+
+
+class CoherentExploration(ChainStrategy):
     """Deep Coherent Exploration of the policy's last layer (thesis §4.1-4.2).
 
     Parameters: the trunk f_theta, the last-layer mean ``mu`` [p, q+1] and per-weight
@@ -609,13 +647,9 @@ class CoherentExploration(OnPolicyStrategy):
             raise ValueError(f"inference must be 'joint' or 'filter', got {inference!r}")
         if gradient not in ("exact", "stored"):
             raise ValueError(f"gradient must be 'exact' or 'stored', got {gradient!r}")
-        self.action_size = int(action_size)
+        super().__init__(action_size, beta, w_std_init, action_std, learn_action_std)
         self.feature_size = int(hidden[-1])
         self.trunk = MLP(tuple(hidden), activation)
-        self.beta = float(beta)
-        self.w_std_init = float(w_std_init)
-        self.action_std = float(action_std)
-        self.learn_action_std = bool(learn_action_std)
         self.remat = bool(remat)
         self.inference = inference
         self.gradient = gradient
@@ -626,10 +660,7 @@ class CoherentExploration(OnPolicyStrategy):
             action_size,
             cfg.policy_hidden,
             cfg.activation,
-            beta=cfg.beta,
-            w_std_init=cfg.w_std_init,
-            action_std=cfg.action_std,
-            learn_action_std=cfg.learn_action_std,
+            **cls.chain_settings(cfg),
             remat=cfg.remat,
             inference=cfg.coherent_inference,
             gradient=cfg.coherent.gradient,
@@ -650,18 +681,9 @@ class CoherentExploration(OnPolicyStrategy):
             params["log_action_std"] = jnp.full((p,), math.log(self.action_std), jnp.float32)
         return params
 
-    def init_hparams(self):
-        hp = {"beta": jnp.asarray(self.beta, jnp.float32)}
-        if not self.learn_action_std:
-            hp["action_std"] = jnp.full((self.action_size,), self.action_std, jnp.float32)
-        return hp
-
     def _head(self, params, hparams):
         w_std = jnp.exp(params["log_w_std"])
-        if self.learn_action_std:
-            action_std = jnp.exp(params["log_action_std"])
-        else:
-            action_std = hparams["action_std"]
+        action_std = self._action_std(params, hparams)
         # The covariance-form marginals keep float32 within about 0.005 nats per step
         # only while the weights' spread is within MAX_W_STD_RATIO of the action noise
         # (beta = 0, 1000-step segments; at 300 they lose every digit and turn NaN).
@@ -789,23 +811,16 @@ class CoherentBehaviour(OffPolicyBehaviour):
 
     name = "coherent"
 
-    def __init__(self, beta: float, sigma_init: float, sigma_delta: float, sigma_alpha: float):
+    def __init__(self, beta: float, rule: SigmaRule):
         self.beta = float(beta)
-        self.sigma_init = float(sigma_init)
-        self.sigma_delta = float(sigma_delta)
-        self.sigma_alpha = float(sigma_alpha)
+        self.rule = rule
 
     @classmethod
     def from_config(cls, cfg, action_size: int):
-        return cls(cfg.beta, cfg.sigma_init, cfg.sigma_delta, cfg.sigma_alpha)
+        return cls(cfg.beta, SigmaRule.from_config(cfg))
 
     def init_hparams(self):
-        return {
-            "beta": jnp.asarray(self.beta, jnp.float32),
-            "sigma": jnp.asarray(self.sigma_init, jnp.float32),
-            "sigma_delta": jnp.asarray(self.sigma_delta, jnp.float32),
-            "sigma_alpha": jnp.asarray(self.sigma_alpha, jnp.float32),
-        }
+        return {"beta": jnp.asarray(self.beta, jnp.float32), **self.rule.hparams()}
 
     def init_carry(self, key, actor, actor_params, hparams, num_envs):
         # z_0 ~ N(0, I) for every env; `first` at the first step redraws it anyway.
