@@ -242,17 +242,6 @@ class _PointView:
         return jax.tree.map(lambda x: x[self.index], self.trainer.export_params(states))
 
 
-def _host(tree: Any) -> Any:
-    """Host copy of a (possibly multi-host sharded) pytree."""
-    import jax
-
-    if jax.process_count() > 1:
-        from jax.experimental import multihost_utils
-
-        tree = multihost_utils.process_allgather(tree, tiled=True)
-    return jax.device_get(tree)
-
-
 def _per_point(values: dict[str, Any], n: int) -> dict[str, Any]:
     """Metrics as float64 arrays of one value per point ([n])."""
     import numpy as np
@@ -296,7 +285,7 @@ def run_loop(
     import numpy as np
     from tqdm.auto import tqdm
 
-    from coherent_jax import parallel
+    from coherent_jax import distributed, parallel
 
     cfg, trainer, n = job.cfg, job.trainer, job.num_points
     t_start = time.perf_counter()
@@ -324,13 +313,15 @@ def run_loop(
         else:
             state, shardings = parallel.init_state(trainer, init_key, num_devices, cfg.num_envs)
     else:  # the state's structure from tracing init, its values from the checkpoint
+        # Several processes: each reads the checkpoint, only process 0 has a run_dir.
+        checkpoint_path = Path(cfg.resume or job.run_dir or ".") / CHECKPOINT
         if job.points:
             template = jax.eval_shape(jax.vmap(trainer.init), init_key, job.hparams)
-            state = restore_state(template, resume.state_bytes, job.run_dir / CHECKPOINT)
+            state = restore_state(template, resume.state_bytes, checkpoint_path)
             state, shardings = parallel.shard_points(state, num_devices)
         else:
             template = jax.eval_shape(trainer.init, init_key)
-            state = restore_state(template, resume.state_bytes, job.run_dir / CHECKPOINT)
+            state = restore_state(template, resume.state_bytes, checkpoint_path)
             state, shardings = parallel.shard_state(state, num_devices, cfg.num_envs)
         loop, start = resume.loop, resume.iteration
         key = jnp.asarray(loop.eval_key, dtype=jnp.uint32)
@@ -367,18 +358,23 @@ def run_loop(
         loop.last_return = last_return.tolist() if job.points else float(last_return[0])
         loop.last_eval = {k: v.tolist() if job.points else float(v[0]) for k, v in last_eval.items()}
         loop.diverged = {str(k): v for k, v in diverged.items()}
-        blob = encode_checkpoint(cfg, done, done * cfg.steps_per_iteration, loop, state_to_bytes(state))
+        state_bytes = state_to_bytes(state)  # every process: the state is gathered from all
+        if not job.run_dir:
+            return
+        blob = encode_checkpoint(cfg, done, done * cfg.steps_per_iteration, loop, state_bytes)
         atomic_write(job.run_dir / CHECKPOINT, blob)
         for w in writers:
             if w is not None:
                 w.flush()
 
     files, writers = _open_outputs(job, start, resume is not None)
+    # Several processes: only process 0 has the run directory, but all gather the state.
+    checkpoints = distributed.from_writer(job.run_dir is not None)
     bar = tqdm(
         total=cfg.num_iterations * cfg.steps_per_iteration,
         initial=start * cfg.steps_per_iteration,
         unit="step",
-        disable=not cfg.progress,
+        disable=not cfg.progress or not distributed.is_writer(),  # one progress bar per run
         dynamic_ncols=True,
         mininterval=1.0,
         # One rate: the postfix's training env steps/s (tqdm's own would count compile and eval).
@@ -386,14 +382,17 @@ def run_loop(
     )
     done = start
     saved = start if resume is not None else -1
+    # A signal to one process stops all of them after the same iteration; the agreed
+    # value, not the local one, decides (a signal may arrive after the agreement).
+    stopping = distributed.largest(stop.signum or 0)
     try:
         for i in range(start, cfg.num_iterations):
-            if stop.signum is not None:
+            if stopping:
                 break
             t0 = time.perf_counter()
             state, metrics = iteration(state)
-            metrics = _per_point(_host(metrics), n)
-            finite = np.asarray(_host(check_params(state))).reshape(n)
+            metrics = _per_point(distributed.to_host(metrics), n)
+            finite = np.asarray(distributed.to_host(check_params(state))).reshape(n)
             loop.train_s += time.perf_counter() - t0
             for j in range(n):
                 if j in diverged:
@@ -417,7 +416,7 @@ def run_loop(
                 t0 = time.perf_counter()
                 keys_now = split(key)
                 key, eval_key = (keys_now[:, 0], keys_now[:, 1]) if job.points else (keys_now[0], keys_now[1])
-                last_eval = _per_point(_host(evaluate(state, eval_key)), n)
+                last_eval = _per_point(distributed.to_host(evaluate(state, eval_key)), n)
                 loop.eval_s += time.perf_counter() - t0
                 metrics.update(last_eval)
             ret = metrics["train/episode_return"]
@@ -439,7 +438,8 @@ def run_loop(
             if progress_fn:
                 progress_fn(done, {k: float(v[0]) for k, v in metrics.items()})
             every = cfg.checkpoint_every > 0 and done % cfg.checkpoint_every == 0
-            if job.run_dir and (last or every or stop.signum is not None):
+            stopping = distributed.largest(stop.signum or 0)
+            if checkpoints and (last or every or stopping):
                 save_checkpoint(done)
                 saved = done
             bar.update(cfg.steps_per_iteration)
@@ -452,7 +452,7 @@ def run_loop(
             )
             if len(diverged) == n:
                 break
-        if stop.signum is not None and job.run_dir and saved != done:
+        if stopping and checkpoints and saved != done:
             save_checkpoint(done)  # stopped before the first iteration: resume starts here
     finally:
         bar.close()
@@ -469,7 +469,7 @@ def run_loop(
         compile_s=compile_s,
         num_devices=num_devices,
         physics=physics,
-        stopped_by=stop.name,
+        stopped_by=signal.Signals(stopping).name if stopping else None,
         last_return=[float(x) for x in last_return],
         last_eval={k: [float(x) for x in v] for k, v in last_eval.items()},
         diverged=diverged,
@@ -478,11 +478,17 @@ def run_loop(
 
 
 def write_params(trainer: Any, state: Any, point_dirs: list[Path], points: bool) -> None:
-    """Each point's final parameters and observation statistics (flax msgpack) in its directory."""
+    """Each point's final parameters and observation statistics (flax msgpack) in its directory.
+
+    Several processes: every process must call it (the parameters are gathered from
+    all); only process 0 has directories to write to.
+    """
     import jax
     from flax import serialization
 
-    params = _host(trainer.export_params(state))
+    from coherent_jax.distributed import to_host
+
+    params = to_host(trainer.export_params(state))
     for j, d in enumerate(point_dirs):
         one = jax.tree.map(lambda x, j=j: x[j], params) if points else params
         atomic_write(d / "params.msgpack", serialization.to_bytes(one))

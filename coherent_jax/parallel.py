@@ -129,9 +129,11 @@ def shard_state(state: Any, num_devices: int, num_envs: int):
     """
     if num_devices == 1:
         return state, None
+    from coherent_jax.distributed import place
+
     check_env_split(num_envs, num_devices)
     shardings = env_state_shardings(state, make_mesh(num_devices, ENV_AXIS), num_envs)
-    return jax.device_put(state, shardings), shardings
+    return place(state, shardings), shardings
 
 
 def point_device_count(num_points: int, available: int) -> int:
@@ -157,8 +159,10 @@ def shard_points(states: Any, num_devices: int):
     """Stacked sweep states (e.g. restored from a checkpoint) placed as `init_points` places new ones."""
     if num_devices == 1:
         return states, None
+    from coherent_jax.distributed import place
+
     shardings = point_shardings(states, make_mesh(num_devices, POINT_AXIS))
-    return jax.device_put(states, shardings), shardings
+    return place(states, shardings), shardings
 
 
 def compile_iteration(trainer: Any, state: Any, shardings: Any = None, points: bool = False):
@@ -184,34 +188,19 @@ def check_devices(cfg: Any, split_envs: bool = True) -> bool:
 
     Returns whether this process writes the outputs (process 0 of a distributed run).
     """
+    from coherent_jax import distributed
+
     maybe_initialize_distributed(cfg.distributed)
     num_devices = resolve_num_devices(cfg.num_devices)
     if split_envs:
         check_env_split(cfg.num_envs, num_devices)
-    return jax.process_index() == 0
+        distributed.check_device_split(num_devices)
+    return distributed.is_writer()
 
 
 def maybe_initialize_distributed(enabled: bool) -> None:
-    """`jax.distributed.initialize()` once, before any other JAX call, when ``enabled``.
+    """`coherent_jax.distributed.initialize` once, before any other JAX call, when ``enabled``."""
+    if enabled:
+        from coherent_jax import distributed
 
-    On a cluster JAX detects coordinator, process count and id itself (SLURM, Open MPI,
-    Kubernetes, Cloud TPU). Elsewhere set ``JAX_COORDINATOR_ADDRESS=host:port`` (JAX
-    reads it) and ``JAX_NUM_PROCESSES`` and ``JAX_PROCESS_ID`` (read here) on every process.
-    """
-    if not enabled:
-        return
-    import os
-
-    kwargs = {}
-    if "JAX_NUM_PROCESSES" in os.environ:
-        kwargs["num_processes"] = int(os.environ["JAX_NUM_PROCESSES"])
-    if "JAX_PROCESS_ID" in os.environ:
-        kwargs["process_id"] = int(os.environ["JAX_PROCESS_ID"])
-    try:
-        jax.distributed.initialize(**kwargs)
-    except (ValueError, RuntimeError) as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise ConfigError(
-            f"invalid value for 'distributed': True ({first}) (allowed: false, or true on a cluster JAX "
-            "detects or with JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES and JAX_PROCESS_ID set)"
-        ) from None
+        distributed.initialize()

@@ -248,6 +248,8 @@ def decode_checkpoint(path: Path, cfg: Config) -> Checkpoint:
 def state_to_bytes(state: Any) -> bytes:
     """The leaves of the state pytree, in tree order, as flax msgpack.
 
+    A state spread over several processes is gathered first: every process must call this.
+
     Leaves rather than the tree itself: the physics state of an MJX environment is a
     pytree that flax's serialisation does not know, and the tree structure is
     rebuilt from the trainer's own template on restore.
@@ -256,7 +258,9 @@ def state_to_bytes(state: Any) -> bytes:
     import numpy as np
     from flax import serialization
 
-    leaves = jax.tree_util.tree_leaves(jax.device_get(state))
+    from coherent_jax.distributed import to_host
+
+    leaves = jax.tree_util.tree_leaves(to_host(state))
     return serialization.msgpack_serialize({str(i): np.asarray(x) for i, x in enumerate(leaves)})
 
 

@@ -45,7 +45,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from coherent_jax import cli
+from coherent_jax import cli, distributed
 from coherent_jax.config import (
     SWEEPABLE,
     Config,
@@ -335,8 +335,8 @@ def run_sweep(
             flush=True,
         )
         return result
+    write_params(trainer, out.state, point_dirs, points=True)  # every process: a collective
     if out_dir is not None:
-        write_params(trainer, out.state, point_dirs, points=True)
         for d, summary in zip(point_dirs, summaries, strict=True):
             atomic_write(d / "summary.json", json.dumps(summary, indent=2).encode())
         atomic_write(out_dir / "sweep.csv", to_csv(plan, rows).encode())
@@ -432,16 +432,24 @@ def _main(argv: list[str], stop: StopRequest) -> int:
         if resume_dir is not None:
             cfg, out_dir = resume_config(resume_dir, rest)
             plan = _stored_plan(cfg, out_dir)
-            check_devices(cfg, split_envs=False)
+            if distributed.needs_supervisor(cfg.distributed):
+                return distributed.supervise("coherent_jax.sweep", argv)
+            # Several hosts: every process reads the checkpoint, only process 0 writes.
+            is_writer = check_devices(cfg, split_envs=False)
+            check_point_split(cfg, plan)
             checkpoint = resume_point(out_dir, cfg, out_dir / plan.points[0].name / METRICS)
             if checkpoint is not None and checkpoint.iteration >= cfg.num_iterations:
                 if (out_dir / "sweep.json").exists():
                     print(f"{PREFIX} {out_dir} is already complete ({checkpoint.iteration} iterations)")
                     return 0
+            out_dir = out_dir if is_writer else None
         else:
             plan = parse_sweep(argv)
             cfg = plan.base
+            if distributed.needs_supervisor(cfg.distributed):
+                return distributed.supervise("coherent_jax.sweep", argv)
             writer = check_devices(cfg, split_envs=False)
+            check_point_split(cfg, plan)
             out_dir = None
             if writer:
                 out_dir = prepare_output_dir(Path(cfg.run_dir) if cfg.run_dir else default_sweep_dir(cfg))
@@ -471,6 +479,14 @@ def _main(argv: list[str], stop: StopRequest) -> int:
     return EXIT_DIVERGED if result["diverged"] else 0
 
 
+def check_point_split(cfg: Config, plan: SweepPlan) -> None:
+    """Several processes: the points must spread over every device of every process."""
+    from coherent_jax import parallel
+
+    available = parallel.resolve_num_devices(cfg.num_devices)
+    distributed.check_device_split(parallel.point_device_count(len(plan.points), available))
+
+
 def _stored_plan(cfg: Config, out_dir: Path) -> SweepPlan:
     """The grid a sweep directory records (``grid.json``) over its stored config."""
     path = out_dir / GRID
@@ -489,4 +505,4 @@ def _stored_plan(cfg: Config, out_dir: Path) -> SweepPlan:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(distributed.run_cli(main))

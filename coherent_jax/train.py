@@ -35,6 +35,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from coherent_jax import distributed
 from coherent_jax.config import Config, ConfigError, help_text, parse_overrides
 from coherent_jax.loop import PREFIX, DivergenceError, Job, StopRequest, quiet_imports, run_loop, to_float
 from coherent_jax.runs import (
@@ -122,8 +123,8 @@ def train(
             flush=True,
         )
         return summary
+    write_params(job.trainer, out.state, [run_dir] if run_dir else [], points=False)  # every process
     if run_dir:
-        write_params(job.trainer, out.state, [run_dir], points=False)
         atomic_write(run_dir / "summary.json", json.dumps(summary, indent=2).encode())
     final = summary["final_eval_return"]
     print(
@@ -156,14 +157,20 @@ def _main(argv: list[str], stop: StopRequest) -> int:
     try:
         if resume_dir is not None:
             cfg, run_dir = resume_config(resume_dir, rest)
-            check_devices(cfg)
+            if distributed.needs_supervisor(cfg.distributed):
+                return distributed.supervise("coherent_jax.train", argv)
+            # Several hosts: every process reads the checkpoint, only process 0 writes.
+            is_writer = check_devices(cfg)
             checkpoint = resume_point(run_dir, cfg)
             if checkpoint is not None and checkpoint.iteration >= cfg.num_iterations:
                 if (run_dir / "summary.json").exists():
                     print(f"{PREFIX} {run_dir} is already complete ({checkpoint.iteration} iterations)")
                     return 0
+            run_dir = run_dir if is_writer else None
         else:
             cfg = parse_overrides(argv)
+            if distributed.needs_supervisor(cfg.distributed):
+                return distributed.supervise("coherent_jax.train", argv)
             is_writer = check_devices(cfg)  # several hosts: only process 0 writes
             path = Path(cfg.run_dir) if cfg.run_dir else default_run_dir(cfg)
             run_dir = prepare_output_dir(path) if is_writer else None
@@ -195,4 +202,4 @@ def _main(argv: list[str], stop: StopRequest) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(distributed.run_cli(main))
