@@ -23,7 +23,7 @@ from typing import Any
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from coherent_jax.envs.native import DEFAULT_THREADS, NATIVE_TASKS, PHYSICS
+from coherent_jax.envs.native import DEFAULT_THREADS, NATIVE_TASKS, PHYSICS, PhysicsError, resolve_physics
 from coherent_jax.envs.registry import TASKS
 
 ALGOS = ("ppo", "a2c", "sac")
@@ -47,6 +47,7 @@ REFUSED: dict[tuple[str, str], str] = {
 }
 COHERENT_INTEGRATION = ("analytic", "mc")
 COHERENT_LAYERS = ("last", "all")
+COHERENT_GRADIENT = ("exact", "stored")
 # Defaults that differ by algorithm (applied before the user's overrides): SAC's
 # networks, batch and env count follow Haarnoja et al. 2018 / CleanRL rather than PPO.
 ALGO_DEFAULTS: dict[str, dict[str, Any]] = {
@@ -84,6 +85,14 @@ class CoherentOptions:
         metadata={
             "help": "coherent: last (the beta-chain on the last layer) or all (on every layer's "
             "weights; needs integration=mc, on-policy)"
+        },
+    )
+    gradient: str = dataclasses.field(
+        default="exact",
+        metadata={
+            "help": "coherent, analytic: exact (the chain restarts at each segment start, as at t = 0 "
+            "of Algorithm 5, so the loss has the thesis's gradient) or stored (the chain runs on; a "
+            "segment starts from the belief stored at collection, held constant)"
         },
     )
 
@@ -158,7 +167,11 @@ class Config:
     # --- collection
     num_envs: int = _field("collection", 64, "parallel environments")
     unroll_length: int = _field("collection", 64, "steps per env per iteration (segment length T)")
-    episode_length: int = _field("collection", 1000, "time limit in env steps (truncation is bootstrapped)")
+    episode_length: int = _field(
+        "collection",
+        0,
+        "time limit in env steps (truncation is bootstrapped); 0 = the task's own (1000; reacher 50)",
+    )
     # --- optimisation
     lr: float = _field("optimisation", 3e-4, "Adam learning rate (policy and value)", _sweep(_EVERY))
     gamma: float = _field("optimisation", 0.99, "discount factor", _sweep(_EVERY))
@@ -273,14 +286,15 @@ class Config:
     physics_threads: int = _field(
         "physics",
         DEFAULT_THREADS,
-        "native physics: MuJoCo threads per step call, 0 = every core (see bench_physics)",
+        "native physics: MuJoCo threads per step call, 0 = every core (see the bench physics suite)",
     )
     # --- exploration strategies and ablations
     coherent: CoherentOptions = dataclasses.field(
         default_factory=CoherentOptions,
         metadata={
             "group": "exploration",
-            "help": "coherent ablations: coherent.integration=analytic|mc coherent.layers=last|all",
+            "help": "coherent ablations: coherent.integration=analytic|mc coherent.layers=last|all "
+            "coherent.gradient=exact|stored",
         },
     )
     noisynet_sigma0: float = _field(
@@ -344,6 +358,8 @@ def _check(cond: bool, key: str, value: Any, allowed: str) -> None:
 def validate(cfg: Config) -> Config:
     """Checks ranges and choices; raises `ConfigError` naming the first bad key."""
     _check(cfg.env in TASKS, "env", cfg.env, ", ".join(TASKS))
+    if cfg.episode_length == 0:  # the task's registered time limit, written into the resolved config
+        cfg = dataclasses.replace(cfg, episode_length=TASKS[cfg.env].episode_length)
     _check(cfg.algo in ALGOS, "algo", cfg.algo, ", ".join(ALGOS))
     _check(cfg.explore in EXPLORES, "explore", cfg.explore, ", ".join(EXPLORES))
     supported = SUPPORTED_ALGOS[cfg.explore]
@@ -435,6 +451,13 @@ def validate(cfg: Config) -> Config:
         cfg.env,
         "with physics=native: " + ", ".join(NATIVE_TASKS),
     )
+    if cfg.physics == "mjx":
+        try:
+            resolve_physics(cfg.env, cfg.physics)
+        except PhysicsError as exc:
+            raise ConfigError(
+                f"invalid value for 'physics': 'mjx' with env={cfg.env} ({exc}) (allowed: auto, native)"
+            ) from None
     _check(cfg.eval_every >= 0, "eval_every", cfg.eval_every, "an integer >= 0")
     _check(cfg.eval_episodes >= 1, "eval_episodes", cfg.eval_episodes, "an integer >= 1")
     _check(cfg.checkpoint_every >= 0, "checkpoint_every", cfg.checkpoint_every, "an integer >= 0")
@@ -452,6 +475,7 @@ def _validate_strategies(cfg: Config) -> None:
         ", ".join(COHERENT_INTEGRATION),
     )
     _check(co.layers in COHERENT_LAYERS, "coherent.layers", co.layers, ", ".join(COHERENT_LAYERS))
+    _check(co.gradient in COHERENT_GRADIENT, "coherent.gradient", co.gradient, ", ".join(COHERENT_GRADIENT))
     if cfg.explore == "coherent":
         _check(
             cfg.algo in ON_POLICY or co.integration == "mc",

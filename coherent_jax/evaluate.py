@@ -1,12 +1,17 @@
-"""Evaluate a run's checkpoint: ``python -m coherent_jax.evaluate RUN_DIR episodes=10 video=true``.
+"""Evaluate a run's policy: ``python -m coherent_jax.evaluate RUN_DIR episodes=10 video=true``.
 
-Loads ``RUN_DIR/checkpoint.msgpack`` (verified as in `coherent_jax.runs`), runs
-``episodes`` deterministic (mean-action) episodes in parallel with the trainer's own
-``evaluate`` and prints the mean and standard deviation of their returns. With
-``video=true`` it also renders the first episode (`coherent_jax.video`; headless:
-``MUJOCO_GL=egl`` by default, or ``osmesa``) to
+``RUN_DIR`` is a training run's directory or one point of a sweep
+(``runs/sweep-.../p003-beta=0.1-seed=1``). Its policy (`coherent_jax.policy.Policy`) is
+read from ``checkpoint.msgpack`` (verified as in `coherent_jax.runs`), or from
+``params.msgpack`` where there is no checkpoint, without building the training envs,
+a trainer or a replay buffer. ``episodes`` deterministic (mean-action) episodes run in
+parallel, as training evaluates, and the mean and standard deviation of their returns
+are printed. With ``video=true`` it also renders the first episode
+(`coherent_jax.video`; headless: ``MUJOCO_GL=egl`` by default, or ``osmesa``) to
 ``RUN_DIR/videos/eval-it<iteration>-s<seed>.mp4`` (``.gif`` without ffmpeg) unless
-``video_path`` is given. `pointmass` has no MuJoCo model and refuses ``video=true``.
+``video_path`` is given; the physics states come from inside the jitted evaluation, so
+the video shows exactly the episodes whose returns are printed. `pointmass` has no
+MuJoCo model and refuses ``video=true``.
 """
 
 from __future__ import annotations
@@ -14,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import re
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -41,6 +47,10 @@ KEYS: dict[str, cli.Key] = {
 }
 
 
+# ``key=value`` with a plain key; a path such as a sweep point ``p003-beta=0.1-seed=1`` is not one.
+_SETTING = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*=")
+
+
 @dataclasses.dataclass(frozen=True)
 class EvalConfig:
     """Settings of ``python -m coherent_jax.evaluate RUN_DIR [key=value ...]`` (defaults: `KEYS`)."""
@@ -56,28 +66,27 @@ class EvalConfig:
 
 def parse_eval_args(argv: Sequence[str]) -> tuple[Path, EvalConfig]:
     """``RUN_DIR`` then ``key=value`` settings; raises `ConfigError` in one line."""
-    positional = [a for a in argv if "=" not in a]
+    is_setting = [bool(_SETTING.match(a)) and not os.path.isdir(a) for a in argv]
+    positional = [a for a, s in zip(argv, is_setting, strict=True) if not s]
     if len(positional) != 1:
         raise ConfigError(
             f"expected one run directory, got {len(positional)}: {positional!r} "
             "(usage: python -m coherent_jax.evaluate RUN_DIR [episodes=10] [video=true] ...)"
         )
-    items = [a for a in argv if "=" in a]
+    items = [a for a, s in zip(argv, is_setting, strict=True) if s]
     settings = cli.parse_command(items, KEYS, command="evaluate", config=False).settings
     return Path(positional[0]), EvalConfig(**settings)
 
 
 def evaluate_run(run_dir: Path, opts: EvalConfig) -> dict[str, Any]:
-    """Evaluates the checkpoint of `run_dir`; returns the figures (and the video path)."""
+    """Evaluates the policy of `run_dir`; returns the figures (and the video path)."""
     import jax
 
-    from coherent_jax.agents import make_trainer
     from coherent_jax.envs.vec_env import VecEnv
-    from coherent_jax.runs import restore_state
+    from coherent_jax.policy import load_policy
+    from coherent_jax.rollout import evaluation_metrics
 
     cfg = load_config(run_dir)
-    ckpt = decode_checkpoint(run_dir / CHECKPOINT, cfg)
-    cfg = dataclasses.replace(cfg, eval_episodes=opts.episodes)
     recorder = video.Recorder(opts.max_frames)
     if opts.video:
         eval_env = video.recording_env(
@@ -85,14 +94,14 @@ def evaluate_run(run_dir: Path, opts: EvalConfig) -> dict[str, Any]:
         )
     else:
         eval_env = VecEnv(cfg.env, opts.episodes, cfg.episode_length, cfg.physics, cfg.physics_threads)
-    trainer = make_trainer(cfg, eval_env=eval_env)
-    template = jax.eval_shape(trainer.init, jax.random.PRNGKey(0))
-    state = restore_state(template, ckpt.state_bytes, run_dir / CHECKPOINT)
-    metrics = jax.device_get(jax.jit(trainer.evaluate)(state, jax.random.PRNGKey(opts.seed)))
+    policy, origin = load_policy(run_dir, eval_env.observation_size, eval_env.action_size)
+    evaluate = jax.jit(lambda p, k: evaluation_metrics(eval_env, p.mean_action, k))
+    metrics = jax.device_get(evaluate(policy, jax.random.PRNGKey(opts.seed)))
     result = {
         "run_dir": str(run_dir),
-        "iteration": ckpt.iteration,
-        "env_steps": ckpt.env_steps,
+        "source": origin["source"],
+        "iteration": origin["iteration"],
+        "env_steps": origin["env_steps"],
         "episodes": opts.episodes,
         "seed": opts.seed,
         "return_mean": float(metrics["eval/episode_return"]),
@@ -104,7 +113,8 @@ def evaluate_run(run_dir: Path, opts: EvalConfig) -> dict[str, Any]:
         frames = video.render_frames(
             video.mujoco_model_of(eval_env, cfg.env), recorder.qpos, opts.width, opts.height
         )
-        name = f"eval-it{ckpt.iteration}-s{opts.seed}{video.default_suffix()}"
+        stem = "final" if origin["iteration"] is None else f"it{origin['iteration']}"
+        name = f"eval-{stem}-s{opts.seed}{video.default_suffix()}"
         path = Path(opts.video_path) if opts.video_path else run_dir / "videos" / name
         video.write_video(path, frames, fps=1.0 / eval_env.dt)
         result.update({"video": str(path), "frames": len(frames)})
@@ -119,6 +129,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     # Headless rendering; must be chosen before mujoco is first imported.
     os.environ.setdefault("MUJOCO_GL", "egl")
+    from coherent_jax.policy import PARAMS, PolicyError
+
     try:
         run_dir, opts = parse_eval_args(argv)
         if not run_dir.is_dir():
@@ -126,7 +138,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 f"invalid run directory {str(run_dir)!r}: not a directory (allowed: a run directory)"
             )
         cfg = load_config(run_dir)
-        decode_checkpoint(run_dir / CHECKPOINT, cfg)
+        if (run_dir / CHECKPOINT).is_file() or not (run_dir / PARAMS).is_file():
+            decode_checkpoint(run_dir / CHECKPOINT, cfg)  # refuses a missing or broken one
         from coherent_jax.envs.registry import TASKS
 
         if opts.video and TASKS[cfg.env].backend == "jax":
@@ -138,10 +151,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return cli.EXIT_BAD_INPUT
     print(f"[coherent_jax] evaluating {run_dir} ({opts.episodes} episodes)", flush=True)
-    result = evaluate_run(run_dir, opts)
+    try:
+        result = evaluate_run(run_dir, opts)
+    except (CheckpointError, PolicyError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return cli.EXIT_BAD_INPUT
+    when = (
+        f"{result['source']}"
+        if result["iteration"] is None
+        else f"iteration {result['iteration']} ({result['env_steps']} env steps)"
+    )
     print(
-        f"[coherent_jax] {cfg.env} {cfg.algo} explore={cfg.explore}, iteration {result['iteration']} "
-        f"({result['env_steps']} env steps): return "
+        f"[coherent_jax] {cfg.env} {cfg.algo} explore={cfg.explore}, {when}: return "
         f"{result['return_mean']:.2f} +- {result['return_std']:.2f} "
         f"(mean +- std over {opts.episodes} episodes, mean length {result['episode_length_mean']:.1f})",
         flush=True,

@@ -6,23 +6,46 @@ import numpy as np
 import pytest
 
 from coherent_jax.envs import TASKS, UnknownTaskError, VecEnv, check_task, env_sizes, make_brax_env
+from coherent_jax.envs.gym_v5 import SHORT_NAMES
 
+# Brax's re-creations (MJX, or Brax's generalized pipeline) and the pure-JAX test task.
 EXPECTED = {
+    "brax-halfcheetah": (17, 6),
+    "brax-hopper": (11, 3),
+    "brax-walker2d": (17, 6),
+    "brax-ant": (27, 8),
+    "brax-humanoid": (244, 17),
+    "brax-inverted_pendulum": (4, 1),
+    "brax-inverted_double_pendulum": (8, 1),
+    "brax-reacher": (11, 2),
+    "brax-swimmer": (8, 2),
+    "pointmass": (6, 2),
+}
+# Gymnasium's v5 tasks on native MuJoCo, by short name (their Gymnasium ids name the same tasks).
+EXPECTED_GYM = {
     "halfcheetah": (17, 6),
     "hopper": (11, 3),
     "walker2d": (17, 6),
-    "ant": (27, 8),
-    "humanoid": (244, 17),
+    "ant": (105, 8),
+    "humanoid": (348, 17),
     "inverted_pendulum": (4, 1),
-    "inverted_double_pendulum": (8, 1),
-    "reacher": (11, 2),
+    "inverted_double_pendulum": (9, 1),
+    "reacher": (10, 2),
     "swimmer": (8, 2),
-    "pointmass": (6, 2),
 }
 
 
-def test_registry_has_every_task_of_the_issue():
-    assert set(TASKS) == set(EXPECTED)
+def test_registry_has_both_families():
+    assert set(TASKS) == set(EXPECTED) | set(EXPECTED_GYM) | set(SHORT_NAMES.values())
+    assert set(EXPECTED_GYM) == set(SHORT_NAMES)
+    for short, gym_id in SHORT_NAMES.items():
+        assert check_task(short) == TASKS[gym_id]
+        assert f"brax-{short}" in TASKS
+
+
+def test_brax_env_of_a_gymnasium_task_names_the_brax_recreation():
+    with pytest.raises(UnknownTaskError, match="'hopper'.*Hopper-v5.*'brax-hopper'"):
+        make_brax_env("hopper")
 
 
 def test_unknown_task_lists_valid_names():
@@ -34,8 +57,28 @@ def test_unknown_task_lists_valid_names():
         assert name in msg
 
 
+@pytest.mark.parametrize("name", sorted(EXPECTED_GYM))
+def test_every_gymnasium_task_resets_and_steps_under_jit(name):
+    """Registry-wide smoke test of the standard tasks: the vectorized env under jit, shapes, finite values."""
+    env = VecEnv(name, num_envs=2)
+    assert (env.observation_size, env.action_size) == EXPECTED_GYM[name]
+
+    @jax.jit
+    def reset_and_step(key):
+        state = env.reset(key)
+        action = jax.random.uniform(key, (2, env.action_size), minval=-1, maxval=1)
+        return state, env.step(env.step(state, action)[0], action)
+
+    first, (state, out) = reset_and_step(jax.random.PRNGKey(0))
+    assert first.obs.shape == state.obs.shape == (2, EXPECTED_GYM[name][0])
+    assert out.reward.shape == (2,)
+    assert bool(jnp.all(jnp.isfinite(first.obs))) and bool(jnp.all(jnp.isfinite(state.obs)))
+    assert bool(jnp.all(jnp.isfinite(out.reward)))
+    assert not bool(jnp.allclose(first.obs, state.obs)), "stepping changes the state"
+
+
 @pytest.mark.parametrize("name", sorted(EXPECTED))
-def test_every_task_resets_and_steps_under_jit(name):
+def test_every_brax_task_resets_and_steps_under_jit(name):
     """Registry-wide smoke test: jitted reset and step of the task, shapes and finite values."""
     env = make_brax_env(name)
     obs_size, act_size = EXPECTED[name]

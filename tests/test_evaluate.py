@@ -247,3 +247,127 @@ def test_mp4_goes_through_ffmpeg_and_gif_without_it(tmp_path, monkeypatch):
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["v.mp4"]  # no temporary file left
     assert "-s 7x5" in (tmp_path / "args").read_text() and "rgb24" in (tmp_path / "args").read_text()
     assert (tmp_path / "stdin").read_bytes() == np.stack(frames).tobytes()
+
+
+# ------------------------------------------------- the policy, restored without a trainer
+
+
+def random_state(trainer, seed=0):
+    """A train state of the trainer's shapes with random parameters and observation statistics
+    (the rest zeros), built without compiling anything: restoring the wrong leaves or
+    skipping the normalisation would show."""
+    import jax
+    import numpy as np
+
+    from coherent_jax.networks import RunningStats
+
+    rng = np.random.default_rng(seed)
+    shapes = jax.eval_shape(trainer.init, jax.random.PRNGKey(0))
+    state = jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), shapes)
+    params = jax.tree.map(lambda s: rng.normal(0.0, 0.3, s.shape).astype(s.dtype), shapes.params)
+    size = shapes.obs_stats.mean.shape[0]
+    stats = RunningStats(
+        mean=rng.normal(size=size).astype(np.float32),
+        var=np.exp(rng.normal(size=size)).astype(np.float32),
+        count=np.float32(7.0),
+    )
+    return state.replace(params=params, obs_stats=stats)
+
+
+def write_run(path: Path, cfg, trainer, state, checkpoint=True, params=True) -> Path:
+    """A run directory as training writes it: config, checkpoint and/or params.msgpack."""
+    import jax
+    from flax import serialization
+    from omegaconf import OmegaConf
+
+    path.mkdir(parents=True)
+    atomic_write(path / "config.yaml", OmegaConf.to_yaml(to_dict(cfg)).encode())
+    if checkpoint:
+        blob = encode_checkpoint(cfg, 3, 96, LoopState(eval_key=[0, 0]), state_to_bytes(state))
+        atomic_write(path / CHECKPOINT, blob)
+    if params:
+        exported = jax.device_get(trainer.export_params(state))
+        atomic_write(path / "params.msgpack", serialization.to_bytes(exported))
+    return path
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        ["algo=ppo", "explore=coherent"],
+        ["algo=sac", "explore=psne", "buffer_size=64", "policy_hidden=[16,16]", "value_hidden=[16,16]"],
+    ],
+    ids=["ppo-coherent", "sac-psne"],
+)
+def test_policy_restored_without_a_trainer_acts_as_the_agent(tmp_path, monkeypatch, overrides):
+    """From a checkpoint and from params.msgpack: the arrays the trainer exports, and the
+    trainer's deterministic action, with no trainer or replay buffer built on the way; the
+    serialised policy round-trips bit for bit."""
+    import jax
+
+    from coherent_jax import agents, replay
+    from coherent_jax.agents.onpolicy import OnPolicyTrainer
+    from coherent_jax.agents.sac import SACTrainer
+    from coherent_jax.networks import normalize
+    from coherent_jax.policy import Policy, load_policy
+
+    cfg = parse_overrides([*POINTMASS, *overrides])
+    trainer = agents.make_trainer(cfg)
+    state = random_state(trainer)
+    exported = trainer.export_params(state)
+    sizes = (trainer.env.observation_size, trainer.env.action_size)
+    obs = jax.random.normal(jax.random.PRNGKey(9), (5, sizes[0]))
+    x = normalize(state.obs_stats, obs, cfg.normalize_obs)  # SAC runs default to no normalisation
+    if cfg.algo == "sac":
+        policy_params, expected = exported["actor"], trainer.actor.mode(state.params.actor, x)
+    else:
+        policy_params, expected = exported["policy"], trainer.strategy.mean_action(state.params.policy, x)
+    run = write_run(tmp_path / "run", cfg, trainer, state)
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("restoring the policy built a trainer or a replay buffer")
+
+    for target, name in [(OnPolicyTrainer, "__init__"), (SACTrainer, "__init__"), (replay, "replay_init")]:
+        monkeypatch.setattr(target, name, refuse)
+    monkeypatch.setattr("coherent_jax.agents.sac.replay_init", refuse)
+
+    for source in ("checkpoint.msgpack", "params.msgpack"):
+        policy, origin = load_policy(run, *sizes)
+        assert origin["source"] == source
+        for got, want in zip(
+            jax.tree.leaves((policy.params, policy.obs_stats)),
+            jax.tree.leaves((policy_params, exported["obs_stats"])),
+            strict=True,
+        ):
+            np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+        np.testing.assert_array_equal(np.asarray(policy.mean_action(obs)), np.asarray(expected))
+        (run / CHECKPOINT).unlink(missing_ok=True)
+
+    again = Policy.from_bytes(policy.to_bytes())
+    np.testing.assert_array_equal(np.asarray(again.mean_action(obs)), np.asarray(expected))
+    # The stochastic action differs from the mean action but stays near it.
+    sampled = np.asarray(jax.jit(lambda p, k, o: p.sample(k, o))(policy, jax.random.PRNGKey(1), obs))
+    assert sampled.shape == (5, sizes[1]) and not np.allclose(sampled, np.asarray(expected))
+
+
+def test_a_sweep_point_directory_is_evaluated_from_its_parameters(tmp_path, capsys):
+    """A sweep writes one run directory per point, named with its values (``p001-beta=0.1-seed=0``):
+    such a path is the run directory, not a ``key=value`` option, and its evaluation returns
+    what the trainer's own ``evaluate`` returns for the same parameters."""
+    import jax
+
+    from coherent_jax.agents import make_trainer
+
+    cfg = parse_overrides([*POINTMASS, "explore=coherent", "beta=0.1", "eval_episodes=3"])
+    trainer = make_trainer(cfg)
+    state = random_state(trainer)
+    expected = jax.device_get(jax.jit(trainer.evaluate)(state, jax.random.PRNGKey(4)))
+    point = tmp_path / "sweep" / "p001-beta=0.1-seed=0"
+    write_run(point, cfg, trainer, state, checkpoint=False)
+    run_dir, opts = parse_eval_args([str(point), "episodes=3"])
+    assert run_dir == point and opts.episodes == 3
+    assert main([str(point), "episodes=3", "seed=4"]) == 0
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert result["source"] == "params.msgpack" and result["iteration"] is None
+    np.testing.assert_allclose(result["return_mean"], expected["eval/episode_return"], rtol=1e-6)
+    np.testing.assert_allclose(result["return_std"], expected["eval/episode_return_std"], rtol=1e-5)

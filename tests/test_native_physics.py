@@ -1,4 +1,5 @@
-"""Native MuJoCo physics (``physics=native``): the same task as MJX, under jit, reproducible."""
+"""Native MuJoCo physics (``physics=native``): for Brax's re-creations the same task as MJX; under jit,
+reproducible. Gymnasium's tasks are held to Gymnasium itself in ``test_gymnasium_tasks.py``."""
 
 import os
 
@@ -11,9 +12,10 @@ from coherent_jax.config import ConfigError, parse_overrides
 from coherent_jax.envs import VecEnv, make_brax_env
 from coherent_jax.envs.native import NATIVE_TASKS, NativePhysics, NativeState, PhysicsError, resolve_physics
 
-# MJX programs take 10-60 s each to compile here: the suite checks the two tasks the
-# issue names; COHERENT_ALL_PHYSICS=1 checks every native task the same way.
-ALWAYS = ("inverted_pendulum", "halfcheetah")
+# MJX programs take 10-60 s each to compile here: the suite checks two tasks;
+# COHERENT_ALL_PHYSICS=1 checks every native Brax task the same way.
+ALWAYS = ("brax-inverted_pendulum", "brax-halfcheetah")
+BRAX_NATIVE = [task for task in NATIVE_TASKS if task.startswith("brax-")]
 
 
 def _rollouts(task: str, n: int, steps: int):
@@ -39,7 +41,7 @@ def _rollouts(task: str, n: int, steps: int):
     return mjx, nat
 
 
-@pytest.mark.parametrize("task", list(NATIVE_TASKS))
+@pytest.mark.parametrize("task", BRAX_NATIVE)
 def test_native_steps_match_mjx_side_by_side(task):
     """From the same keys (so identical initial states) and actions, native MuJoCo and MJX give
     the same observations, rewards and terminations for several steps, to float32 accuracy.
@@ -60,7 +62,7 @@ def test_native_steps_match_mjx_side_by_side(task):
     np.testing.assert_array_equal(np.asarray(done_n), np.asarray(done_m))
     # The comparison is not vacuous: the state moved and rewards vary.
     assert np.max(np.abs(np.asarray(obs_m[-1]) - np.asarray(obs0_m))) > 1e-2
-    if task == "inverted_pendulum":
+    if task == "brax-inverted_pendulum":
         assert np.all(np.asarray(rew_n) == 1.0)
     else:
         assert np.std(np.asarray(rew_m)) > 1e-3
@@ -152,12 +154,14 @@ def test_physics_choice_and_refusals():
     """auto picks native on CPU where it exists; native refuses other tasks naming the allowed ones."""
     assert jax.default_backend() == "cpu"
     assert resolve_physics("halfcheetah", "auto") == "native"
-    assert resolve_physics("halfcheetah", "mjx") == "mjx"
+    assert resolve_physics("brax-halfcheetah", "auto") == "native"
+    assert resolve_physics("brax-halfcheetah", "mjx") == "mjx"
     assert resolve_physics("pointmass", "auto") == "jax"
-    assert resolve_physics("humanoid", "auto") == "mjx"
+    assert resolve_physics("brax-humanoid", "auto") == "mjx"
+    assert resolve_physics("humanoid", "native") == "native"
     with pytest.raises(PhysicsError) as err:
-        resolve_physics("humanoid", "native")
-    assert "'humanoid'" in str(err.value) and all(t in str(err.value) for t in NATIVE_TASKS)
+        resolve_physics("brax-humanoid", "native")
+    assert "'brax-humanoid'" in str(err.value) and all(t in str(err.value) for t in NATIVE_TASKS)
     with pytest.raises(PhysicsError, match="'warp'.*auto, mjx, native"):
         resolve_physics("halfcheetah", "warp")
     with pytest.raises(ConfigError, match="'physics'.*auto, mjx, native"):
@@ -165,8 +169,8 @@ def test_physics_choice_and_refusals():
     with pytest.raises(ConfigError, match="'physics_threads'.*>= 0"):
         parse_overrides(["physics_threads=-1"])
     with pytest.raises(ConfigError) as err:
-        parse_overrides(["env=swimmer", "physics=native"])
-    assert "'swimmer'" in str(err.value) and "halfcheetah" in str(err.value)
+        parse_overrides(["env=brax-swimmer", "physics=native"])
+    assert "'brax-swimmer'" in str(err.value) and "halfcheetah" in str(err.value)
     assert parse_overrides(["physics=mjx"]).physics == "mjx"
 
 
@@ -174,7 +178,11 @@ def test_bench_physics_bad_input_exits_2_and_writes_nothing(tmp_path, capsys):
     from coherent_jax.bench.__main__ import main
 
     out = tmp_path / "physics.json"
-    for bad, key in (("envs=[0]", "'envs'"), ("variants=[warp]", "'variants'"), ("env=swimmer", "'env'")):
+    for bad, key in (
+        ("envs=[0]", "'envs'"),
+        ("variants=[warp]", "'variants'"),
+        ("env=brax-swimmer", "'env'"),
+    ):
         assert main(["physics", bad, f"out={out}"]) == 2
         err = capsys.readouterr().err
         assert key in err and "allowed" in err and len(err.strip().splitlines()) == 1
@@ -194,3 +202,14 @@ def test_bench_physics_measures_and_writes_json(tmp_path):
     result = json.loads(out.read_text())
     assert [(r["variant"], r["n"]) for r in result["rows"]] == [("native_raw", 2), ("native_raw", 4)]
     assert all(r["env_steps_per_s"] > 0 and "error" not in r for r in result["rows"])
+
+
+def test_bench_standard_bad_input_exits_2_and_writes_nothing(tmp_path, capsys):
+    from coherent_jax.bench.__main__ import main
+
+    out = tmp_path / "standard.json"
+    for bad, key in (("tasks=[cheetah]", "'tasks'"), ("envs=[0]", "'envs'"), ("repeats=0", "'repeats'")):
+        assert main(["standard", bad, f"out={out}"]) == 2
+        err = capsys.readouterr().err
+        assert key in err and "allowed" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()

@@ -68,9 +68,13 @@ def test_cli_run_writes_run_dir_and_is_reproducible(tmp_path):
     ],
 )
 def test_learns_inverted_pendulum(algo, extra, threshold):
-    """Deterministic eval return far above an untrained policy's (about 35-55)."""
+    """Deterministic eval return far above an untrained policy's (about 35-55).
+
+    Brax's re-creation, on which these budgets were set: Gymnasium's InvertedPendulum-v5
+    (`env=inverted_pendulum`) is a different task (RK4, no reward on the falling step) that
+    PPO had not solved at 40,960 steps (eval return 90)."""
     cfg = parse_overrides(
-        [*FAST, "env=inverted_pendulum", f"algo={algo}", "eval_every=0", "eval_episodes=8", *extra]
+        [*FAST, "env=brax-inverted_pendulum", f"algo={algo}", "eval_every=0", "eval_episodes=8", *extra]
     )
     history = []
     summary = train(cfg, None, progress_fn=lambda i, m: history.append(m))

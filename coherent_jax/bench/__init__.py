@@ -9,10 +9,12 @@ and ``format_table(result)``.
 * `coherent`: what coherent exploration costs next to action noise (training, the
   filter against the dense reference of `dense`, the loss's segment log-prob);
 * `sac`: SAC and Coherent-SAC iterations, collection and updates apart;
-* `physics`: MJX settings against native MuJoCo, one subprocess per row.
+* `physics`: MJX settings against native MuJoCo, one subprocess per row;
+* `standard`: Gymnasium's tasks against their Brax re-creations and EnvPool;
+* `gradient`: each coherent loss's gradient against a float64 whole-episode reference.
 
 `measure` holds what every suite records (times, memory, machine, JSON).
 """
 
-SUITES = ("throughput", "coherent", "sac", "physics")
+SUITES = ("throughput", "coherent", "sac", "physics", "standard", "gradient")
 DEFAULT_SUITE = "throughput"  # what ``python -m coherent_jax.bench`` runs with no suite named

@@ -21,7 +21,13 @@ Variants (`VARIANTS`):
 * ``native``: native MuJoCo through ``jax.pure_callback`` (``physics=native``, with its
   default `DEFAULT_THREADS` MuJoCo threads); ``native_all``: the same on every core;
 * ``native_raw``: ``mujoco.batch.Batch`` with the default thread count stepped from a
-  Python loop with no JAX at all, the ceiling the callback path can approach.
+  Python loop with no JAX at all, the ceiling the callback path can approach;
+* ``envpool``: EnvPool (C++ threads, ``pip install -e .[bench]``) stepping the same
+  Gymnasium task with `DEFAULT_THREADS` threads from a Python loop; ``envpool_all``: on
+  every core. Only for Gymnasium's tasks.
+
+The ``standard`` suite (`coherent_jax.bench.standard`) times Gymnasium's tasks against
+their Brax re-creations and EnvPool with this module's side-by-side worker.
 
 A bad key or value is one line on stderr and exit status 2, before anything runs.
 The JSON is written atomically once every row is measured.
@@ -53,9 +59,11 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "native": {"physics": "native"},
     "native_all": {"physics": "native", "nthread": 0},
     "native_raw": {"physics": "raw"},
+    "envpool": {"physics": "envpool"},
+    "envpool_all": {"physics": "envpool", "nthread": 0},
 }
 # Rough env steps/s used only to size a timed call when steps=0.
-_GUESS = {"mjx": 3000, "native": 30000, "raw": 30000}
+_GUESS = {"mjx": 3000, "native": 30000, "raw": 30000, "envpool": 20000, "generalized": 3000}
 
 
 KEYS: dict[str, cli.Key] = {
@@ -125,7 +133,43 @@ def _measure_raw(task: str, n: int, steps: int, repeats: int) -> dict[str, Any]:
     return {"compile_s": 0.0, "call_s": _timed(run, repeats)}
 
 
+def _measure_envpool(task: str, n: int, steps: int, repeats: int, nthread: int) -> dict[str, Any]:
+    call, threads = _prepare_envpool(task, n, steps, nthread)
+    return {"compile_s": 0.0, "call_s": _timed(call, repeats), "physics": "envpool", "threads": threads}
+
+
+def _prepare_envpool(task: str, n: int, steps: int, nthread: int):
+    """EnvPool's own vectorized env of the same Gymnasium task: a warm call of `steps` random-action
+    steps of all `n` envs, and the thread count."""
+    import envpool
+    import numpy as np
+
+    from coherent_jax.envs.registry import check_task
+
+    gym_id = check_task(task).gymnasium_id
+    if not gym_id:
+        raise ValueError(f"EnvPool runs Gymnasium's tasks only, not {task!r}")
+    threads = min(nthread or os.cpu_count() or 1, n)
+    env = envpool.make_gymnasium(gym_id, num_envs=n, batch_size=n, num_threads=threads, seed=0)
+    env.reset()
+    low, high = env.action_space.low, env.action_space.high
+    actions = np.random.default_rng(0).uniform(low, high, (steps, n, len(low)))
+
+    def run():
+        for t in range(steps):
+            env.step(actions[t])
+
+    run()
+    return run, threads
+
+
 def _measure_jax(task: str, n: int, steps: int, repeats: int, variant: dict[str, Any]) -> dict[str, Any]:
+    call, compile_s, physics = _prepare_jax(task, n, steps, variant)
+    return {"compile_s": compile_s, "call_s": _timed(call, repeats), "physics": physics}
+
+
+def _prepare_jax(task: str, n: int, steps: int, variant: dict[str, Any]):
+    """A warm call of `steps` jitted VecEnv steps of `n` envs, its compile seconds and the physics."""
     import jax
     import jax.numpy as jnp
 
@@ -173,13 +217,55 @@ def _measure_jax(task: str, n: int, steps: int, repeats: int, variant: dict[str,
         if not bool(jnp.all(jnp.isfinite(total))):
             raise FloatingPointError("non-finite reward")
 
-    return {"compile_s": compile_s, "call_s": _timed(call, repeats), "physics": env.physics}
+    return call, compile_s, env.physics
+
+
+def _side_by_side(spec: dict[str, Any]) -> dict[str, Any]:
+    """Several (kind, env, variant) rows in one process, timed round-robin so that they share the load."""
+    from coherent_jax.envs.native import DEFAULT_THREADS
+
+    calls, rows = {}, {}
+    for kind, env, name in spec["plan"]:
+        variant = VARIANTS[name]
+        try:
+            if variant["physics"] == "envpool":
+                calls[kind], threads = _prepare_envpool(
+                    env, spec["n"], spec["steps"], variant.get("nthread", DEFAULT_THREADS)
+                )
+                rows[kind] = {"compile_s": 0.0, "physics": "envpool", "threads": threads}
+            else:
+                calls[kind], compile_s, physics = _prepare_jax(env, spec["n"], spec["steps"], variant)
+                rows[kind] = {"compile_s": compile_s, "physics": physics}
+        except Exception as exc:  # a row that cannot run (e.g. EnvPool not installed) is reported, not fatal
+            rows[kind] = {"error": f"{type(exc).__name__}: {exc}".splitlines()[0]}
+        rows[kind].update({"kind": kind, "env": env, "variant": name})
+    # Wall time, and the process's CPU time (every thread): on a loaded machine the scheduler
+    # shares CPU unevenly between a thread pool that sleeps between calls and one that spins.
+    times: dict[str, list[tuple[float, float]]] = {kind: [] for kind in calls}
+    for _ in range(spec["repeats"]):
+        for kind, call in calls.items():
+            t0, c0 = time.perf_counter(), time.process_time()
+            call()
+            times[kind].append((time.perf_counter() - t0, time.process_time() - c0))
+    for kind, ts in times.items():
+        rows[kind]["call_s"] = statistics.median(t for t, _ in ts)
+        rows[kind]["cpu_s"] = statistics.median(c for _, c in ts)
+        rows[kind]["env_steps_per_s"] = spec["n"] * spec["steps"] / rows[kind]["call_s"]
+        rows[kind]["env_steps_per_cpu_s"] = spec["n"] * spec["steps"] / max(rows[kind]["cpu_s"], 1e-9)
+    return {**spec, "rows": list(rows.values()), "load_average": os.getloadavg()}
 
 
 def _worker(spec: dict[str, Any]) -> dict[str, Any]:
+    if "plan" in spec:
+        return _side_by_side(spec)
     variant = VARIANTS[spec["variant"]]
     if variant["physics"] == "raw":
         out = _measure_raw(spec["env"], spec["n"], spec["steps"], spec["repeats"])
+    elif variant["physics"] == "envpool":
+        from coherent_jax.envs.native import DEFAULT_THREADS
+
+        nthread = variant.get("nthread", DEFAULT_THREADS)
+        out = _measure_envpool(spec["env"], spec["n"], spec["steps"], spec["repeats"], nthread)
     else:
         out = _measure_jax(spec["env"], spec["n"], spec["steps"], spec["repeats"], variant)
     out["env_steps_per_s"] = spec["n"] * spec["steps"] / out["call_s"]
@@ -190,8 +276,12 @@ def _run_row(settings: dict[str, Any], name: str, n: int) -> dict[str, Any]:
     variant = VARIANTS[name]
     steps = settings["steps"] or max(10, int(_GUESS[variant["physics"]] / n))
     spec = {"variant": name, "env": settings["env"], "n": n, "steps": steps, "repeats": settings["repeats"]}
+    return _spawn(spec, variant.get("xla_flags"))
+
+
+def _spawn(spec: dict[str, Any], flags: str | None = None) -> dict[str, Any]:
+    """Runs one worker `spec` in a fresh process (XLA flags are fixed when JAX starts)."""
     env = dict(os.environ)
-    flags = variant.get("xla_flags")
     if flags:
         env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " " + flags).strip()
     proc = subprocess.run(

@@ -126,7 +126,7 @@ def _brax_ppo(cfg: Config, iterations: int, log, between_epochs: Callable[[int],
     from brax.training.agents.ppo import train as brax_train
     from flax import linen
 
-    from coherent_jax.envs.registry import make_brax_env
+    from coherent_jax.envs.registry import brax_counterpart, make_brax_env
 
     steps = cfg.steps_per_iteration
     epochs = iterations + 2
@@ -180,7 +180,8 @@ def _brax_ppo(cfg: Config, iterations: int, log, between_epochs: Callable[[int],
                 between_epochs(len(epoch_s) - 2)
 
     log(f"[bench] brax ppo: {epochs} epochs of one training step ({steps} env steps), compiling in the first")
-    env = make_brax_env(cfg.env)
+    # Brax's trainer runs Brax environments: a Gymnasium task is timed on its Brax re-creation.
+    env = make_brax_env(brax_counterpart(cfg.env))
     t0 = time.perf_counter()
     brax_train.train(environment=env, network_factory=network_factory, progress_fn=progress, **settings)
     wall_s = time.perf_counter() - t0

@@ -80,10 +80,11 @@ class VecEnv:
     jitted functions.
 
     ``physics`` chooses the engine (`coherent_jax.envs.native.resolve_physics`):
-    ``mjx`` (Brax's MJX env, vmapped), ``native`` (MuJoCo's C engine on a thread
-    pool through a callback, `NativePhysics`; the same model, reward and termination)
-    or ``auto`` (native on CPU where the task has it, else MJX); ``physics_threads``
-    is native MuJoCo's thread count (0 = every core).
+    ``native`` (MuJoCo's C engine on a thread pool through a callback, `NativePhysics`:
+    Gymnasium's tasks always, six of Brax's re-creations with their MJX model, reward
+    and termination), ``mjx`` (Brax's MJX env, vmapped) or ``auto`` (native on CPU
+    where the task has it, else MJX); ``physics_threads`` is native MuJoCo's thread
+    count (0 = every core). ``episode_length`` defaults to the task's own time limit.
     """
 
     def __init__(

@@ -14,6 +14,8 @@ and sigma grows by alpha while d < delta, shrinks by alpha otherwise:
 
 from __future__ import annotations
 
+import dataclasses
+
 import chex
 import jax
 import jax.numpy as jnp
@@ -29,3 +31,22 @@ def policy_distance(actions: jax.Array, perturbed_actions: jax.Array) -> jax.Arr
 def adapt_sigma(sigma: jax.Array, distance: jax.Array, delta: jax.Array, alpha: jax.Array) -> jax.Array:
     """Eq. (4.51): alpha * sigma if distance < delta, else sigma / alpha."""
     return jnp.where(distance < delta, sigma * alpha, sigma / alpha)
+
+
+@dataclasses.dataclass(frozen=True)
+class SigmaRule:
+    """The settings of (4.51): the initial sigma, the threshold delta and the factor alpha."""
+
+    sigma_init: float
+    sigma_delta: float
+    sigma_alpha: float
+
+    @classmethod
+    def from_config(cls, cfg) -> SigmaRule:
+        return cls(float(cfg.sigma_init), float(cfg.sigma_delta), float(cfg.sigma_alpha))
+
+    def hparams(self, with_sigma: bool = True) -> dict[str, jax.Array]:
+        """Sweepable scalars: delta, alpha and (where it is not per-env state) sigma itself."""
+        f = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
+        sigma = {"sigma": f(self.sigma_init)} if with_sigma else {}
+        return {**sigma, "sigma_delta": f(self.sigma_delta), "sigma_alpha": f(self.sigma_alpha)}

@@ -34,12 +34,15 @@ import chex
 import jax
 import jax.numpy as jnp
 
-from coherent_jax.exploration.adaptive import adapt_sigma, policy_distance
+from coherent_jax.exploration.adaptive import SigmaRule, adapt_sigma, policy_distance
 from coherent_jax.exploration.base import ActOutput, OffPolicyBehaviour, OnPolicyStrategy, SegmentLogProb
 from coherent_jax.exploration.chain import chain_step, innovation_var
 from coherent_jax.networks import MLP, augment, squash
 
 _LOG_2PI = math.log(2.0 * math.pi)
+#: largest w_std / action_std per action dimension that the strategy runs with (see
+#: `CoherentExploration._head`)
+MAX_W_STD_RATIO = 10.0
 
 
 class Belief(NamedTuple):
@@ -421,6 +424,7 @@ def segment_marginals_joint(
     w_std: chex.Array,
     action_std: chex.Array,
     beta: chex.Array,
+    from_prior: bool = False,
 ) -> tuple[chex.Array, Belief, chex.Array]:
     """`segment_marginals` computed from the joint Gaussian of the segment's actions.
 
@@ -446,11 +450,17 @@ def segment_marginals_joint(
     of magnitude faster than the scan for segments of tens of steps, but memory grows
     as T^2, so the filter remains the form for long segments.
 
+    With ``from_prior`` (static) the segment starts an episode whatever ``first[0]``
+    says: c = 0, ``belief0`` is not read, and the P0 terms, about half the work, are
+    never formed.
+
     Args and returns: as `segment_marginals`.
     """
     belief0, x, a, first, mu, w_std, action_std, beta = _segment_inputs(
         belief0, x, a, first, mu, w_std, action_std, beta
     )
+    if from_prior:
+        first = first.at[0].set(True)
     num_steps = x.shape[0]
     m0, p0 = belief0.mean, belief0.cov
     dtype = x.dtype
@@ -469,19 +479,18 @@ def segment_marginals_joint(
     chain = jnp.where(same_episode, powers[lag], 0.0)  # [T, T]
 
     xd = xh[None, :, :] * var_w[:, None, :]  # [p, T, n]  D_i xh_s
-    xp0 = jnp.einsum("ikl,sl->isk", p0, xh)  # [p, T, n]  P0_i xh_s
     gram_d = jnp.einsum("isk,tk->ist", xd, xh)  # xh_s' D_i xh_t
-    gram_p = jnp.einsum("isk,tk->ist", xp0, xh) - gram_d  # xh_s' (P0_i - D_i) xh_t
     eye = jnp.eye(num_steps, dtype=dtype)
-    cov_a = (
-        chain[None] * gram_d
-        + (c[:, None] * c[None, :])[None] * gram_p
-        + jnp.square(action_std)[:, None, None] * eye[None]
-    )
+    cov_a = chain[None] * gram_d + jnp.square(action_std)[:, None, None] * eye[None]
+    mean_a = xh @ mu.T  # [T, p]
+    if not from_prior:
+        xp0 = jnp.einsum("ikl,sl->isk", p0, xh)  # [p, T, n]  P0_i xh_s
+        gram_p = jnp.einsum("isk,tk->ist", xp0, xh) - gram_d  # xh_s' (P0_i - D_i) xh_t
+        cov_a = cov_a + (c[:, None] * c[None, :])[None] * gram_p
+        mean_a = mean_a + c[:, None] * (xh @ (m0 - mu).T)
     cov_a = 0.5 * (cov_a + jnp.swapaxes(cov_a, -1, -2))
     chol = jnp.linalg.cholesky(cov_a)  # [p, T, T]
 
-    mean_a = xh @ mu.T + c[:, None] * (xh @ (m0 - mu).T)  # [T, p]
     resid = (a - mean_a).T  # [p, T]
     white = jax.scipy.linalg.solve_triangular(chol, resid[..., None], lower=True)[..., 0]
     diag = jnp.diagonal(chol, axis1=-2, axis2=-1)  # [p, T]
@@ -492,10 +501,15 @@ def segment_marginals_joint(
     last = episode == episode[-1]
     c_end = jnp.where(episode[-1] == 0, powers[num_steps], 0.0)
     g = jnp.where(last, powers[num_steps - steps], 0.0)  # [T]
-    cross = c_end * c[None, :, None] * (xp0 - xd) + g[None, :, None] * xd  # [p, T, n]
+    cross = g[None, :, None] * xd  # [p, T, n]
+    mean_end = mu
+    prior_cov_end = jax.vmap(jnp.diag)(var_w)
+    if not from_prior:
+        cross = cross + c_end * c[None, :, None] * (xp0 - xd)
+        mean_end = mean_end + c_end * (m0 - mu)
+        prior_cov_end = c_end**2 * p0 + (1.0 - c_end**2) * prior_cov_end
     proj = jax.scipy.linalg.solve_triangular(chol, cross, lower=True)  # [p, T, n]
-    mean_end = mu + c_end * (m0 - mu) + jnp.einsum("itk,it->ik", proj, white)
-    prior_cov_end = c_end**2 * p0 + (1.0 - c_end**2) * jax.vmap(jnp.diag)(var_w)
+    mean_end = mean_end + jnp.einsum("itk,it->ik", proj, white)
     cov_end = prior_cov_end - jnp.einsum("itk,itl->ikl", proj, proj)
     cov_end = 0.5 * (cov_end + jnp.swapaxes(cov_end, -1, -2))
     return logp, Belief(mean=mean_end, cov=cov_end), pred_var
@@ -521,11 +535,14 @@ class CoherentCarry(NamedTuple):
       z: [p, q+1] standardised weights z_{t-1} used at the previous step.
       mean: [p, q+1] mean of alpha(z_t), the belief before a_t.
       cov: [p, q+1, q+1] covariance of alpha(z_t).
+      restart: bool, the chain starts afresh at the next step even if its episode
+        goes on (``gradient="exact"``: set at the end of every segment).
     """
 
     z: chex.Array
     mean: chex.Array
     cov: chex.Array
+    restart: chex.Array
 
 
 def _to_weights(carry: CoherentCarry, mu: chex.Array, w_std: chex.Array) -> Belief:
@@ -540,7 +557,45 @@ def _to_standard(belief: Belief, mu: chex.Array, w_std: chex.Array) -> tuple[che
     return (belief.mean - mu) / w_std, belief.cov / (w_std[:, :, None] * w_std[:, None, :])
 
 
-class CoherentExploration(OnPolicyStrategy):
+class ChainStrategy(OnPolicyStrategy):
+    """What the strategies on the beta-chain share: beta, the initial w_std, the action noise.
+
+    ``action_std`` (Lambda_a^-1/2) is a fixed, sweepable hyperparameter as in the thesis,
+    or learned (``log_action_std`` in the parameters) with ``learn_action_std``.
+    """
+
+    def __init__(
+        self, action_size: int, beta: float, w_std_init: float, action_std: float, learn_action_std: bool
+    ):
+        self.action_size = int(action_size)
+        self.beta = float(beta)
+        self.w_std_init = float(w_std_init)
+        self.action_std = float(action_std)
+        self.learn_action_std = bool(learn_action_std)
+
+    @staticmethod
+    def chain_settings(cfg) -> dict:
+        """The constructor's chain arguments as ``cfg`` gives them."""
+        return {
+            "beta": cfg.beta,
+            "w_std_init": cfg.w_std_init,
+            "action_std": cfg.action_std,
+            "learn_action_std": cfg.learn_action_std,
+        }
+
+    def init_hparams(self):
+        hp = {"beta": jnp.asarray(self.beta, jnp.float32)}
+        if not self.learn_action_std:
+            hp["action_std"] = jnp.full((self.action_size,), self.action_std, jnp.float32)
+        return hp
+
+    def _action_std(self, params, hparams):
+        if self.learn_action_std:
+            return jnp.exp(params["log_action_std"])
+        return hparams["action_std"]
+
+
+class CoherentExploration(ChainStrategy):
     """Deep Coherent Exploration of the policy's last layer (thesis §4.1-4.2).
 
     Parameters: the trunk f_theta, the last-layer mean ``mu`` [p, q+1] and per-weight
@@ -554,7 +609,23 @@ class CoherentExploration(OnPolicyStrategy):
     scores the whole segment at once from its joint Gaussian and stores the belief
     that starts the next one; with ``"filter"`` `act` runs the filter step by step.
     `log_prob` recomputes the marginals of a stored segment under the current
-    parameters, from the belief stored at its start, in the same form.
+    parameters in the same form; segments longer than `coherent_exact.MAX_BLOCK` are
+    scored as blocks of the joint form chained by differentiable beliefs.
+
+    ``gradient`` chooses what a segment's first step conditions on:
+
+    * ``"exact"`` (default): the chain restarts at the first step of every segment,
+      as Algorithm 5 samples w_0 at t = 0 of every buffer (steps 4-5), besides every
+      episode start. Every segment is then scored from the prior, each log p(a_t | ...)
+      conditions on all that the chain has seen, re-inferred under the current
+      parameters, and the loss's gradient is the thesis's estimator (4.14) of the
+      process actually run. The chain's correlations span at most ``unroll_length``
+      steps: ``unroll_length = episode_length`` keeps them over whole episodes.
+    * ``"stored"``: the chain runs on across segments, and a segment that starts
+      mid-episode starts from the belief stored when it was collected, a constant of
+      the data mapped onto the current mu and w_std: the right values (the ratio is 1
+      at the collection parameters) but not the thesis's gradient (see
+      ``python -m coherent_jax.bench gradient``). Kept for the ablation.
     """
 
     name = "coherent"
@@ -570,18 +641,18 @@ class CoherentExploration(OnPolicyStrategy):
         learn_action_std: bool = False,
         remat: bool = False,
         inference: str = "joint",
+        gradient: str = "exact",
     ):
         if inference not in ("joint", "filter"):
             raise ValueError(f"inference must be 'joint' or 'filter', got {inference!r}")
-        self.action_size = int(action_size)
+        if gradient not in ("exact", "stored"):
+            raise ValueError(f"gradient must be 'exact' or 'stored', got {gradient!r}")
+        super().__init__(action_size, beta, w_std_init, action_std, learn_action_std)
         self.feature_size = int(hidden[-1])
         self.trunk = MLP(tuple(hidden), activation)
-        self.beta = float(beta)
-        self.w_std_init = float(w_std_init)
-        self.action_std = float(action_std)
-        self.learn_action_std = bool(learn_action_std)
         self.remat = bool(remat)
         self.inference = inference
+        self.gradient = gradient
 
     @classmethod
     def from_config(cls, cfg, action_size: int):
@@ -589,12 +660,10 @@ class CoherentExploration(OnPolicyStrategy):
             action_size,
             cfg.policy_hidden,
             cfg.activation,
-            beta=cfg.beta,
-            w_std_init=cfg.w_std_init,
-            action_std=cfg.action_std,
-            learn_action_std=cfg.learn_action_std,
+            **cls.chain_settings(cfg),
             remat=cfg.remat,
             inference=cfg.coherent_inference,
+            gradient=cfg.coherent.gradient,
         )
 
     # ---------------------------------------------------------------- params
@@ -612,18 +681,15 @@ class CoherentExploration(OnPolicyStrategy):
             params["log_action_std"] = jnp.full((p,), math.log(self.action_std), jnp.float32)
         return params
 
-    def init_hparams(self):
-        hp = {"beta": jnp.asarray(self.beta, jnp.float32)}
-        if not self.learn_action_std:
-            hp["action_std"] = jnp.full((self.action_size,), self.action_std, jnp.float32)
-        return hp
-
     def _head(self, params, hparams):
         w_std = jnp.exp(params["log_w_std"])
-        if self.learn_action_std:
-            action_std = jnp.exp(params["log_action_std"])
-        else:
-            action_std = hparams["action_std"]
+        action_std = self._action_std(params, hparams)
+        # The covariance-form marginals keep float32 within about 0.005 nats per step
+        # only while the weights' spread is within MAX_W_STD_RATIO of the action noise
+        # (beta = 0, 1000-step segments; at 300 they lose every digit and turn NaN).
+        # Beyond it the action noise is raised, in collection and in the loss alike, so
+        # the process run is still the process scored.
+        action_std = jnp.maximum(action_std, jnp.max(w_std, axis=-1) / MAX_W_STD_RATIO)
         return params["mu"], w_std, action_std
 
     def init_carry(self, key, params, hparams, num_envs):
@@ -632,6 +698,7 @@ class CoherentExploration(OnPolicyStrategy):
             z=jnp.zeros((num_envs, p, n), jnp.float32),
             mean=jnp.zeros((num_envs, p, n), jnp.float32),
             cov=jnp.broadcast_to(jnp.eye(n, dtype=jnp.float32), (num_envs, p, n, n)),
+            restart=jnp.zeros((num_envs,), bool),
         )
 
     # ------------------------------------------------------------ collection
@@ -642,8 +709,10 @@ class CoherentExploration(OnPolicyStrategy):
         x = self.trunk.apply(params["trunk"], obs)  # [n, q]
         num_envs = x.shape[0]
         k_w, k_a = jax.random.split(key)
-        # The chain in standard coordinates; a fresh draw at an episode start.
+        # The chain in standard coordinates; a fresh draw at an episode start or a restart.
+        first = jnp.logical_or(first, carry.restart)
         z = chain_step(k_w, carry.z, first, beta)
+        carry = carry._replace(restart=jnp.zeros_like(carry.restart))
         w = mu + w_std * z  # [n, p, q+1]
         xh = augment(x)
         mean_action = jnp.einsum("npk,nk->np", w, xh)
@@ -660,21 +729,44 @@ class CoherentExploration(OnPolicyStrategy):
 
         (mean, cov), logp = jax.vmap(filt)(carry, x, action, first)
         chex.assert_shape(logp, (num_envs,))
-        return ActOutput(action, logp, CoherentCarry(z=z, mean=mean, cov=cov))
+        return ActOutput(action, logp, carry._replace(z=z, mean=mean, cov=cov))
+
+    def _segment_first(self, first: chex.Array, restart: chex.Array) -> chex.Array:
+        """Where the chain starts afresh in a segment: its episode starts, and its first
+        step if the chain restarted there."""
+        return first.at[0].set(jnp.logical_or(first[0], restart))
+
+    def _score(self, belief0, x, a, first, mu, w_std, action_std, beta):
+        """The segment's marginals in the configured form; (logp, end belief, variances)."""
+        if self.inference == "filter":
+            return segment_marginals(belief0, x, a, first, mu, w_std, action_std, beta, remat=self.remat)
+        from coherent_jax.exploration.coherent_exact import MAX_BLOCK, chained_marginals
+
+        # With the exact gradient every segment starts the chain: the stored belief's
+        # terms are zero and need not be formed.
+        from_prior = self.gradient == "exact"
+        if x.shape[0] > MAX_BLOCK:
+            return chained_marginals(belief0, x, a, first, mu, w_std, action_std, beta, from_prior=from_prior)
+        return segment_marginals_joint(belief0, x, a, first, mu, w_std, action_std, beta, from_prior)
 
     def score_segment(self, params, hparams, carry0, carry, obs, actions, first, log_prob):
+        # With the exact gradient the next segment restarts the chain (Algorithm 5, steps 4-5).
+        carry = carry._replace(restart=jnp.full_like(carry.restart, self.gradient == "exact"))
         if self.inference == "filter":
             return log_prob, carry  # scored step by step in `act`
         mu, w_std, action_std = self._head(params, hparams)
         x = self.trunk.apply(params["trunk"], obs)  # [T, n, q]
 
         def score(c0, x_e, a_e, f_e):
-            logp, belief, _ = segment_marginals_joint(
+            f_e = self._segment_first(f_e, c0.restart)
+            logp, belief, _ = self._score(
                 _to_weights(c0, mu, w_std), x_e, a_e, f_e, mu, w_std, action_std, hparams["beta"]
             )
             return logp, _to_standard(belief, mu, w_std)
 
         logp, (mean, cov) = jax.vmap(score, in_axes=(0, 1, 1, 1), out_axes=(1, 0))(carry0, x, actions, first)
+        if self.gradient == "exact":
+            return logp, carry  # the next segment starts from the prior: no belief to keep
         return logp, carry._replace(mean=mean, cov=cov)
 
     # ------------------------------------------------------------------ loss
@@ -684,16 +776,12 @@ class CoherentExploration(OnPolicyStrategy):
         x = self.trunk.apply(params["trunk"], obs)
         # The stored belief is a constant of the data (like a stored RNN state); its
         # mapping onto the current mu and w_std is not.
+        # With gradient="exact" a segment's chain starts at its first step, so the
+        # stored belief is never used and nothing is held constant.
         carry0 = jax.tree.map(jax.lax.stop_gradient, carry0)
+        first = self._segment_first(first, carry0.restart)
         belief0 = _to_weights(carry0, mu, w_std)
-        if self.inference == "joint":
-            logp, _, pred_var = segment_marginals_joint(
-                belief0, x, actions, first, mu, w_std, action_std, hparams["beta"]
-            )
-        else:
-            logp, _, pred_var = segment_marginals(
-                belief0, x, actions, first, mu, w_std, action_std, hparams["beta"], remat=self.remat
-            )
+        logp, _, pred_var = self._score(belief0, x, actions, first, mu, w_std, action_std, hparams["beta"])
         return SegmentLogProb(logp, predictive_entropy(pred_var))
 
     def mean_action(self, params, obs):
@@ -723,23 +811,16 @@ class CoherentBehaviour(OffPolicyBehaviour):
 
     name = "coherent"
 
-    def __init__(self, beta: float, sigma_init: float, sigma_delta: float, sigma_alpha: float):
+    def __init__(self, beta: float, rule: SigmaRule):
         self.beta = float(beta)
-        self.sigma_init = float(sigma_init)
-        self.sigma_delta = float(sigma_delta)
-        self.sigma_alpha = float(sigma_alpha)
+        self.rule = rule
 
     @classmethod
     def from_config(cls, cfg, action_size: int):
-        return cls(cfg.beta, cfg.sigma_init, cfg.sigma_delta, cfg.sigma_alpha)
+        return cls(cfg.beta, SigmaRule.from_config(cfg))
 
     def init_hparams(self):
-        return {
-            "beta": jnp.asarray(self.beta, jnp.float32),
-            "sigma": jnp.asarray(self.sigma_init, jnp.float32),
-            "sigma_delta": jnp.asarray(self.sigma_delta, jnp.float32),
-            "sigma_alpha": jnp.asarray(self.sigma_alpha, jnp.float32),
-        }
+        return {"beta": jnp.asarray(self.beta, jnp.float32), **self.rule.hparams()}
 
     def init_carry(self, key, actor, actor_params, hparams, num_envs):
         # z_0 ~ N(0, I) for every env; `first` at the first step redraws it anyway.

@@ -31,7 +31,7 @@ import jax.numpy as jnp
 from coherent_jax.exploration.action import gaussian_entropy, gaussian_log_prob
 from coherent_jax.exploration.base import ActOutput, OnPolicyStrategy, SegmentLogProb
 from coherent_jax.exploration.chain import chain_step
-from coherent_jax.exploration.coherent import CoherentExploration
+from coherent_jax.exploration.coherent import ChainStrategy, CoherentExploration
 from coherent_jax.networks import ACTIVATIONS, augment
 
 
@@ -75,7 +75,7 @@ class CoherentMC(CoherentExploration):
         return SegmentLogProb(logp, gaussian_entropy(log_std))
 
 
-class CoherentAllLayers(OnPolicyStrategy):
+class CoherentAllLayers(ChainStrategy):
     """The beta-chain over every layer's weights, single-sample gradients (thesis §5 ablation)."""
 
     name = "coherent-all"
@@ -90,25 +90,13 @@ class CoherentAllLayers(OnPolicyStrategy):
         action_std: float,
         learn_action_std: bool = False,
     ):
-        self.action_size = int(action_size)
+        super().__init__(action_size, beta, w_std_init, action_std, learn_action_std)
         self.hidden = tuple(int(h) for h in hidden)
         self.activation = ACTIVATIONS[activation]
-        self.beta = float(beta)
-        self.w_std_init = float(w_std_init)
-        self.action_std = float(action_std)
-        self.learn_action_std = bool(learn_action_std)
 
     @classmethod
     def from_config(cls, cfg, action_size: int):
-        return cls(
-            action_size,
-            cfg.policy_hidden,
-            cfg.activation,
-            beta=cfg.beta,
-            w_std_init=cfg.w_std_init,
-            action_std=cfg.action_std,
-            learn_action_std=cfg.learn_action_std,
-        )
+        return cls(action_size, cfg.policy_hidden, cfg.activation, **cls.chain_settings(cfg))
 
     def init(self, key, obs_size):
         sizes = (obs_size, *self.hidden, self.action_size)
@@ -131,17 +119,6 @@ class CoherentAllLayers(OnPolicyStrategy):
         if self.learn_action_std:
             params["log_action_std"] = jnp.full((self.action_size,), math.log(self.action_std), jnp.float32)
         return params
-
-    def init_hparams(self):
-        hp = {"beta": jnp.asarray(self.beta, jnp.float32)}
-        if not self.learn_action_std:
-            hp["action_std"] = jnp.full((self.action_size,), self.action_std, jnp.float32)
-        return hp
-
-    def _action_std(self, params, hparams):
-        if self.learn_action_std:
-            return jnp.exp(params["log_action_std"])
-        return hparams["action_std"]
 
     def init_carry(self, key, params, hparams, num_envs):
         return jax.tree.map(lambda v: jnp.zeros((num_envs,) + v.shape, v.dtype), params["mu"])

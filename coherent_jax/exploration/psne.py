@@ -35,7 +35,7 @@ import jax.numpy as jnp
 from flax import traverse_util
 
 from coherent_jax.exploration.action import gaussian_entropy, gaussian_log_prob
-from coherent_jax.exploration.adaptive import adapt_sigma, policy_distance
+from coherent_jax.exploration.adaptive import SigmaRule, adapt_sigma, policy_distance
 from coherent_jax.exploration.base import ActOutput, OffPolicyBehaviour, OnPolicyStrategy, SegmentLogProb
 from coherent_jax.networks import MeanHead, squash
 
@@ -82,34 +82,16 @@ class ParameterNoise(OnPolicyStrategy):
 
     name = "psne"
 
-    def __init__(
-        self,
-        action_size: int,
-        hidden,
-        activation: str,
-        init_std: float,
-        sigma_init: float,
-        sigma_delta: float,
-        sigma_alpha: float,
-    ):
+    def __init__(self, action_size: int, hidden, activation: str, init_std: float, rule: SigmaRule):
         self.action_size = int(action_size)
         self.net = MeanHead(tuple(hidden), activation, self.action_size, layer_norm=True)
         self.init_std = float(init_std)
-        self.sigma_init = float(sigma_init)
-        self.sigma_delta = float(sigma_delta)
-        self.sigma_alpha = float(sigma_alpha)
+        self.rule = rule
 
     @classmethod
     def from_config(cls, cfg, action_size: int):
-        return cls(
-            action_size,
-            cfg.policy_hidden,
-            cfg.activation,
-            cfg.init_std,
-            sigma_init=cfg.sigma_init,
-            sigma_delta=cfg.sigma_delta,
-            sigma_alpha=cfg.sigma_alpha,
-        )
+        hidden, activation = cfg.policy_hidden, cfg.activation
+        return cls(action_size, hidden, activation, cfg.init_std, SigmaRule.from_config(cfg))
 
     def init(self, key, obs_size):
         return {
@@ -118,15 +100,12 @@ class ParameterNoise(OnPolicyStrategy):
         }
 
     def init_hparams(self):
-        return {
-            "sigma_delta": jnp.asarray(self.sigma_delta, jnp.float32),
-            "sigma_alpha": jnp.asarray(self.sigma_alpha, jnp.float32),
-        }
+        return self.rule.hparams(with_sigma=False)  # sigma is per-env state (the carry)
 
     def init_carry(self, key, params, hparams, num_envs):
         return PsneCarry(
             key=jax.random.split(key, num_envs),
-            sigma=jnp.full((num_envs,), self.sigma_init, jnp.float32),
+            sigma=jnp.full((num_envs,), self.rule.sigma_init, jnp.float32),
         )
 
     def _mean(self, net_params, obs):
@@ -187,21 +166,15 @@ class PsneBehaviour(OffPolicyBehaviour):
     name = "psne"
     actor_layer_norm = True
 
-    def __init__(self, sigma_init: float, sigma_delta: float, sigma_alpha: float):
-        self.sigma_init = float(sigma_init)
-        self.sigma_delta = float(sigma_delta)
-        self.sigma_alpha = float(sigma_alpha)
+    def __init__(self, rule: SigmaRule):
+        self.rule = rule
 
     @classmethod
     def from_config(cls, cfg, action_size: int):
-        return cls(cfg.sigma_init, cfg.sigma_delta, cfg.sigma_alpha)
+        return cls(SigmaRule.from_config(cfg))
 
     def init_hparams(self):
-        return {
-            "sigma": jnp.asarray(self.sigma_init, jnp.float32),
-            "sigma_delta": jnp.asarray(self.sigma_delta, jnp.float32),
-            "sigma_alpha": jnp.asarray(self.sigma_alpha, jnp.float32),
-        }
+        return self.rule.hparams()
 
     def init_carry(self, key, actor, actor_params, hparams, num_envs):
         return jax.random.split(key, num_envs)  # [n, 2] episode keys

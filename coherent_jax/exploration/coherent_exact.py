@@ -1,0 +1,171 @@
+"""The thesis's estimator over long episodes: marginals re-inferred from the episode start.
+
+Coherent-A2C/PPO differentiate log p(a_t | a_<t, s_<=t) with the whole history of
+the chain's episode integrated out under the current parameters (Algorithm 5, steps
+12-16; eqs. 4.14, 4.33-4.49). A belief stored at collection and held fixed as a
+constant of the data gives the right values but not that gradient: the history's
+trunk features, mu and w_std all move the belief a later step conditions on.
+
+Two pure functions give the exact quantity at a cost linear in the episode length:
+
+* `chained_marginals` scores a long segment as a chain of blocks of the joint form
+  (`coherent.segment_marginals_joint`), each block starting from the belief the block
+  before it ends with, *not* stopped: the gradient flows through every belief back to
+  the start of the chain. O(T (B (q+1) + (q+1)^2)) per action dimension for blocks of
+  B steps, instead of the single joint form's O(T^2 (q+1) + T^3).
+* `refiltered_marginals` scores a segment that starts mid-episode by running the
+  same chain over the episode prefix (its features, actions and resets) first, so the
+  segment's log-probabilities condition on the prefix re-inferred under the current
+  parameters. Its cost grows as (prefix + segment) / segment.
+
+The trainer's exact mode needs neither prefix nor stored belief: it restarts the chain
+at each segment start, as Algorithm 5 does at t = 0 of every buffer (steps 4-5), so
+every segment is scored from the prior by `chained_marginals`.
+"""
+
+from __future__ import annotations
+
+import chex
+import jax
+import jax.numpy as jnp
+
+from coherent_jax.exploration.coherent import Belief, prior_belief, segment_marginals_joint
+
+#: blocks of at most this many steps; 64 is where the joint form's T^2 and T^3 terms stay
+#: below its (q+1)^2 belief terms at q = 64 (see `chained_marginals`).
+MAX_BLOCK = 64
+
+
+def block_size(num_steps: int, max_block: int = MAX_BLOCK) -> int:
+    """The largest divisor of ``num_steps`` that is at most ``max_block`` (static)."""
+    if num_steps < 1:
+        raise ValueError(f"num_steps must be >= 1, got {num_steps}")
+    return max(b for b in range(1, min(num_steps, max_block) + 1) if num_steps % b == 0)
+
+
+def chained_marginals(
+    belief0: Belief,
+    x: chex.Array,
+    a: chex.Array,
+    first: chex.Array,
+    mu: chex.Array,
+    w_std: chex.Array,
+    action_std: chex.Array,
+    beta: chex.Array,
+    block: int | None = None,
+    from_prior: bool = False,
+) -> tuple[chex.Array, Belief, chex.Array]:
+    """`coherent.segment_marginals` over T steps, as blocks of the joint form chained by beliefs.
+
+    The segment is cut into T / B blocks of B steps. Block k is scored from its joint
+    Gaussian (eqs. 4.37/4.49 through the Cholesky factor, as in
+    `segment_marginals_joint`) starting from alpha(w) at its first step, the posterior
+    (4.44)-(4.46) the block before it ends with; ``first`` resets to the prior (4.33)
+    inside any block. The beliefs between blocks are differentiable functions of the
+    parameters and of every earlier step's inputs, so the gradient of any function of
+    the log-probabilities is that of the sequential filter over the whole segment.
+
+    Per action dimension and step this costs about 3 B (q+1) + B^2 / 3 + 2 (q+1)^2
+    multiply-adds against the filter's 3 (q+1)^2, with no sequential loop inside a block;
+    memory is O(T (B + q+1)) instead of the single joint form's O(T^2).
+
+    Args:
+      belief0: alpha(w_0) of the segment, mean [p, q+1], cov [p, q+1, q+1]; used at
+        t = 0 unless ``first[0]``. Gradients flow into it if it is traced.
+      x: [T, q] last-layer inputs.
+      a: [T, p] actions taken.
+      first: [T] bool, True where an episode starts at t.
+      mu: [p, q+1] weight mean, bias in the last column.
+      w_std: [p, q+1] weight standard deviation.
+      action_std: [p] action noise standard deviation.
+      beta: scalar in [0, 1].
+      block: steps per block, a divisor of T; default `block_size(T)`.
+      from_prior: the segment starts an episode (``belief0`` unused); the first block
+        then skips the stored belief's terms (`segment_marginals_joint`).
+
+    Returns:
+      (logp [T], the belief over w_T before a_T, the predictive variances s [T, p]).
+    """
+    chex.assert_rank([x, a, first], [2, 2, 1])
+    num_steps = x.shape[0]
+    block = block_size(num_steps) if block is None else int(block)
+    if num_steps % block:
+        raise ValueError(f"block={block} does not divide the segment length {num_steps}")
+    num_blocks = num_steps // block
+    head = segment_marginals_joint(
+        belief0, x[:block], a[:block], first[:block], mu, w_std, action_std, beta, from_prior
+    )
+    if num_blocks == 1:
+        return head
+    logp0, belief1, pred_var0 = head
+
+    def split(v):
+        return v[block:].reshape((num_blocks - 1, block) + v.shape[1:])
+
+    def body(belief, inputs):
+        x_k, a_k, first_k = inputs
+        logp, belief, pred_var = segment_marginals_joint(
+            belief, x_k, a_k, first_k, mu, w_std, action_std, beta
+        )
+        return belief, (logp, pred_var)
+
+    # The belief is the only state passed between blocks; the backward pass recomputes
+    # each block's [p, B, B] factor from it instead of keeping all of them.
+    final, (logp, pred_var) = jax.lax.scan(jax.checkpoint(body), belief1, (split(x), split(a), split(first)))
+    logp = jnp.concatenate([logp0, logp.reshape(-1)])
+    return logp, final, jnp.concatenate([pred_var0, pred_var.reshape(-1, pred_var0.shape[-1])])
+
+
+def refiltered_marginals(
+    history_x: chex.Array,
+    history_a: chex.Array,
+    history_first: chex.Array,
+    x: chex.Array,
+    a: chex.Array,
+    first: chex.Array,
+    mu: chex.Array,
+    w_std: chex.Array,
+    action_std: chex.Array,
+    beta: chex.Array,
+    block: int | None = None,
+) -> tuple[chex.Array, chex.Array]:
+    """log p(a_t | a_<t, s_<=t) of a segment, the episode prefix re-inferred from its start.
+
+    The prefix (H steps before the segment) and the segment are one chain of
+    `chained_marginals` that starts from the prior at the first prefix step (4.33), so
+    the segment's terms are exactly the thesis's marginals (4.37)/(4.49) of an episode
+    filtered from its beginning under the given parameters, and differentiate through
+    the prefix's inputs. The prefix must start at an episode start, or at a step before
+    one: ``history_first`` (and ``first``) reset the chain wherever an episode starts,
+    so steps of earlier episodes in the window only cost time.
+
+    Args:
+      history_x, history_a, history_first: [H, q], [H, p], [H] the steps before the
+        segment; H may be 0.
+      x, a, first: [T, q], [T, p], [T] the segment.
+      mu, w_std, action_std, beta: as `chained_marginals`.
+      block: steps per block, a divisor of H + T; by default blocks of `MAX_BLOCK` steps,
+        the front padded with one-step episodes to a whole number of blocks.
+
+    Returns:
+      (logp [T], predictive variances s [T, p]) of the segment's steps.
+    """
+    chex.assert_rank([history_x, history_a, history_first, x, a, first], [2, 2, 1, 2, 2, 1])
+    num_steps = x.shape[0]
+    # The chain starts at the window's first step whatever its flag says (4.33).
+    history_first = jnp.asarray(history_first, bool)
+    first = jnp.asarray(first, bool)
+    if history_x.shape[0]:
+        history_first = history_first.at[0].set(True)
+    else:
+        first = first.at[0].set(True)
+    # Without a given block size, pad the front to whole blocks of MAX_BLOCK steps: each
+    # padding step is an episode of its own (first = True), so it changes nothing after it.
+    pad = 0 if block is not None else -(history_x.shape[0] + num_steps) % MAX_BLOCK
+    all_x = jnp.concatenate([jnp.zeros((pad, x.shape[1]), x.dtype), jnp.asarray(history_x, x.dtype), x])
+    all_a = jnp.concatenate([jnp.zeros((pad, a.shape[1]), a.dtype), jnp.asarray(history_a, a.dtype), a])
+    all_first = jnp.concatenate([jnp.ones((pad,), bool), history_first, first])
+    logp, _, pred_var = chained_marginals(
+        prior_belief(mu, w_std), all_x, all_a, all_first, mu, w_std, action_std, beta, block
+    )
+    return logp[-num_steps:], pred_var[-num_steps:]
