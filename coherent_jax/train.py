@@ -21,7 +21,9 @@ an uninterrupted run of the same seed; ``resume=RUN_DIR total_steps=N`` extends 
 finished run. A non-finite loss or parameter stops the run (exit status 3) naming
 the iteration and the quantity; the last good checkpoint stays. The loop itself is
 `coherent_jax.loop`, shared with sweeps. Exit statuses: 0 done, 2 bad input,
-3 diverged, 128 + signal number when stopped by SIGINT/SIGTERM (resumable).
+3 diverged, 4 another process of a ``distributed=true`` run failed (resumable; see
+`coherent_jax.distributed`), 128 + signal number when stopped by SIGINT/SIGTERM
+(resumable).
 """
 
 from __future__ import annotations
