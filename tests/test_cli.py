@@ -1,5 +1,6 @@
 """Command-line errors: one line naming the key and what is allowed, exit 2, nothing written."""
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -69,7 +70,8 @@ def test_good_overrides_are_typed():
     assert cfg.num_envs == 16
     assert cfg.policy_hidden == [32, 32]
     assert cfg.normalize_obs is False
-    assert parse_overrides([]) == Config()
+    # The defaults, with episode_length=0 resolved to the task's own time limit.
+    assert parse_overrides([]) == dataclasses.replace(Config(), episode_length=1000)
 
 
 def run_cli(args, cwd):

@@ -96,11 +96,20 @@ def sample_episode(rng, x, mu, w_std, action_std, beta):
 
 def run(items: Sequence[str], log: Callable[[str], None] = measure.print_log) -> dict[str, Any]:
     """Logs one line per (mode, beta, history); writes and returns the rows and whether
-    the checked modes passed everywhere."""
+    the checked modes passed everywhere. float64 is on while it runs, and restored after."""
     settings = parse(items).settings
     import jax
 
+    previous = jax.config.read("jax_enable_x64")
     jax.config.update("jax_enable_x64", True)
+    try:
+        return _run(settings, log)
+    finally:
+        jax.config.update("jax_enable_x64", previous)
+
+
+def _run(settings: dict[str, Any], log: Callable[[str], None]) -> dict[str, Any]:
+    import jax
     import jax.numpy as jnp
 
     from coherent_jax.exploration import coherent as C
