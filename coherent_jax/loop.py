@@ -120,6 +120,23 @@ class StopRequest:
             signal.signal(sig, handler)
 
 
+def run_command(
+    argv: list[str], help_text: Callable[[], str], body: Callable[[list[str], StopRequest], int]
+) -> int:
+    """The entry of ``train`` and ``sweep``: ``--help``, else ``body(argv, stop)`` with SIGINT
+    and SIGTERM turned into a stop request; a Ctrl-C before the handler took over exits
+    130 without a traceback."""
+    if any(a in ("-h", "--help", "help") for a in argv):
+        print(help_text())
+        return 0
+    with StopRequest() as stop:
+        try:
+            return body(argv, stop)
+        except KeyboardInterrupt:
+            print(f"{PREFIX} interrupted", file=sys.stderr, flush=True)
+            return 128 + signal.SIGINT
+
+
 def first_non_finite(tree: Any) -> str:
     """Path of the first array of `tree` (on the host) holding a NaN or an infinity."""
     import jax

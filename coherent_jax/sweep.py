@@ -55,7 +55,16 @@ from coherent_jax.config import (
     sweepable,
     validate,
 )
-from coherent_jax.loop import PREFIX, Job, StopRequest, quiet_imports, run_loop, to_float, write_params
+from coherent_jax.loop import (
+    PREFIX,
+    Job,
+    StopRequest,
+    quiet_imports,
+    run_command,
+    run_loop,
+    to_float,
+    write_params,
+)
 from coherent_jax.runs import (
     METRICS,
     Checkpoint,
@@ -411,16 +420,7 @@ def sweep_help() -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if any(a in ("-h", "--help", "help") for a in argv):
-        print(sweep_help())
-        return 0
-    with StopRequest() as stop:
-        try:
-            return _main(argv, stop)
-        except KeyboardInterrupt:  # a SIGINT that arrived before the handler took over
-            print(f"{PREFIX} interrupted", file=sys.stderr, flush=True)
-            return 128 + signal.SIGINT
+    return run_command(list(sys.argv[1:] if argv is None else argv), sweep_help, _main)
 
 
 def _main(argv: list[str], stop: StopRequest) -> int:

@@ -39,7 +39,16 @@ from typing import Any
 
 from coherent_jax import distributed
 from coherent_jax.config import Config, ConfigError, help_text, parse_overrides
-from coherent_jax.loop import PREFIX, DivergenceError, Job, StopRequest, quiet_imports, run_loop, to_float
+from coherent_jax.loop import (
+    PREFIX,
+    DivergenceError,
+    Job,
+    StopRequest,
+    quiet_imports,
+    run_command,
+    run_loop,
+    to_float,
+)
 from coherent_jax.runs import (
     Checkpoint,
     CheckpointError,
@@ -139,16 +148,7 @@ def train(
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if any(a in ("-h", "--help", "help") for a in argv):
-        print(help_text())
-        return 0
-    with StopRequest() as stop:
-        try:
-            return _main(argv, stop)
-        except KeyboardInterrupt:  # a SIGINT that arrived before the handler took over
-            print(f"{PREFIX} interrupted", file=sys.stderr, flush=True)
-            return 128 + signal.SIGINT
+    return run_command(list(sys.argv[1:] if argv is None else argv), help_text, _main)
 
 
 def _main(argv: list[str], stop: StopRequest) -> int:
