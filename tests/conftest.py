@@ -1,0 +1,53 @@
+"""Every test leaves the process as it found it.
+
+A training run's result depends on process-wide state besides its seed: JAX's config
+(float64, matmul precision, PRNG implementation), the config defaults, the task tables
+and the environment variables. A test that changes one and does not restore it makes
+later tests in the same worker train differently, a failure that shows only in the
+full suite and points at the wrong test. This guard names the test that leaked.
+"""
+
+import copy
+import os
+
+import jax
+import pytest
+
+from coherent_jax.config import parse_overrides
+from coherent_jax.envs import native
+
+# Environment variables that change what a run computes or how fast: JAX's and XLA's
+# settings, the thread pools', the project's own. (Libraries set others on import, such
+# as CRC32C_SW_MODE; the renderer's MUJOCO_GL is set by `evaluate` on purpose.)
+_RELEVANT_ENV = ("JAX_", "XLA_", "COHERENT_", "OPENBLAS_", "OMP_", "MKL_", "TF_")
+
+
+def _snapshot() -> dict:
+    return {
+        "jax config": {name: getattr(jax.config, name, None) for name in sorted(jax.config.values)},
+        "config defaults": repr(parse_overrides([])),
+        "native tasks": repr(native.NATIVE_TASKS),
+        "environment": {k: v for k, v in os.environ.items() if k.startswith(_RELEVANT_ENV)},
+    }
+
+
+def _differences(before: dict, after: dict) -> list[str]:
+    out = []
+    for part, old in before.items():
+        new = after[part]
+        if isinstance(old, dict):
+            for key in sorted(set(old) | set(new)):
+                if old.get(key) != new.get(key):
+                    out.append(f"{part}: {key} {old.get(key)!r} -> {new.get(key)!r}")
+        elif old != new:
+            out.append(f"{part} changed")
+    return out
+
+
+@pytest.fixture(autouse=True)
+def leaves_global_state_as_found():
+    """Fails the test that changed process-wide state without restoring it."""
+    before = copy.deepcopy(_snapshot())
+    yield
+    changed = _differences(before, _snapshot())
+    assert not changed, "test left process-wide state changed: " + "; ".join(changed)
