@@ -9,12 +9,34 @@ full suite and points at the wrong test. This guard names the test that leaked.
 
 import copy
 import os
+import shutil
+import tempfile
 
 import jax
 import pytest
+from helpers import CACHE_VAR as _CACHE_VAR
 
 from coherent_jax.config import parse_overrides
 from coherent_jax.envs import native
+
+
+def pytest_configure(config):
+    """A compilation cache for this test run only: many tests compile the same program
+    again (a run and its resume, the same seed twice, a sweep point and its single run),
+    and XLA's compiles are most of the suite's time. The controller makes the directory;
+    xdist's workers inherit it through the environment, and the tests' subprocesses
+    through `helpers.child_env`."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        os.environ[_CACHE_VAR] = tempfile.mkdtemp(prefix="coherent_jax_test_compile_cache_")
+    cache = os.environ[_CACHE_VAR]
+    jax.config.update("jax_compilation_cache_dir", cache)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+
+def pytest_unconfigure(config):
+    if not os.environ.get("PYTEST_XDIST_WORKER"):  # the controller, after every worker ended
+        shutil.rmtree(os.environ.get(_CACHE_VAR, ""), ignore_errors=True)
+
 
 # Environment variables that change what a run computes or how fast: JAX's and XLA's
 # settings, the thread pools', the project's own. (Libraries set others on import, such

@@ -2,12 +2,12 @@
 
 import json
 import math
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from helpers import child_env
 
 from coherent_jax.bench import coherent, throughput
 from coherent_jax.bench.dense import dense_log_marginals, sample_segments
@@ -96,8 +96,7 @@ def test_dense_reference_checkpointed_equals_plain_and_block():
 
 
 def run_cli(args, cwd):
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[1]) + os.pathsep + env.get("PYTHONPATH", "")
+    env = child_env()
     return subprocess.run(
         [sys.executable, "-m", "coherent_jax.bench", *args],
         cwd=cwd,

@@ -1,12 +1,12 @@
 """Command-line errors: one line naming the key and what is allowed, exit 2, nothing written."""
 
 import dataclasses
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from helpers import child_env
 
 from coherent_jax.config import Config, ConfigError, parse_overrides
 
@@ -75,8 +75,7 @@ def test_good_overrides_are_typed():
 
 
 def run_cli(args, cwd):
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[1]) + os.pathsep + env.get("PYTHONPATH", "")
+    env = child_env()
     return subprocess.run(
         [sys.executable, "-m", "coherent_jax.train", *args],
         cwd=cwd,

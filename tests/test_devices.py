@@ -5,13 +5,12 @@ interpreter with ``XLA_FLAGS=--xla_force_host_platform_device_count=2``.
 """
 
 import json
-import os
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import child_env
 
 SCRIPT = r"""
 import json, sys
@@ -60,9 +59,8 @@ out["sweep"] = sweep.main([*TINY, "seeds=2", f"run_dir={tmp / 'sweep'}"])
 
 
 def test_two_cpu_devices_split_envs_and_sweep_points(tmp_path):
-    env = dict(os.environ)
+    env = child_env()
     env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2").strip()
-    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[1]) + os.pathsep + env.get("PYTHONPATH", "")
     proc = subprocess.run(
         [sys.executable, "-c", SCRIPT, str(tmp_path)],
         capture_output=True,

@@ -1,7 +1,6 @@
 """``python -m coherent_jax.evaluate``: returns from a checkpoint, a GIF whose frames move, bad input."""
 
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -9,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import child_env
 
 from coherent_jax.config import parse_overrides, to_dict
 from coherent_jax.evaluate import main, parse_eval_args
@@ -74,8 +74,7 @@ def make_fake_run(path: Path, overrides: list[str]) -> Path:
 
 
 def run_cli(args, cwd):
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    env = child_env()
     env.setdefault("MUJOCO_GL", "egl")
     return subprocess.run(
         [sys.executable, "-m", "coherent_jax.evaluate", *args],
@@ -205,7 +204,7 @@ def test_video_frames_the_body_and_lights_it():
     in 0.1% of the pixels (now 5.5%), and with the models' own lighting the body's pixels
     averaged 69 of 255 (now 110).
     """
-    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env = child_env()
     env.setdefault("MUJOCO_GL", "egl")
     proc = subprocess.run(
         [sys.executable, "-c", FRAMING], capture_output=True, text=True, env=env, timeout=300

@@ -6,7 +6,6 @@ kill is a real SIGKILL of a training subprocess.
 
 import hashlib
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -14,6 +13,7 @@ import time
 from pathlib import Path
 
 import pytest
+from helpers import child_env
 
 from coherent_jax.config import parse_overrides
 from coherent_jax.runs import (
@@ -49,8 +49,7 @@ def strip_times(rows):
 
 
 def spawn(args, cwd):
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    env = child_env()
     return subprocess.Popen(
         [sys.executable, "-m", "coherent_jax.train", *args],
         cwd=cwd,

@@ -7,7 +7,6 @@ of two devices, so the same program, and the two must agree metric for metric.
 """
 
 import json
-import os
 import signal
 import socket
 import subprocess
@@ -18,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from flax import serialization
+from helpers import child_env
 
 ROOT = Path(__file__).resolve().parents[1]
 ITERATIONS = 60
@@ -49,10 +49,9 @@ def free_port() -> int:
 
 def start(args, out: Path, process_id=None, num_processes=2, port=None, devices=1, extra_env=None):
     """Starts ``python -m coherent_jax.train args`` (one process of a run when `process_id` is given)."""
-    env = dict(os.environ)
+    env = child_env()
     for name in ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID"):
         env.pop(name, None)
-    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
     env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={devices}"
     env["COHERENT_JAX_HEARTBEAT_TIMEOUT"] = str(HEARTBEAT_S)
     if process_id is not None:

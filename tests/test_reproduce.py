@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from helpers import child_env
 
 ROOT = Path(__file__).resolve().parents[1]
 _spec = importlib.util.spec_from_file_location("reproduce", ROOT / "experiments" / "reproduce.py")
@@ -115,7 +116,7 @@ def test_results_of_another_specification_are_refused(tmp_path):
     proc = subprocess.run(
         [sys.executable, str(ROOT / "experiments" / "reproduce.py"), "thesis", "--cells", "hopper/ppo/action",
          "--results", str(tmp_path)],
-        capture_output=True, text=True, timeout=60,
+        capture_output=True, text=True, timeout=60, env=child_env(),
     )  # fmt: skip
     assert proc.returncode == 2
     assert proc.stderr.count("\n") == 1 and "another specification" in proc.stderr

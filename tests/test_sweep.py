@@ -1,15 +1,14 @@
 """Sweeps: one grid point equals the single run with its settings; bad grids are refused up front."""
 
 import json
-import os
 import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import child_env
 
 from coherent_jax import sweep, train
 from coherent_jax.config import (
@@ -126,8 +125,7 @@ def test_bad_sweeps_exit_2_naming_the_key_and_write_nothing(tmp_path, capsys, ar
 
 def test_cli_exit_status(tmp_path):
     """The module entry point returns status 2 on a shape setting given as a list."""
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[1]) + os.pathsep + env.get("PYTHONPATH", "")
+    env = child_env()
     proc = subprocess.run(
         [sys.executable, "-m", "coherent_jax.sweep", "unroll_length=[8,16]", f"run_dir={tmp_path / 's'}"],
         cwd=tmp_path,
@@ -262,8 +260,7 @@ SMALL = [
 
 
 def spawn_sweep(args, cwd):
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[1]) + os.pathsep + env.get("PYTHONPATH", "")
+    env = child_env()
     return subprocess.Popen(
         [sys.executable, "-m", "coherent_jax.sweep", *args],
         cwd=cwd,
