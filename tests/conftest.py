@@ -14,6 +14,7 @@ import tempfile
 
 import jax
 import pytest
+from helpers import CACHE_MIN_COMPILE_S
 from helpers import CACHE_VAR as _CACHE_VAR
 
 from coherent_jax.config import parse_overrides
@@ -30,7 +31,7 @@ def pytest_configure(config):
         os.environ[_CACHE_VAR] = tempfile.mkdtemp(prefix="coherent_jax_test_compile_cache_")
     cache = os.environ[_CACHE_VAR]
     jax.config.update("jax_compilation_cache_dir", cache)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", CACHE_MIN_COMPILE_S)
 
 
 def pytest_unconfigure(config):

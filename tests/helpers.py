@@ -4,11 +4,13 @@ import os
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-# The test run's compilation cache (made by conftest.pytest_configure).
+# The test run's compilation cache (made by conftest.pytest_configure), and the compile
+# time from which a program is worth caching.
 CACHE_VAR = "COHERENT_JAX_TEST_COMPILE_CACHE"
+CACHE_MIN_COMPILE_S = 0.5
 
 
-def child_env(**extra: str) -> dict[str, str]:
+def child_env() -> dict[str, str]:
     """The environment of a test's subprocess: this one's, the project on PYTHONPATH, and
     the test run's compilation cache, so that a resumed run, a repeated command or a sweep
     after its single-run twin loads its programs instead of compiling them again.
@@ -20,7 +22,6 @@ def child_env(**extra: str) -> dict[str, str]:
     env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
     if os.environ.get(CACHE_VAR):
         env["JAX_COMPILATION_CACHE_DIR"] = os.environ[CACHE_VAR]
-        env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0.5"
+        env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = str(CACHE_MIN_COMPILE_S)
         env["TF_CPP_MIN_LOG_LEVEL"] = "2"
-    env.update(extra)
     return env
