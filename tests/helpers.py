@@ -1,4 +1,5 @@
-"""What the tests' subprocesses share: the environment they start with."""
+"""What several test modules share: the environment the tests' subprocesses start with,
+and the tables of the Brax tasks that two modules check."""
 
 import os
 from pathlib import Path
@@ -25,3 +26,23 @@ def child_env() -> dict[str, str]:
         env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = str(CACHE_MIN_COMPILE_S)
         env["TF_CPP_MIN_LOG_LEVEL"] = "2"
     return env
+
+
+# Brax's re-creations (MJX, or Brax's generalized pipeline) and the pure-JAX test task:
+# (observation size, action size).
+BRAX_SIZES = {
+    "brax-halfcheetah": (17, 6),
+    "brax-hopper": (11, 3),
+    "brax-walker2d": (17, 6),
+    "brax-ant": (27, 8),
+    "brax-humanoid": (244, 17),
+    "brax-inverted_pendulum": (4, 1),
+    "brax-inverted_double_pendulum": (8, 1),
+    "brax-reacher": (11, 2),
+    "brax-swimmer": (8, 2),
+    "pointmass": (6, 2),
+}
+# The Brax tasks whose MJX programs test_native_physics.py compiles to hold native
+# MuJoCo to MJX step by step; it also makes the registry smoke test's checks of them
+# (test_envs.py), so that each MJX program is compiled once in the suite.
+MJX_SIDE_BY_SIDE = ("brax-inverted_pendulum", "brax-halfcheetah")

@@ -6,25 +6,30 @@ import os
 import jax
 import numpy as np
 import pytest
+from helpers import BRAX_SIZES, MJX_SIDE_BY_SIDE
 
 from coherent_jax.agents.onpolicy import OnPolicyTrainer
 from coherent_jax.config import ConfigError, parse_overrides
-from coherent_jax.envs import VecEnv, make_brax_env
+from coherent_jax.envs import VecEnv, env_sizes, make_brax_env
 from coherent_jax.envs.native import NATIVE_TASKS, NativePhysics, NativeState, PhysicsError, resolve_physics
 
 # MJX programs take 10-60 s each to compile here: the suite checks two tasks;
 # COHERENT_ALL_PHYSICS=1 checks every native Brax task the same way.
-ALWAYS = ("brax-inverted_pendulum", "brax-halfcheetah")
+ALWAYS = MJX_SIDE_BY_SIDE
 BRAX_NATIVE = [task for task in NATIVE_TASKS if task.startswith("brax-")]
 
 
 def _rollouts(task: str, n: int, steps: int):
-    """Obs after reset, then (obs, reward, done) of `steps` steps, for MJX and native from the same keys."""
+    """Obs after reset, then (obs, reward, done) of `steps` steps, for MJX and native from the same keys.
+
+    MJX's program is compiled without XLA's backend optimisation, as in the smoke test of
+    `test_envs.py`: a few steps run in no time either way, and the compile is most of the
+    test's time."""
     native, brax_env = NativePhysics(task), make_brax_env(task)
     keys = jax.random.split(jax.random.PRNGKey(0), n)
     actions = jax.random.uniform(jax.random.PRNGKey(1), (steps, n, native.action_size), minval=-1, maxval=1)
 
-    def run(reset, step):
+    def run(reset, step, options=None):
         def go(keys, actions):
             state = reset(keys)
 
@@ -34,9 +39,9 @@ def _rollouts(task: str, n: int, steps: int):
 
             return state.obs, jax.lax.scan(body, state, actions)[1]
 
-        return jax.jit(go)(keys, actions)
+        return jax.jit(go).lower(keys, actions).compile(options)(keys, actions)
 
-    mjx = run(jax.vmap(brax_env.reset), jax.vmap(brax_env.step))
+    mjx = run(jax.vmap(brax_env.reset), jax.vmap(brax_env.step), {"xla_backend_optimization_level": 0})
     nat = run(native.reset, native.step)
     return mjx, nat
 
@@ -60,6 +65,11 @@ def test_native_steps_match_mjx_side_by_side(task):
     assert np.max(np.abs(np.asarray(obs_n) - np.asarray(obs_m)) / scale) < 1e-3
     np.testing.assert_allclose(np.asarray(rew_n), np.asarray(rew_m), rtol=1e-3, atol=1e-3)
     np.testing.assert_array_equal(np.asarray(done_n), np.asarray(done_m))
+    # What the registry's smoke test (test_envs.py) checks of the other Brax tasks.
+    obs_size, act_size = BRAX_SIZES[task]
+    assert env_sizes(make_brax_env(task)) == (obs_size, act_size)
+    assert obs0_m.shape == (2, obs_size) and obs_m.shape == (steps, 2, obs_size) and rew_m.shape == (steps, 2)
+    assert np.isfinite(np.asarray(obs_m)).all() and np.isfinite(np.asarray(rew_m)).all()
     # The comparison is not vacuous: the state moved and rewards vary.
     assert np.max(np.abs(np.asarray(obs_m[-1]) - np.asarray(obs0_m))) > 1e-2
     if task == "brax-inverted_pendulum":
