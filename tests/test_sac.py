@@ -194,12 +194,18 @@ def test_coherent_sac_head_follows_the_beta_chain():
 
 
 def test_auto_temperature_moves_alpha_towards_the_entropy_target():
-    """Entropy below the target raises alpha; above it lowers alpha."""
+    """Entropy below the target raises alpha; above it lowers alpha. The target is a
+    hyperparameter of the state (one compiled update serves both), set by the config."""
+    cfg = parse_overrides([*FAST, "auto_temperature=true", "batch_size=32"])
+    trainer = SACTrainer(cfg)
+    for target in (50.0, -50.0):
+        hp = SACTrainer(parse_overrides([*FAST, f"target_entropy={target}"])).init_hparams()
+        assert float(hp.target_entropy) == target
+    init, update = jax.jit(trainer.init), jax.jit(trainer.update)
     alphas = {}
     for target in (50.0, -50.0):
-        cfg = parse_overrides([*FAST, "auto_temperature=true", f"target_entropy={target}", "batch_size=32"])
-        trainer = SACTrainer(cfg)
-        state = jax.jit(trainer.init)(jax.random.PRNGKey(0))
+        state = init(jax.random.PRNGKey(0))
+        hparams = state.hparams.replace(target_entropy=jnp.float32(target))
         batch = replay_sample(
             replay_add(
                 state.buffer,
@@ -214,9 +220,7 @@ def test_auto_temperature_moves_alpha_towards_the_entropy_target():
             jax.random.PRNGKey(4),
             32,
         )
-        params, _, metrics = jax.jit(trainer.update)(
-            state.params, state.opt_state, state.hparams, batch, jax.random.PRNGKey(5)
-        )
+        params, _, metrics = update(state.params, state.opt_state, hparams, batch, jax.random.PRNGKey(5))
         alphas[target] = float(jnp.exp(params.log_alpha))
         assert np.isfinite(float(metrics["critic_loss"]))
     assert alphas[50.0] > 0.2 > alphas[-50.0]
