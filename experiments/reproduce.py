@@ -150,6 +150,19 @@ def ablation_cells() -> list[Cell]:
                 tag="mc-all",
             )
         )
+        # The thesis's gradient (the default, coherent.gradient=exact: each segment's belief
+        # re-filtered under the current parameters) against the stored belief's.
+        cells.append(
+            _cell(
+                "ablations",
+                ABLATION_TASK,
+                algo,
+                "coherent",
+                "coherent.gradient=stored",
+                seeds=SEEDS,
+                tag="stored",
+            )
+        )
     return cells
 
 

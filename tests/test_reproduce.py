@@ -39,6 +39,9 @@ def test_ablations_vary_one_component_each():
     assert beta.env_steps == 5 * 5 * reproduce.ONPOLICY_STEPS  # five betas x five seeds
     assert cells["halfcheetah/a2c/coherent-mc"].setting("coherent.integration") == "mc"
     assert cells["halfcheetah/ppo/coherent-mc-all"].setting("coherent.layers") == "all"
+    for algo in ("ppo", "a2c"):
+        stored = cells[f"halfcheetah/{algo}/coherent-stored"]
+        assert stored.setting("coherent.gradient") == "stored" and stored.setting("beta") is None
 
 
 def test_smoke_has_one_cell_per_kind_of_cell():
