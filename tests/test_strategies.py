@@ -236,6 +236,60 @@ def test_psne_perturbation_is_fixed_per_episode():
     assert noise.std() > 0.05
 
 
+def test_psne_minibatch_log_prob_draws_each_episode_once_and_equals_per_segment():
+    """`batch_log_prob` equals `log_prob` segment by segment, values and gradients, at two
+    parameter points, both when the minibatch's episodes fit the shared draws and when
+    they do not (every step draws its own)."""
+    strategy, _ = build("explore=psne")
+    T, m, p = 16, 4, 2
+    starts = [[], [5], [9], [3, 6, 9, 12, 15]]  # episode starts after t = 0: D = 1+2+2+6 = 11
+    first = np.zeros((T, m), bool)
+    keys = np.zeros((T, m, 2), np.uint32)
+    for i, s in enumerate(starts):
+        first[s, i] = True
+        runs = np.cumsum(first[:, i]) + 10 * i
+        keys[:, i] = np.asarray(jax.vmap(lambda r: jax.random.fold_in(jax.random.PRNGKey(7), r))(runs))
+    first[0, 2] = True  # a segment that starts with its episode
+    k_p, k_q, k_o, k_a = jax.random.split(jax.random.PRNGKey(0), 4)
+    params0 = strategy.init(k_p, OBS_SIZE)
+    leaves, tree = jax.tree.flatten(params0)
+    noise = jax.random.split(k_q, len(leaves))
+    params1 = tree.unflatten(
+        [x + 0.05 * jax.random.normal(k, x.shape) for x, k in zip(leaves, noise, strict=True)]
+    )
+    hp = strategy.init_hparams()
+    carry0 = strategy.init_carry(k_p, params0, hp, m)._replace(
+        key=jnp.asarray(keys[0]), sigma=jnp.arange(1.0, 5.0) / 10
+    )
+    obs = jax.random.normal(k_o, (T, m, OBS_SIZE))
+    actions = jax.random.normal(k_a, (T, m, p))
+    weights = jnp.linspace(-1.0, 1.0, T * m).reshape(T, m)
+    first, keys = jnp.asarray(first), jnp.asarray(keys)
+
+    def reference(params):
+        return jax.vmap(strategy.log_prob, in_axes=(None, None, 0, 1, 1, 1, 1), out_axes=1)(
+            params, hp, carry0, obs, actions, first, keys
+        ).log_prob
+
+    def batched(params, capacity):
+        return strategy.batch_log_prob(
+            params, hp, carry0, obs, actions, first, keys, capacity=capacity
+        ).log_prob
+
+    for params in (params0, params1):
+        want = jax.jit(reference)(params)
+        want_grad = jax.jit(jax.grad(lambda q: jnp.sum(weights * reference(q))))(params)
+        for capacity in (11, 10):  # D = 11: shared draws at capacity 11, per-step draws at 10
+            got = jax.jit(batched, static_argnums=1)(params, capacity)
+            np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6)
+            grad = jax.jit(jax.grad(lambda q, c: jnp.sum(weights * batched(q, c))), static_argnums=1)(
+                params, capacity
+            )
+            for g, w in zip(jax.tree.leaves(grad), jax.tree.leaves(want_grad), strict=True):
+                np.testing.assert_allclose(g, w, rtol=1e-5, atol=1e-6 * float(np.max(np.abs(w))))
+    assert not np.allclose(jax.jit(reference)(params0), jax.jit(reference)(params1))
+
+
 @pytest.mark.parametrize("delta,factor", [(1e3, 1.5), (1e-6, 1 / 1.5)])
 def test_psne_sigma_adapts_by_rule_451(delta, factor):
     """adapt applies (4.51): sigma * alpha if the distance (4.50) < delta, else sigma / alpha;

@@ -166,7 +166,7 @@ def onpolicy_loss(
       (L, metrics: policy_loss, value_loss, entropy, approx_kl, clip_fraction).
     """
     chex.assert_rank([batch.behaviour_log_prob, batch.advantages, batch.targets], 2)
-    seg = jax.vmap(strategy.log_prob, in_axes=(None, None, 0, 1, 1, 1, 1), out_axes=1)(
+    seg = strategy.batch_log_prob(
         params.policy, hparams.explore, batch.carry0, batch.obs, batch.action, batch.first, batch.extras
     )
     adv = standardize(batch.advantages) if normalize_advantages else batch.advantages

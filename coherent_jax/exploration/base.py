@@ -124,6 +124,29 @@ class OnPolicyStrategy(abc.ABC):
         del params, hparams, obs
         return carry
 
+    def batch_log_prob(
+        self,
+        params: Params,
+        hparams: Any,
+        carry0: Carry,
+        obs: jax.Array,
+        actions: jax.Array,
+        first: jax.Array,
+        extras: Any = (),
+    ) -> SegmentLogProb:
+        """`log_prob` of a minibatch of m segments, time-major: obs [T, m, o], actions
+        [T, m, p], first [T, m], extras and the result with axis 1 the segment's;
+        ``carry0`` with leading axis m.
+
+        Default: `log_prob` vmapped over the segments. A strategy overrides it when the
+        segments of a minibatch can share work that separate calls would repeat (psne:
+        one perturbation per episode rather than per step); the values stay those of
+        `log_prob`.
+        """
+        return jax.vmap(self.log_prob, in_axes=(None, None, 0, 1, 1, 1, 1), out_axes=1)(
+            params, hparams, carry0, obs, actions, first, extras
+        )
+
     @abc.abstractmethod
     def log_prob(
         self,
