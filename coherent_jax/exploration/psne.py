@@ -88,10 +88,14 @@ class PsneCarry(NamedTuple):
     Attributes:
       key: [n, 2] uint32, the key of this episode's perturbation.
       sigma: [n] the current noise scale (the same in every env).
+      eps: [n, P] this episode's eps = `perturbation` (net, key), held so that acting
+        draws it once per episode rather than at every step (it depends on the
+        parameters' shapes only, so it stays right across updates).
     """
 
     key: jax.Array
     sigma: jax.Array
+    eps: jax.Array
 
 
 class ParameterNoise(OnPolicyStrategy):
@@ -120,10 +124,16 @@ class ParameterNoise(OnPolicyStrategy):
         return self.rule.hparams(with_sigma=False)  # sigma is per-env state (the carry)
 
     def init_carry(self, key, params, hparams, num_envs):
+        keys = jax.random.split(key, num_envs)
         return PsneCarry(
-            key=jax.random.split(key, num_envs),
+            key=keys,
             sigma=jnp.full((num_envs,), self.rule.sigma_init, jnp.float32),
+            eps=self._draw(params, keys),
         )
+
+    def _draw(self, params, keys):
+        """eps [n, P] of each env's key."""
+        return jax.vmap(lambda k: perturbation(params["net"], k))(keys)
 
     def _mean(self, net_params, obs):
         return self.net.apply(net_params, obs)[1]
@@ -136,21 +146,35 @@ class ParameterNoise(OnPolicyStrategy):
 
         return jax.vmap(one)(keys, sigma, obs)
 
+    def _held_mean(self, params, eps, sigma, obs):
+        """f_theta~(s) per env from held draws: eps [n, P], sigma [n], obs [n, ..., o]."""
+
+        def one(e, s, o):
+            return self._mean(apply_perturbation(params["net"], e, s), o)
+
+        return jax.vmap(one)(eps, sigma, obs)
+
     def act(self, key, params, hparams, carry, obs, first):
         chex.assert_rank([obs, first], [2, 1])
         k_ep, k_a = jax.random.split(key)
         keys = episode_keys(k_ep, carry.key, first)
-        mean = self._perturbed_mean(params, keys, carry.sigma, obs)
+        # New draws only at a step where some episode starts (all envs at once, kept where none does).
+        eps = jax.lax.cond(
+            jnp.any(first),
+            lambda: jnp.where(first[:, None], self._draw(params, keys), carry.eps),
+            lambda: carry.eps,
+        )
+        mean = self._held_mean(params, eps, carry.sigma, obs)
         log_std = jnp.broadcast_to(params["log_std"], mean.shape)
         action = mean + jnp.exp(log_std) * jax.random.normal(k_a, mean.shape, mean.dtype)
-        carry = carry._replace(key=keys)
+        carry = carry._replace(key=keys, eps=eps)
         return ActOutput(action, gaussian_log_prob(action, mean, log_std), carry, extras=keys)
 
     def adapt(self, params, hparams, carry, obs):
         # (4.50) on the segment's states, each env under its current perturbation; (4.51).
         chex.assert_rank(obs, 3)
         mean = self._mean(params["net"], obs)  # [T, n, p]
-        perturbed = self._perturbed_mean(params, carry.key, carry.sigma, jnp.swapaxes(obs, 0, 1))
+        perturbed = self._held_mean(params, carry.eps, carry.sigma, jnp.swapaxes(obs, 0, 1))
         distance = policy_distance(
             mean.reshape(-1, mean.shape[-1]), jnp.swapaxes(perturbed, 0, 1).reshape(-1, mean.shape[-1])
         )
