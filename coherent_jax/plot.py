@@ -256,26 +256,39 @@ def normalized_final_scores(runs: Sequence[Run]) -> tuple[dict[str, np.ndarray],
     return scores, {"tasks": tasks, "bounds": bounds}
 
 
+def stratified_bootstrap(
+    arrays: Sequence[np.ndarray], statistic: Any, reps: int, seed: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """statistic(*arrays) and its 95% percentile interval, each array [runs, tasks]: runs are
+    resampled with replacement within each task, independently per array (rliable's
+    stratified bootstrap, Agarwal et al. 2021); returns (point, low, high).
+
+    Resampled here with a seeded generator: rliable's `get_interval_estimates` (with
+    arch 7.2) gave other intervals on every call from the same RandomState."""
+    rng = np.random.default_rng(seed)
+    point = np.asarray(statistic(*arrays), np.float64)
+    samples = np.empty((reps, *point.shape))
+    for r in range(reps):
+        resampled = []
+        for a in arrays:
+            idx = rng.integers(0, a.shape[0], size=a.shape)
+            resampled.append(np.take_along_axis(a, idx, axis=0))
+        samples[r] = statistic(*resampled)
+    low, high = np.percentile(samples, [2.5, 97.5], axis=0)
+    return point, low, high
+
+
 def aggregate_iqm(scores: dict[str, np.ndarray], reps: int, seed: int) -> dict[str, dict[str, float]]:
-    """IQM of each label's [runs, tasks] scores with a 95% stratified-bootstrap CI (rliable)."""
-    from rliable import library as rly
+    """IQM (rliable's metric) of each label's [runs, tasks] scores with a 95% stratified-bootstrap CI."""
     from rliable import metrics
 
-    point, interval = rly.get_interval_estimates(
-        scores,
-        lambda x: np.array([metrics.aggregate_iqm(x)]),
-        reps=reps,
-        confidence_interval_size=0.95,
-        random_state=np.random.RandomState(seed),
-    )
-    return {
-        k: {
-            "iqm": float(point[k][0]),
-            "ci_low": float(interval[k][0, 0]),
-            "ci_high": float(interval[k][1, 0]),
-        }
-        for k in scores
-    }
+    out = {}
+    for k in scores:
+        point, low, high = stratified_bootstrap(
+            [scores[k]], lambda x: np.array([metrics.aggregate_iqm(x)]), reps, seed
+        )
+        out[k] = {"iqm": float(point[0]), "ci_low": float(low[0]), "ci_high": float(high[0])}
+    return out
 
 
 def _save(fig: Any, path: Path) -> None:

@@ -70,18 +70,13 @@ def interval(values: np.ndarray, reps: int = REPS, seed: int = 0) -> tuple[float
 def probability_of_improvement(
     x: np.ndarray, y: np.ndarray, reps: int = REPS, seed: int = 0
 ) -> dict[str, float]:
-    """P(X > Y) over runs x [n, tasks] and y [m, tasks] with a stratified-bootstrap 95% CI (rliable)."""
-    from rliable import library as rly
+    """P(X > Y) over runs x [n, tasks] and y [m, tasks] (rliable's metric), stratified-bootstrap 95% CI."""
     from rliable import metrics
 
-    point, ci = rly.get_interval_estimates(
-        {"pair": (x, y)},
-        lambda a, b: np.array([metrics.probability_of_improvement(a, b)]),
-        reps=reps,
-        confidence_interval_size=0.95,
-        random_state=np.random.RandomState(seed),
+    point, low, high = plot.stratified_bootstrap(
+        [x, y], lambda a, b: np.array([metrics.probability_of_improvement(a, b)]), reps, seed
     )
-    return {"p": float(point["pair"][0]), "low": float(ci["pair"][0, 0]), "high": float(ci["pair"][1, 0])}
+    return {"p": float(point[0]), "low": float(low[0]), "high": float(high[0])}
 
 
 def verdict(poi: dict[str, float]) -> str:
@@ -110,27 +105,26 @@ def normalised(scores: dict[str, dict[str, np.ndarray]]) -> dict[str, np.ndarray
 
 
 def aggregate(norm: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
-    from rliable import library as rly
+    """IQM and optimality gap (rliable's metrics) of each strategy's [runs, tasks] scores, 95% CIs."""
     from rliable import metrics
 
-    point, ci = rly.get_interval_estimates(
-        norm,
-        lambda x: np.array([metrics.aggregate_iqm(x), metrics.aggregate_optimality_gap(x)]),
-        reps=REPS,
-        confidence_interval_size=0.95,
-        random_state=np.random.RandomState(0),
-    )
-    return {
-        k: {
-            "iqm": float(point[k][0]),
-            "iqm_low": float(ci[k][0, 0]),
-            "iqm_high": float(ci[k][1, 0]),
-            "gap": float(point[k][1]),
-            "gap_low": float(ci[k][0, 1]),
-            "gap_high": float(ci[k][1, 1]),
+    out = {}
+    for k in sorted(norm):
+        point, low, high = plot.stratified_bootstrap(
+            [norm[k]],
+            lambda x: np.array([metrics.aggregate_iqm(x), metrics.aggregate_optimality_gap(x)]),
+            REPS,
+            0,
+        )
+        out[k] = {
+            "iqm": float(point[0]),
+            "iqm_low": float(low[0]),
+            "iqm_high": float(high[0]),
+            "gap": float(point[1]),
+            "gap_low": float(low[1]),
+            "gap_high": float(high[1]),
         }
-        for k in norm
-    }
+    return out
 
 
 def _label(cell: reproduce.Cell, run: plot.Run) -> str:

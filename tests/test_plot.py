@@ -7,7 +7,14 @@ import pytest
 from omegaconf import OmegaConf
 
 from coherent_jax.config import parse_overrides, to_dict
-from coherent_jax.plot import aggregate_iqm, load_run, main, mean_and_interval, normalized_final_scores
+from coherent_jax.plot import (
+    aggregate_iqm,
+    load_run,
+    main,
+    mean_and_interval,
+    normalized_final_scores,
+    stratified_bootstrap,
+)
 
 STEPS = [100, 200, 300, 400]
 
@@ -183,3 +190,25 @@ def test_sweep_point_directories_with_equals_in_their_names(tmp_path, capsys):
     assert "n=2" in capsys.readouterr().out
     assert main([str(point), f"out={tmp_path / 'b'}", "reps=200"]) == 0
     assert "n=1" in capsys.readouterr().out
+
+
+def test_stratified_bootstrap_is_seeded_and_resamples_within_each_task():
+    """The same seed gives the same interval; resamples never mix tasks; with one array
+    per side each is resampled on its own (a constant array keeps a zero-width interval)."""
+    rng = np.random.default_rng(3)
+    x = np.stack([rng.normal(0.0, 1.0, 7), rng.normal(100.0, 1.0, 7)], axis=1)  # [runs, tasks]
+    column_means = lambda a: a.mean(axis=0)  # noqa: E731
+    first = stratified_bootstrap([x], column_means, 500, 0)
+    again = stratified_bootstrap([x], column_means, 500, 0)
+    for a, b in zip(first, again, strict=True):
+        np.testing.assert_array_equal(a, b)
+    point, low, high = first
+    np.testing.assert_allclose(point, x.mean(axis=0))
+    assert np.all(low < point) and np.all(point < high)
+    assert x[:, 0].min() <= low[0] and high[0] <= x[:, 0].max()  # task 0 never sees task 1's runs
+    assert x[:, 1].min() <= low[1] and high[1] <= x[:, 1].max()
+    other = stratified_bootstrap([x], column_means, 500, 1)
+    assert not np.array_equal(other[1], low)
+    const = np.full((4, 2), 2.0)
+    _, lo, hi = stratified_bootstrap([x, const], lambda a, b: np.array([b.mean()]), 200, 0)
+    assert lo[0] == hi[0] == 2.0
