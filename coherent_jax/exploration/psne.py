@@ -203,7 +203,6 @@ class ParameterNoise(OnPolicyStrategy):
         chex.assert_rank([obs, actions, first], [3, 3, 2])
         T, m = first.shape
         capacity = m * (1 + T // 16) if capacity is None else int(capacity)
-        net = params["net"]
         # Segment-major steps [m T]; an episode's steps are one run, starting where `new` is.
         new = jnp.swapaxes(first, 0, 1).at[:, 0].set(True).reshape(-1)
         run = jnp.cumsum(new) - 1
@@ -213,13 +212,11 @@ class ParameterNoise(OnPolicyStrategy):
 
         def shared():
             starts = jnp.nonzero(new, size=capacity, fill_value=0)[0]
-            eps = jax.vmap(lambda k: perturbation(net, k))(keys[starts])  # [capacity, P]
-            return jax.vmap(lambda e, s, o: self._mean(apply_perturbation(net, e, s), o))(
-                eps[run], sigma, flat_obs
-            )
+            eps = self._draw(params, keys[starts])  # [capacity, P]
+            return self._held_mean(params, eps[run], sigma, flat_obs)
 
         def per_step():
-            return jax.vmap(lambda k, s, o: self._mean(perturb(net, k, s), o))(keys, sigma, flat_obs)
+            return self._perturbed_mean(params, keys, sigma, flat_obs)
 
         mean = jax.lax.cond(run[-1] < capacity, shared, per_step)
         mean = jnp.swapaxes(mean.reshape(m, T, -1), 0, 1)
