@@ -89,3 +89,42 @@ def test_joint_float32_consecutive_segments_match_float64(beta):
     logp = jnp.concatenate(logps)
     assert logp.dtype == jnp.float32 and bool(jnp.all(jnp.isfinite(logp)))
     np.testing.assert_allclose(logp, ref, rtol=2e-3, atol=2e-2)
+
+
+@pytest.mark.parametrize("size", [1, 7, 16, 33])
+def test_cholesky_whiten_reverse_pass_equals_jaxs_own(x64, size):
+    """`linalg.cholesky_whiten`'s reverse pass (products with L^-1) against JAX's generic
+    Cholesky and triangular-solve rules, float64: cotangents on z alone (the loss) and on
+    L as well (the chained beliefs), for a non-symmetric perturbation of K (symmetrised
+    before the factorisation, as the joint form does), sizes on and off a power of two;
+    and `tril_inverse` is the inverse."""
+    from coherent_jax.exploration.linalg import cholesky_whiten, tril_inverse
+
+    rng = np.random.default_rng(size)
+    root = rng.normal(size=(2, 3, size, size))
+    cov = root @ root.transpose(0, 1, 3, 2) + 0.5 * np.eye(size) + 0.1 * rng.normal(size=(2, 3, size, size))
+    resid = rng.normal(size=(2, 3, size))
+    g, weights = rng.normal(size=(2, 3, size)), rng.normal(size=(2, 3, size, size))
+
+    def generic(k, r):
+        chol = jnp.linalg.cholesky(k)
+        return chol, jax.scipy.linalg.solve_triangular(chol, r[..., None], lower=True)[..., 0]
+
+    for reads_chol in (False, True):
+
+        def loss(factor, k, r, reads_chol=reads_chol):
+            chol, z = factor(0.5 * (k + jnp.swapaxes(k, -1, -2)), r)
+            log_diag = jnp.log(jnp.diagonal(chol, axis1=-2, axis2=-1))
+            out = jnp.sum(g * (-0.5 * z**2 - log_diag)) + jnp.sum(jnp.sin(z))
+            return out + (jnp.sum(weights * chol) if reads_chol else 0.0)
+
+        want = jax.grad(lambda k, r: loss(generic, k, r), argnums=(0, 1))(cov, resid)
+        got = jax.grad(lambda k, r: loss(cholesky_whiten, k, r), argnums=(0, 1))(cov, resid)
+        for w, v in zip(want, got, strict=True):
+            np.testing.assert_allclose(v, w, rtol=1e-10, atol=1e-12)
+    sym = 0.5 * (cov + cov.transpose(0, 1, 3, 2))
+    np.testing.assert_allclose(cholesky_whiten(sym, resid)[1], generic(sym, resid)[1], rtol=1e-12)
+    chol = np.linalg.cholesky(sym)
+    np.testing.assert_allclose(
+        tril_inverse(jnp.asarray(chol)) @ chol, np.broadcast_to(np.eye(size), chol.shape), atol=1e-12
+    )

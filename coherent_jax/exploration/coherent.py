@@ -37,6 +37,7 @@ import jax.numpy as jnp
 from coherent_jax.exploration.adaptive import SigmaRule, adapt_sigma, policy_distance
 from coherent_jax.exploration.base import ActOutput, OffPolicyBehaviour, OnPolicyStrategy, SegmentLogProb
 from coherent_jax.exploration.chain import chain_step, innovation_var
+from coherent_jax.exploration.linalg import cholesky_whiten
 from coherent_jax.networks import MLP, augment, squash
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -489,10 +490,8 @@ def segment_marginals_joint(
         cov_a = cov_a + (c[:, None] * c[None, :])[None] * gram_p
         mean_a = mean_a + c[:, None] * (xh @ (m0 - mu).T)
     cov_a = 0.5 * (cov_a + jnp.swapaxes(cov_a, -1, -2))
-    chol = jnp.linalg.cholesky(cov_a)  # [p, T, T]
-
     resid = (a - mean_a).T  # [p, T]
-    white = jax.scipy.linalg.solve_triangular(chol, resid[..., None], lower=True)[..., 0]
+    chol, white = cholesky_whiten(cov_a, resid)  # [p, T, T], [p, T]
     diag = jnp.diagonal(chol, axis1=-2, axis2=-1)  # [p, T]
     logp = jnp.sum(-0.5 * jnp.square(white) - jnp.log(diag) - 0.5 * _LOG_2PI, axis=0)
     pred_var = jnp.square(diag).T  # [T, p]
@@ -533,8 +532,9 @@ class CoherentCarry(NamedTuple):
 
     Attributes:
       z: [p, q+1] standardised weights z_{t-1} used at the previous step.
-      mean: [p, q+1] mean of alpha(z_t), the belief before a_t.
-      cov: [p, q+1, q+1] covariance of alpha(z_t).
+      mean: [p, q+1] mean of alpha(z_t), the belief before a_t ([p, 0] where the
+        strategy keeps no belief, see `CoherentExploration._keeps_belief`).
+      cov: [p, q+1, q+1] covariance of alpha(z_t) ([p, 0, 0] likewise).
       restart: bool, the chain starts afresh at the next step even if its episode
         goes on (``gradient="exact"``: set at the end of every segment).
     """
@@ -692,12 +692,29 @@ class CoherentExploration(ChainStrategy):
         action_std = jnp.maximum(action_std, jnp.max(w_std, axis=-1) / MAX_W_STD_RATIO)
         return params["mu"], w_std, action_std
 
+    @property
+    def _keeps_belief(self) -> bool:
+        """Whether the carry holds a belief: not when every segment is scored at once from
+        the prior (``inference="joint"``, ``gradient="exact"``). The belief is then empty
+        ([n, p, 0] and [n, p, 0, 0]) instead of p (q+1)^2 floats per env that the
+        rollout's loop would carry and the loss would gather for nothing (at the
+        defaults, 6.5 MB per rollout step with 64 envs)."""
+        return not (self.inference == "joint" and self.gradient == "exact")
+
+    def _segment_belief(self, carry0: CoherentCarry, mu: chex.Array, w_std: chex.Array) -> Belief:
+        """The belief a segment starts from: the stored one in weight coordinates, or the
+        prior where the carry holds none (the segment restarts the chain)."""
+        if self._keeps_belief:
+            return _to_weights(carry0, mu, w_std)
+        return prior_belief(mu, w_std)
+
     def init_carry(self, key, params, hparams, num_envs):
         p, n = self.action_size, self.feature_size + 1
+        m = n if self._keeps_belief else 0
         return CoherentCarry(
             z=jnp.zeros((num_envs, p, n), jnp.float32),
-            mean=jnp.zeros((num_envs, p, n), jnp.float32),
-            cov=jnp.broadcast_to(jnp.eye(n, dtype=jnp.float32), (num_envs, p, n, n)),
+            mean=jnp.zeros((num_envs, p, m), jnp.float32),
+            cov=jnp.broadcast_to(jnp.eye(m, dtype=jnp.float32), (num_envs, p, m, m)),
             restart=jnp.zeros((num_envs,), bool),
         )
 
@@ -760,7 +777,7 @@ class CoherentExploration(ChainStrategy):
         def score(c0, x_e, a_e, f_e):
             f_e = self._segment_first(f_e, c0.restart)
             logp, belief, _ = self._score(
-                _to_weights(c0, mu, w_std), x_e, a_e, f_e, mu, w_std, action_std, hparams["beta"]
+                self._segment_belief(c0, mu, w_std), x_e, a_e, f_e, mu, w_std, action_std, hparams["beta"]
             )
             return logp, _to_standard(belief, mu, w_std)
 
@@ -780,7 +797,7 @@ class CoherentExploration(ChainStrategy):
         # stored belief is never used and nothing is held constant.
         carry0 = jax.tree.map(jax.lax.stop_gradient, carry0)
         first = self._segment_first(first, carry0.restart)
-        belief0 = _to_weights(carry0, mu, w_std)
+        belief0 = self._segment_belief(carry0, mu, w_std)
         logp, _, pred_var = self._score(belief0, x, actions, first, mu, w_std, action_std, hparams["beta"])
         return SegmentLogProb(logp, predictive_entropy(pred_var))
 
