@@ -32,6 +32,22 @@ def test_thesis_suite_covers_every_comparison():
     assert all(c.seeds >= 5 for c in reproduce.thesis_cells())
 
 
+def test_sparse_suite_runs_every_strategy_on_four_sparse_control_tasks():
+    from coherent_jax.config import EXPLORES, SUPPORTED_ALGOS
+    from coherent_jax.envs.registry import DMC_SPARSE_TASKS
+
+    cells = reproduce.sparse_cells()
+    tasks = {c.setting("env") for c in cells}
+    assert len(tasks) >= 4 and tasks <= set(DMC_SPARSE_TASKS)
+    on_policy = {e for e in EXPLORES if "ppo" in SUPPORTED_ALGOS[e]}
+    for task in tasks:
+        mine = [c for c in cells if c.setting("env") == task]
+        assert {c.setting("explore") for c in mine} == on_policy
+        assert all(c.setting("algo") == "ppo" and c.seeds >= 5 for c in mine)
+        (coherent,) = [c for c in mine if c.setting("explore") == "coherent"]
+        assert len(coherent.setting("beta").strip("[]").split(",")) >= 3
+
+
 def test_ablations_vary_one_component_each():
     cells = {c.name: c for c in reproduce.ablation_cells()}
     beta = cells["halfcheetah/ppo/coherent-beta"]

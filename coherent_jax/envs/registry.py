@@ -1,4 +1,5 @@
-"""Registry of tasks by name: Gymnasium's MuJoCo v5 tasks, Brax's re-creations, a test task.
+"""Registry of tasks by name: Gymnasium's MuJoCo v5 tasks, Brax's re-creations, the
+DeepMind Control Suite, a test task.
 
 * The standard tasks papers report on are Gymnasium's MuJoCo v5 tasks, registered by
   their Gymnasium ids (``HalfCheetah-v5``, ...) and by the short names a user types
@@ -9,12 +10,17 @@
   MuJoCo's Newton solver dominates the cost of an MJX step on CPU, so tasks whose
   dynamics tolerate it run with fewer line-search iterations (what Brax itself does
   for ant and humanoid). ``DESIGN.md`` §5 has the measurements behind these numbers.
+* The DeepMind Control Suite (``dmc-cartpole_swingup_sparse``, ...), through MuJoCo
+  Playground's MJX ports (``playground`` on PyPI, imported only when such a task is
+  built): dm_control's tasks with rewards in [0, 1] per step, 1000-step episodes and
+  no terminations, several of them sparse, where exploration matters most.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import os
+import re
 import sys
 import warnings
 from collections.abc import Mapping
@@ -38,6 +44,7 @@ class TaskSpec:
         pipeline: ``mjx`` except where Brax has no MJX model; ``jax`` for an analytic
         task with no physics engine.
       gymnasium_id: the Gymnasium id of a Gymnasium task.
+      playground_id: the MuJoCo Playground id of a DeepMind Control Suite task.
     """
 
     brax_name: str
@@ -46,6 +53,7 @@ class TaskSpec:
     description: str = ""
     backend: str = "mjx"
     gymnasium_id: str = ""
+    playground_id: str = ""
 
 
 _GYM_DESCRIPTIONS = {
@@ -109,10 +117,64 @@ _BRAX: Mapping[str, TaskSpec] = {
     ),
 }
 
+# The DeepMind Control Suite as MuJoCo Playground 0.2.0 ports it
+# (``mujoco_playground.dm_control_suite.ALL_ENVS``), by dm_control's domain and task
+# names. Sparse: the reward is 1 inside the target set and 0 outside (dm_control's
+# ``tolerance`` with no margin), so a policy learns only once its exploration gets there.
+_DMC_SPARSE = {
+    "AcrobotSwingupSparse": "acrobot swing-up, reward 1 with the tip in the target",
+    "BallInCup": "swing a ball on a string into a cup, reward 1 with the ball in it",
+    "CartpoleBalanceSparse": "cart-pole kept upright from near upright, reward 1 while balanced",
+    "CartpoleSwingupSparse": "cart-pole swing-up from hanging, reward 1 while upright and centred",
+    "FingerTurnEasy": "turn a hinged body to a target angle, wide target",
+    "FingerTurnHard": "turn a hinged body to a target angle, narrow target",
+    "ReacherEasy": "2-link arm to a random target, large target",
+    "ReacherHard": "2-link arm to a random target, small target",
+}
+_DMC_DENSE = {
+    "AcrobotSwingup": "acrobot swing-up, shaped reward",
+    "CartpoleBalance": "cart-pole balance, shaped reward",
+    "CartpoleSwingup": "cart-pole swing-up, shaped reward",
+    "CheetahRun": "2D cheetah, run at 10 m/s",
+    "FingerSpin": "spin a hinged body with a finger",
+    "FishSwim": "3D fish swims to a target",
+    "HopperHop": "one-legged hopper, hop forward",
+    "HopperStand": "one-legged hopper, stand up",
+    "HumanoidRun": "3D humanoid, run",
+    "HumanoidStand": "3D humanoid, stand",
+    "HumanoidWalk": "3D humanoid, walk",
+    "PendulumSwingup": "pendulum swing-up, reward 1 near upright",
+    "PointMass": "2D point mass to the origin",
+    "SwimmerSwimmer6": "6-link swimmer to a target",
+    "WalkerRun": "2D biped, run",
+    "WalkerStand": "2D biped, stand",
+    "WalkerWalk": "2D biped, walk",
+}
+
+
+def dmc_name(playground_id: str) -> str:
+    """``CartpoleSwingupSparse`` -> ``dmc-cartpole_swingup_sparse`` (dm_control's names, snake case)."""
+    return "dmc-" + re.sub(r"(?<!^)(?=[A-Z])", "_", playground_id).lower()
+
+
+def _dmc_spec(playground_id: str) -> TaskSpec:
+    sparse = playground_id in _DMC_SPARSE
+    what = _DMC_SPARSE[playground_id] if sparse else _DMC_DENSE[playground_id]
+    return TaskSpec(
+        "",
+        None,
+        description=f"DeepMind Control {'(sparse) ' if sparse else ''}{playground_id}: {what}",
+        playground_id=playground_id,
+    )
+
+
+DMC_SPARSE_TASKS = tuple(dmc_name(t) for t in sorted(_DMC_SPARSE))
+
 TASKS: Mapping[str, TaskSpec] = {
     **{short: _gym_spec(gym_id) for short, gym_id in SHORT_NAMES.items()},
     **{gym_id: _gym_spec(gym_id) for gym_id in SHORT_NAMES.values()},
     **_BRAX,
+    **{dmc_name(t): _dmc_spec(t) for t in sorted({**_DMC_SPARSE, **_DMC_DENSE})},
     # Not MuJoCo: an analytic task in pure JAX for fast tests of the machinery.
     "pointmass": TaskSpec(
         "pointmass", None, description="analytic 2D point mass to a goal (6 obs, 2 act)", backend="jax"
@@ -142,9 +204,13 @@ def check_task(name: str) -> TaskSpec:
 
 
 def make_brax_env(name: str, **kwargs: Any):
-    """Builds the raw (unwrapped, unbatched) Brax environment of task `name` (a ``brax-*`` task
-    or ``pointmass``); Gymnasium's tasks are not Brax environments."""
+    """Builds the raw (unwrapped, unbatched) environment of task `name` with Brax's interface
+    (``reset(key)``, ``step(state, action)``, states with ``obs``, ``reward``, ``done``): a
+    ``brax-*`` task, a ``dmc-*`` task (Playground's env) or ``pointmass``; Gymnasium's
+    tasks are not Brax environments."""
     spec = check_task(name)
+    if spec.playground_id:
+        return make_playground_env(spec.playground_id, **kwargs)
     if spec.gymnasium_id:
         short = next(s for s, g in SHORT_NAMES.items() if g == spec.gymnasium_id)
         raise UnknownTaskError(
@@ -167,6 +233,25 @@ def make_brax_env(name: str, **kwargs: Any):
     if spec.ls_iterations is not None:
         env.sys = env.sys.tree_replace({"opt.ls_iterations": spec.ls_iterations})
     return env
+
+
+def make_playground_env(playground_id: str, **config_overrides: Any):
+    """MuJoCo Playground's DeepMind Control env ``playground_id`` on MJX's JAX implementation.
+
+    Playground 0.2.0 defaults to MJX's Warp implementation, which steps a fixed batch of
+    worlds of its own and does not ``vmap``; ``impl="jax"`` is plain MJX, vmapped here like
+    Brax's envs. Everything else is Playground's default config (1000-step episodes,
+    its control and simulation steps).
+    """
+    try:
+        with _quiet_stdio(force=True):  # Warp prints its kernel-cache lines on import
+            from mujoco_playground import registry as playground
+    except ImportError as err:  # pragma: no cover - a dependency of the package
+        raise UnknownTaskError(
+            f"the DeepMind Control tasks need MuJoCo Playground (pip install playground): {err}"
+        ) from None
+    with _quiet_stdio(force=True):
+        return playground.load(playground_id, config_overrides={"impl": "jax", **config_overrides})
 
 
 def env_sizes(env) -> tuple[int, int]:
