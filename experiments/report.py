@@ -49,6 +49,32 @@ REPS = 2000
 BASELINES = ("action", "noisynet", "psne")
 
 
+# On the sparse tasks the reward is 0 outside the target set, so a training episode with
+# a positive return is one in which the exploration got there at least once.
+REACH_METRIC = "train/episode_return"
+
+
+def reached_reward(run: plot.Run) -> float | None:
+    """Env steps at which `run` first completed an episode with positive return (its
+    `REACH_METRIC`, the mean over the episodes an iteration completed, above 0), or
+    None if it never did."""
+    hits = np.flatnonzero(np.nan_to_num(run.values, nan=0.0) > 0.0)
+    return float(run.steps[hits[0]]) if hits.size else None
+
+
+def reach_rows(cell: reproduce.Cell, results: Path) -> list[str]:
+    """Table rows: per strategy of a sparse cell, the seeds that ever reached the reward."""
+    sweep = reproduce.cell_dir(cell, results) / "sweep"
+    runs = [plot.load_run(p, REACH_METRIC) for p in reproduce._point_dirs(sweep)]
+    rows = []
+    for label in sorted({_label(cell, r) for r in runs}):
+        firsts = [reached_reward(r) for r in runs if _label(cell, r) == label]
+        hit = [f for f in firsts if f is not None]
+        first = f"{np.median(hit):,.0f}" if hit else "-"
+        rows.append(f"| {cell.setting('env')} | {label} | {len(hit)} of {len(firsts)} | {first} |")
+    return rows
+
+
 def cell_runs(cell: reproduce.Cell, results: Path) -> list[plot.Run]:
     """The seeds' runs of a finished cell (one per sweep point)."""
     sweep = reproduce.cell_dir(cell, results) / "sweep"
@@ -135,7 +161,9 @@ def _label(cell: reproduce.Cell, run: plot.Run) -> str:
     return name
 
 
-def build(results: Path, out: Path, suites: Sequence[str] = ("thesis", "ablations", "beyond")) -> str:
+def build(
+    results: Path, out: Path, suites: Sequence[str] = ("thesis", "ablations", "beyond", "sparse")
+) -> str:
     figures = results / "figures"
     lines = [
         "# Results",
@@ -188,6 +216,17 @@ def build(results: Path, out: Path, suites: Sequence[str] = ("thesis", "ablation
                 f"{summary.get('sweep_env_steps_per_s', float('nan')):.0f} | {wall / 3600:.2f} h |"
             )
         lines.append("")
+        if suite == "sparse":
+            lines += [
+                "Seeds whose exploration ever reached the sparse reward (a training episode",
+                "with positive return), and the median env step of the first one:",
+                "",
+                "| task | strategy | seeds that reached it | first reached at (median env steps) |",
+                "|---|---|---|---|",
+            ]
+            for c in done:
+                lines += reach_rows(c, results)
+            lines.append("")
         for algo in sorted(finals):
             for what, table in (("final return", finals[algo]), ("area under curve", aucs[algo])):
                 norm = normalised(table)
@@ -257,6 +296,8 @@ def _pairs(suite: str, norm: dict[str, np.ndarray]) -> list[tuple[str, str]]:
         pairs += [(f"beta={b}", f"beta={e}") for b in ("0.01", "0.1", "0.5") for e in ("1", "0")]
         return [p for p in pairs if p[0] in norm and p[1] in norm]
     others = [b for b in (*BASELINES, "gsde", "pink") if b in norm]
+    if suite == "sparse":  # coherent at each beta of its grid against every baseline
+        return [(c, b) for c in sorted(norm) if c.startswith("beta=") for b in others]
     return [("coherent", b) for b in others if "coherent" in norm]
 
 
@@ -265,7 +306,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--results", default=str(reproduce.RESULTS))
     parser.add_argument("--out", default=str(ROOT / "experiments" / "RESULTS.md"))
     parser.add_argument(
-        "--suites", nargs="+", default=["thesis", "ablations", "beyond"], choices=list(reproduce.SUITES)
+        "--suites",
+        nargs="+",
+        default=["thesis", "ablations", "beyond", "sparse"],
+        choices=list(reproduce.SUITES),
     )
     args = parser.parse_args(argv)
     results, out = Path(args.results).resolve(), Path(args.out).resolve()

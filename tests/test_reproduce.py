@@ -140,3 +140,24 @@ def test_results_of_another_specification_are_refused(tmp_path):
     assert proc.returncode == 2
     assert proc.stderr.count("\n") == 1 and "another specification" in proc.stderr
     assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
+
+
+def test_report_counts_a_seed_as_reaching_the_sparse_reward_at_its_first_positive_return():
+    import numpy as np
+
+    from coherent_jax import plot
+
+    spec = importlib.util.spec_from_file_location("report", ROOT / "experiments" / "report.py")
+    report = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(report)
+
+    def run(values):
+        steps = np.arange(1, len(values) + 1) * 4096
+        return plot.Run(Path("."), "dmc-ball_in_cup", "ppo", "action", 0, steps, np.array(values), {})
+
+    # No episode completed (NaN) and zero returns are not a hit; the first positive one is.
+    assert report.reached_reward(run([np.nan, 0.0, 0.0, 3.0, 0.0, 7.0])) == 4 * 4096
+    assert report.reached_reward(run([np.nan, 0.0, 0.0])) is None
+    assert report.reached_reward(run([-1.0, 0.0])) is None
+    assert ("beta=0.01", "psne") in report._pairs("sparse", {"beta=0.01": 0, "beta=0": 0, "psne": 0})
+    assert ("coherent", "psne") in report._pairs("thesis", {"coherent": 0, "psne": 0})
