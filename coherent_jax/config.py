@@ -190,6 +190,12 @@ class Config:
     max_grad_norm: float = _field("optimisation", 0.5, "global gradient-norm clip")
     normalize_advantages: bool = _field("optimisation", True, "standardise advantages per minibatch")
     normalize_obs: bool = _field("optimisation", True, "running mean/std observation normalisation")
+    normalize_rewards: bool = _field(
+        "optimisation",
+        False,
+        "a2c/ppo: divide rewards by the running std of each env's discounted return, clipped "
+        "to [-10, 10] (SB3's VecNormalize, CleanRL's NormalizeReward)",
+    )
     # --- networks
     policy_hidden: list[int] = _field("networks", [64, 64], "policy trunk layer sizes")
     value_hidden: list[int] = _field("networks", [64, 64], "value network layer sizes")
@@ -429,6 +435,12 @@ def validate(cfg: Config) -> Config:
             math.isfinite(cfg.target_entropy), "target_entropy", cfg.target_entropy, "a finite number or null"
         )
     if cfg.algo == "sac":
+        _check(
+            not cfg.normalize_rewards,
+            "normalize_rewards",
+            cfg.normalize_rewards,
+            "false with algo=sac (reward scaling is a2c/ppo's)",
+        )
         _check(
             cfg.buffer_size >= cfg.steps_per_iteration,
             "buffer_size",

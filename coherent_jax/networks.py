@@ -117,6 +117,14 @@ def normalize(stats: RunningStats, obs: jax.Array, enabled: bool = True, clip: f
     return jnp.clip((obs - stats.mean) / jnp.sqrt(stats.var + 1e-8), -clip, clip)
 
 
+def scale_rewards(stats: RunningStats, rewards: jax.Array, clip: float = 10.0) -> jax.Array:
+    """r / sqrt(Var[G] + 1e-8), clipped to [-clip, clip]: reward scaling by the running
+    variance of the discounted return G (``stats`` of size 1; no mean is subtracted, so
+    the sign of every reward, and with it termination's incentive, is kept)."""
+    chex.assert_shape(stats.var, (1,))
+    return jnp.clip(rewards / jnp.sqrt(stats.var[0] + 1e-8), -clip, clip)
+
+
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
 _HALF_LOG_2PI = 0.5 * float(jnp.log(2.0 * jnp.pi))
 

@@ -33,7 +33,7 @@ from coherent_jax.config import ConfigError
 ENV_AXIS = "envs"
 POINT_AXIS = "points"
 # Fields of a train state whose arrays carry one row per env (leading axis num_envs).
-PER_ENV_FIELDS = ("env_state", "carry")
+PER_ENV_FIELDS = ("env_state", "carry", "reward_norm")
 
 
 def resolve_num_devices(requested: int) -> int:

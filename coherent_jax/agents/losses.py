@@ -65,6 +65,32 @@ def gae(
     return advantages, advantages + values
 
 
+def discounted_returns(
+    running: jax.Array, rewards: jax.Array, done: jax.Array, gamma: jax.Array | float
+) -> tuple[jax.Array, jax.Array]:
+    """Each env's discounted return so far, G_t = gamma G_{t-1} + r_t, restarting after an
+    episode ends (terminated or truncated); what reward scaling takes the variance of.
+
+    Args:
+      running: [...] G_{-1}, the value the previous segment ended with (0 after a done).
+      rewards, done: [T, ...].
+      gamma: scalar.
+
+    Returns:
+      (G at the segment's end with the done of its last step applied, i.e. what the next
+      segment starts from, and G_t for every step [T, ...]).
+    """
+    chex.assert_equal_shape([rewards, done])
+    chex.assert_equal_shape([running, rewards[0]])
+
+    def forward(g, inputs):
+        r, d = inputs
+        g = gamma * g + r
+        return jnp.where(d, 0.0, g), g
+
+    return jax.lax.scan(forward, running, (rewards, done))
+
+
 class PolicyLossInfo(NamedTuple):
     """Diagnostics of a policy objective, each a scalar."""
 

@@ -25,7 +25,7 @@ from coherent_jax.config import Config
 from coherent_jax.envs.vec_env import EnvState, VecEnv
 from coherent_jax.exploration import make_strategy
 from coherent_jax.exploration.base import OnPolicyStrategy
-from coherent_jax.networks import RunningStats, ValueNetwork, normalize, update_stats
+from coherent_jax.networks import RunningStats, ValueNetwork, normalize, scale_rewards, update_stats
 from coherent_jax.rollout import episode_metrics, evaluation_metrics, unroll
 
 
@@ -44,6 +44,23 @@ class HParams:
 
 
 @struct.dataclass
+class RewardNorm:
+    """Reward scaling's state (``normalize_rewards``).
+
+    Attributes:
+      stats: running variance of the discounted return, over every env and step (size 1).
+      discounted_return: [n] each env's discounted return so far in its episode.
+    """
+
+    stats: RunningStats
+    discounted_return: jax.Array
+
+    @classmethod
+    def create(cls, num_envs: int) -> RewardNorm:
+        return cls(stats=RunningStats.create(1), discounted_return=jnp.zeros((num_envs,), jnp.float32))
+
+
+@struct.dataclass
 class AgentParams:
     policy: Any
     value: Any
@@ -59,6 +76,8 @@ class TrainState:
       obs_stats: running observation statistics.
       env_state: the vectorized environments.
       carry: per-env exploration state (noise, sampled weights, beliefs).
+      reward_norm: reward scaling's statistics (left at their initial values unless
+        ``normalize_rewards``).
       hparams: sweepable scalars.
       key: PRNG key.
       iteration: iterations done.
@@ -70,6 +89,7 @@ class TrainState:
     obs_stats: RunningStats
     env_state: EnvState
     carry: Any
+    reward_norm: RewardNorm
     hparams: HParams
     key: jax.Array
     iteration: jax.Array
@@ -171,6 +191,7 @@ class OnPolicyTrainer:
             obs_stats=obs_stats,
             env_state=self.env.reset(k_env),
             carry=self.strategy.init_carry(k_carry, params.policy, hparams.explore, self.env.num_envs),
+            reward_norm=RewardNorm.create(self.env.num_envs),
             hparams=hparams,
             key=key,
             iteration=jnp.zeros((), jnp.int32),
@@ -202,8 +223,9 @@ class OnPolicyTrainer:
         data = data._replace(log_prob=behaviour_log_prob)
         values = self.value_net.apply(params.value, obs)
         next_values = self.value_net.apply(params.value, self._norm(stats, data.final_obs))
+        reward_norm, rewards = self._scaled_rewards(state.reward_norm, data, hp.gamma)
         advantages, targets = losses.gae(
-            data.reward, values, next_values, data.terminated, data.done, hp.gamma, hp.gae_lambda
+            rewards, values, next_values, data.terminated, data.done, hp.gamma, hp.gae_lambda
         )
         batch = losses.SegmentBatch(
             obs=obs,
@@ -257,6 +279,8 @@ class OnPolicyTrainer:
         metrics.update(episode_metrics(data))
         var_t = targets.var()
         metrics["train/explained_variance"] = 1.0 - (targets - values).var() / (var_t + 1e-8)
+        if cfg.normalize_rewards:
+            metrics["train/return_std"] = jnp.sqrt(reward_norm.stats.var[0])
         metrics.update({f"train/{k}": v for k, v in strategy.metrics(new_params.policy, hp.explore).items()})
 
         new_stats = update_stats(stats, data.obs) if cfg.normalize_obs else stats
@@ -266,11 +290,23 @@ class OnPolicyTrainer:
             obs_stats=new_stats,
             env_state=env_state,
             carry=carry,
+            reward_norm=reward_norm,
             key=key,
             iteration=state.iteration + 1,
             env_steps=state.env_steps + n * cfg.unroll_length,
         )
         return new_state, metrics
+
+    def _scaled_rewards(self, norm: RewardNorm, data, gamma: jax.Array) -> tuple[RewardNorm, jax.Array]:
+        """The rewards GAE and the value targets see: as collected, or with
+        ``normalize_rewards`` divided by the running std of the discounted return, the
+        statistics first merged with this segment's returns (Gymnasium's NormalizeReward
+        order). Episode returns and evaluations always report the task's own rewards."""
+        if not self.cfg.normalize_rewards:
+            return norm, data.reward
+        running, returns = losses.discounted_returns(norm.discounted_return, data.reward, data.done, gamma)
+        stats = update_stats(norm.stats, returns[..., None])
+        return RewardNorm(stats=stats, discounted_return=running), scale_rewards(stats, data.reward)
 
     def export_params(self, state: TrainState) -> dict[str, Any]:
         """What evaluation needs: policy, value and observation statistics (`export`)."""
