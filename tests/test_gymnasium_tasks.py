@@ -14,6 +14,7 @@ from scipy import stats
 from coherent_jax.envs import VecEnv, check_task
 from coherent_jax.envs.gym_v5 import EPISODE_LENGTH, GYM_TASKS, SHORT_NAMES
 from coherent_jax.envs.native import NativePhysics, PhysicsError, resolve_physics
+from coherent_jax.envs.task import control
 
 gym = pytest.importorskip("gymnasium")
 
@@ -57,9 +58,10 @@ def test_steps_equal_gymnasium(gym_id):
     g_obs, g_reward, g_done = np.zeros(obs.shape), np.zeros(reward.shape), np.zeros(done.shape, bool)
     # Gymnasium's action is the agent's [-1, 1] action mapped onto its action space.
     low, high = _gym_env(gym_id).action_space.low, _gym_env(gym_id).action_space.high
-    np.testing.assert_array_equal(env.ctrl_centre - env.ctrl_half, low)
-    np.testing.assert_array_equal(env.ctrl_centre + env.ctrl_half, high)
-    ctrl = env.ctrl_centre + actions * env.ctrl_half
+    ones = np.ones((1, env.action_size), np.float32)
+    np.testing.assert_array_equal(control(env.spec, -ones, env.ctrl_range)[0], low)
+    np.testing.assert_array_equal(control(env.spec, ones, env.ctrl_range)[0], high)
+    ctrl = np.asarray(control(env.spec, actions, env.ctrl_range))
     for i in range(n):
         g = _gym_env(gym_id)
         g.reset(seed=i)
@@ -129,5 +131,54 @@ def test_mjx_is_refused_in_one_line_with_the_reason():
         resolve_physics("humanoid", "mjx")
     msg = str(err.value)
     assert "'humanoid'" in msg and "PGS" in msg and "brax-humanoid" in msg and "\n" not in msg
-    with pytest.raises(PhysicsError, match="'HalfCheetah-v5'.*brax-halfcheetah"):
-        resolve_physics("HalfCheetah-v5", "mjx")
+    with pytest.raises(PhysicsError, match="'Humanoid-v5'.*PGS"):
+        resolve_physics("Humanoid-v5", "mjx")
+    for gym_id in MJX_GYM_TASKS:
+        assert resolve_physics(gym_id, "mjx") == "mjx"
+
+
+# MJX programs compile in 15-60 s here: the suite checks one task; COHERENT_ALL_PHYSICS=1 all.
+MJX_GYM_TASKS = [g for g in GYM_TASKS if g != "Humanoid-v5"]
+MJX_ALWAYS = ("InvertedPendulum-v5",)
+
+
+@pytest.mark.parametrize("gym_id", MJX_GYM_TASKS)
+def test_mjx_runs_the_same_task_as_native_mujoco(gym_id):
+    """physics=mjx steps the task's own model (Gymnasium's solver, integrator, contacts) with
+    the same formulas: from the same keys and actions its first observations equal native
+    MuJoCo's (which equal Gymnasium's, above), and its first steps agree to float32 accuracy
+    (MJX is float32, native float64: they part slowly through contacts, as the README's
+    table of matching steps measures)."""
+    if gym_id not in MJX_ALWAYS and not os.environ.get("COHERENT_ALL_PHYSICS"):
+        pytest.skip("MJX compile is slow; set COHERENT_ALL_PHYSICS=1 to check every task")
+    steps, n = 5, 2
+    mjx_env, native_env = VecEnv(gym_id, n, physics="mjx").env, NativePhysics(gym_id)
+    assert (mjx_env.observation_size, mjx_env.action_size) == (
+        native_env.observation_size,
+        native_env.action_size,
+    )
+    keys = jax.random.split(jax.random.PRNGKey(0), n)
+    actions = jax.random.uniform(
+        jax.random.PRNGKey(1), (steps, n, native_env.action_size), minval=-1, maxval=1
+    )
+
+    def run(env, options=None):
+        def go(keys, actions):
+            state = env.reset(keys)
+
+            def body(s, a):
+                s = env.step(s, a)
+                return s, (s.obs, s.reward, s.done)
+
+            return state.obs, jax.lax.scan(body, state, actions)[1]
+
+        return jax.device_get(jax.jit(go).lower(keys, actions).compile(options)(keys, actions))
+
+    obs0_m, (obs_m, rew_m, done_m) = run(mjx_env, {"xla_backend_optimization_level": 0})
+    obs0_n, (obs_n, rew_n, done_n) = run(native_env)
+    np.testing.assert_allclose(obs0_m, obs0_n, rtol=1e-6, atol=1e-6)
+    assert np.max(np.abs(obs_m - obs_n) / (1.0 + np.abs(obs_n))) < 1e-3
+    np.testing.assert_allclose(rew_m, rew_n, rtol=1e-3, atol=1e-3)
+    np.testing.assert_array_equal(done_m, done_n)
+    assert np.isfinite(obs_m).all() and np.isfinite(rew_m).all()
+    assert np.max(np.abs(obs_m[-1] - obs0_m)) > 1e-2  # not vacuous: the state moved

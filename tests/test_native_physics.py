@@ -182,9 +182,10 @@ def test_physics_choice_and_refusals():
         parse_overrides(["env=brax-swimmer", "physics=native"])
     assert "'brax-swimmer'" in str(err.value) and "halfcheetah" in str(err.value)
     assert parse_overrides(["env=brax-halfcheetah", "physics=mjx"]).physics == "mjx"
-    # Gymnasium's tasks run on native MuJoCo only: physics=mjx is refused in validation.
-    with pytest.raises(ConfigError, match="'physics': 'mjx' with env=halfcheetah.*brax-halfcheetah"):
-        parse_overrides(["physics=mjx"])
+    # Gymnasium's tasks run their own model on MJX, but for Humanoid-v5 (PGS): refused in validation.
+    assert parse_overrides(["physics=mjx"]).physics == "mjx"
+    with pytest.raises(ConfigError, match="'physics': 'mjx' with env=humanoid.*PGS.*brax-humanoid"):
+        parse_overrides(["env=humanoid", "physics=mjx"])
 
 
 def test_bench_physics_bad_input_exits_2_and_writes_nothing(tmp_path, capsys):

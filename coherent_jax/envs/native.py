@@ -43,6 +43,7 @@ from coherent_jax.envs.task import (
     Kinematics,
     NativeModel,
     NativeTask,
+    control,
     quat_rotate,
     uniform_reset,
 )
@@ -229,8 +230,9 @@ class PhysicsError(ValueError):
 def resolve_physics(task: str, physics: str) -> str:
     """The backend a task runs on: ``mjx`` or ``native`` (own-pipeline tasks keep theirs).
 
-    Gymnasium's tasks run on native MuJoCo (``auto`` and ``native``); ``mjx`` is refused
-    for them with the reason. Brax's re-creations: ``auto`` picks native MuJoCo on a CPU
+    Gymnasium's tasks run on native MuJoCo with ``auto`` and ``native``, and their own
+    model on MJX with ``mjx`` (`coherent_jax.envs.mjx_physics`) except where MJX cannot
+    run it (refused with the reason). Brax's re-creations: ``auto`` picks native MuJoCo on a CPU
     for the six that have it (several times faster there, see
     ``python -m coherent_jax.bench physics``) and MJX on accelerators. Raises
     `PhysicsError` with a one-line message otherwise.
@@ -239,9 +241,11 @@ def resolve_physics(task: str, physics: str) -> str:
     if physics not in PHYSICS:
         raise PhysicsError(f"unknown physics {physics!r}; valid: {', '.join(PHYSICS)}")
     if spec.backend == "native":
-        if physics == "mjx":
+        if physics != "mjx":
+            return "native"
+        if spec.gymnasium_id in MJX_REFUSAL:
             raise PhysicsError(f"physics=mjx does not support env {task!r}: {MJX_REFUSAL[spec.gymnasium_id]}")
-        return "native"
+        return "mjx"
     if physics == "native" and task not in NATIVE_TASKS:
         raise PhysicsError(
             f"physics=native does not support env {task!r}; supported envs: {', '.join(NATIVE_TASKS)}"
@@ -391,10 +395,7 @@ class NativePhysics:
         self.nq, self.nv = model.nq, model.nv
         self.action_size = int(model.nu)
         self.init_q = jnp.asarray(init_q)
-        low, high = np.asarray(model.actuator_ctrlrange, np.float32).T
-        self.ctrl_low, self.ctrl_high = low, high
-        # ctrl = centre + a * half-width: exactly a * high for the symmetric ranges of every task.
-        self.ctrl_centre, self.ctrl_half = (high + low) / 2, (high - low) / 2
+        self.ctrl_range = np.asarray(model.actuator_ctrlrange, np.float32)
         self._field_shapes = self.host.shapes()
         kin = Kinematics(**{f: jnp.zeros(s) for f, s in self._field_shapes.items()})
         self.observation_size = int(jax.eval_shape(self.spec.observe, kin).shape[-1])
@@ -433,11 +434,7 @@ class NativePhysics:
         """One env step (`n_frames` MuJoCo steps) of every env with `action` [n, action_size]."""
         n = state.integration.shape[0]
         chex.assert_shape(action, (n, self.action_size))
-        ctrl = action.astype(jnp.float32)
-        if self.spec.scale_action and self.spec.brax_scaling:
-            ctrl = (ctrl + 1.0) * (self.ctrl_high - self.ctrl_low) * 0.5 + self.ctrl_low
-        elif self.spec.scale_action:
-            ctrl = self.ctrl_centre + ctrl * self.ctrl_half
+        ctrl = control(self.spec, action, self.ctrl_range)
         rows, *arrays = jax.pure_callback(
             self.host.step, self._shapes(n), state.integration, ctrl, vmap_method="broadcast_all"
         )

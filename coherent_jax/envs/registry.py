@@ -68,15 +68,10 @@ _GYM_DESCRIPTIONS = {
     "Reacher-v5": "2-link arm reaching a target, 50-step episodes (10 obs, 2 act)",
 }
 
-# Why MJX cannot run a Gymnasium task here (``physics=mjx`` is refused with this reason).
+# Why MJX cannot run a Gymnasium task (``physics=mjx`` is refused with this reason); the
+# others run their own model on MJX (`coherent_jax.envs.mjx_physics`).
 MJX_REFUSAL: Mapping[str, str] = {
-    gym_id: (
-        "its PGS solver is not implemented in MJX"
-        if gym_id == "Humanoid-v5"
-        else "Gymnasium's tasks run on native MuJoCo only here"
-    )
-    + f"; Brax's MJX re-creation is 'brax-{short}'"
-    for short, gym_id in SHORT_NAMES.items()
+    "Humanoid-v5": "its PGS solver is not implemented in MJX; Brax's MJX re-creation is 'brax-humanoid'",
 }
 
 

@@ -14,6 +14,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 class Kinematics(NamedTuple):
@@ -103,6 +104,20 @@ class NativeTask:
     brax_scaling: bool = False
     normalize_quaternions: bool = False
     source: str = ""
+
+
+def control(task: NativeTask, action: jax.Array, ctrl_range) -> jax.Array:
+    """The actuators' controls for ``action`` [..., nu] in [-1, 1]: as given, or mapped
+    affinely onto ``ctrl_range`` [nu, 2] (the model's ``actuator_ctrlrange``) where the
+    task scales actions, in Brax's or Gymnasium's arithmetic (`NativeTask.brax_scaling`)."""
+    ctrl = action.astype(jnp.float32)
+    if not task.scale_action:
+        return ctrl
+    low, high = np.asarray(ctrl_range, np.float32).T
+    if task.brax_scaling:
+        return (ctrl + 1.0) * (high - low) * 0.5 + low
+    # centre + a * half-width: exactly a * high for the symmetric ranges of every task.
+    return (high + low) / 2 + ctrl * ((high - low) / 2)
 
 
 def uniform_reset(q_scale: float, qd_scale: float, qd_normal: bool):

@@ -21,7 +21,14 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from coherent_jax.envs.native import DEFAULT_THREADS, NativePhysics, resolve_physics
+from coherent_jax.envs.mjx_physics import MjxPhysics
+from coherent_jax.envs.native import (
+    DEFAULT_THREADS,
+    NATIVE_TASKS,
+    NativePhysics,
+    mujoco_model,
+    resolve_physics,
+)
 from coherent_jax.envs.registry import check_task, env_sizes, make_brax_env
 
 
@@ -82,7 +89,8 @@ class VecEnv:
     ``physics`` chooses the engine (`coherent_jax.envs.native.resolve_physics`):
     ``native`` (MuJoCo's C engine on a thread pool through a callback, `NativePhysics`:
     Gymnasium's tasks always, six of Brax's re-creations with their MJX model, reward
-    and termination), ``mjx`` (Brax's MJX env, vmapped) or ``auto`` (native on CPU
+    and termination), ``mjx`` (Brax's MJX env, vmapped; for Gymnasium's tasks their own
+    model and formulas on MJX, `MjxPhysics`) or ``auto`` (native on CPU
     where the task has it, else MJX); ``physics_threads`` is native MuJoCo's thread
     count (0 = every core). ``episode_length`` defaults to the task's own time limit.
     """
@@ -103,10 +111,14 @@ class VecEnv:
         self.episode_length = int(episode_length or spec.episode_length)
         # "mjx", "native" (MuJoCo's C engine through a callback) or the task's own pipeline.
         self.physics = resolve_physics(task, physics)
-        if self.physics == "native":
-            self.env = NativePhysics(task, physics_threads)
+        if self.physics == "native" or spec.backend == "native":
+            # Native tasks' models on MuJoCo's C engine or on MJX: both take the whole batch
+            # in one call; Brax envs are vmapped.
+            if self.physics == "native":
+                self.env = NativePhysics(task, physics_threads)
+            else:
+                self.env = MjxPhysics(task, NATIVE_TASKS[task], mujoco_model(task))
             self.observation_size, self.action_size = self.env.observation_size, self.env.action_size
-            # Native physics takes the whole batch in one call; Brax envs are vmapped.
             self._batch_reset, self._batch_step = self.env.reset, self.env.step
         else:
             self.env = make_brax_env(task)
