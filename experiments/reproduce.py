@@ -75,6 +75,18 @@ ONPOLICY_STEPS = 1_000_000
 SAC_STEPS = 200_000
 SAC_SETTINGS = ("utd_ratio=0.25",)
 
+# A2C/PPO settings per task, the same for every strategy (issue: credible baselines).
+# HalfCheetah keeps the defaults (action-noise PPO: 3,691 at 1M steps over 5 seeds,
+# between CleanRL's and RL Zoo's published figures). On Hopper the defaults stall near
+# 370 at 0.5M steps (2 seeds): the value loss of unscaled returns dominates the shared
+# gradient-norm clip and 80 minibatch steps per 4,096 env steps are few (CleanRL takes
+# 320 per 2,048). Reward scaling and 32 minibatches (2 envs x 64 steps, 320 steps per
+# iteration) are what SB3 and CleanRL use there (pilot runs: experiments/README.md).
+ONPOLICY_TASK_SETTINGS: dict[str, tuple[str, ...]] = {
+    "hopper": ("normalize_rewards=true", "num_minibatches=32"),
+    "walker2d": ("normalize_rewards=true", "num_minibatches=32"),
+}
+
 # Rough env steps/s of one point, used by --status for cells with nothing measured yet
 # (README, Figures: PPO 64 envs on native physics; coherent about 0.3-0.5x of it).
 # SAC's figure is at UTD 1 and scales with 1 / utd_ratio.
@@ -135,6 +147,8 @@ def _cell(suite: str, task: str, algo: str, explore: str, *extra: str, seeds: in
     overrides = [f"env={task}", f"algo={algo}", f"explore={explore}", f"total_steps={steps}"]
     if algo == "sac":
         overrides += SAC_SETTINGS
+    else:
+        overrides += ONPOLICY_TASK_SETTINGS.get(task, ())
     overrides += list(extra)
     name = f"{task}/{algo}/{explore}" + (f"-{tag}" if tag else "")
     return Cell(suite, name, tuple(overrides), seeds)

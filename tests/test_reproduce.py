@@ -32,6 +32,24 @@ def test_thesis_suite_covers_every_comparison():
     assert all(c.seeds >= 5 for c in reproduce.thesis_cells())
 
 
+def test_every_cell_is_a_valid_config_with_its_tasks_settings_for_every_strategy():
+    """Every full-size cell parses as a training config (as the sweep will parse it), and the
+    A2C/PPO cells of a task share that task's settings whatever the strategy."""
+    from coherent_jax.config import parse_overrides
+    from coherent_jax.sweep import parse_sweep
+
+    cells = [*reproduce.thesis_cells(), *reproduce.ablation_cells(), *reproduce.beyond_cells()]
+    for cell in cells:
+        cfg = parse_sweep([*cell.overrides, f"seeds={cell.seeds}"]).base
+        task_settings = reproduce.ONPOLICY_TASK_SETTINGS.get(cfg.env, ())
+        if cfg.algo == "sac":
+            assert not cfg.normalize_rewards, cell.name
+        else:
+            assert all(item in cell.overrides for item in task_settings), cell.name
+    assert parse_overrides(["env=hopper", *reproduce.ONPOLICY_TASK_SETTINGS["hopper"]]).normalize_rewards
+    assert "halfcheetah" not in reproduce.ONPOLICY_TASK_SETTINGS  # the ablations' and done cells' defaults
+
+
 def test_sparse_suite_runs_every_strategy_on_four_sparse_control_tasks():
     from coherent_jax.config import EXPLORES, SUPPORTED_ALGOS
     from coherent_jax.envs.registry import DMC_SPARSE_TASKS
