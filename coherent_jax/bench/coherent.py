@@ -82,10 +82,12 @@ def _bench_training(cfg: Config, iterations: int, log) -> tuple[dict, dict]:
     """Compiles and times the PPO iteration for both strategies; returns (results, trainers)."""
     import jax
 
+    from coherent_jax import parallel
     from coherent_jax.agents.onpolicy import OnPolicyTrainer
     from coherent_jax.envs.vec_env import VecEnv
 
-    shape = f"{cfg.env}, {cfg.num_envs} envs x {cfg.unroll_length} steps"
+    num_devices = parallel.resolve_num_devices(cfg.num_devices)
+    shape = f"{cfg.env}, {cfg.num_envs} envs x {cfg.unroll_length} steps, {num_devices} device(s)"
     # One env object for all trainers (building an MJX model takes seconds); no
     # evaluation runs here, so it also stands in for the evaluation env.
     env = VecEnv(cfg.env, cfg.num_envs, cfg.episode_length, cfg.physics, cfg.physics_threads)
@@ -103,8 +105,13 @@ def _bench_training(cfg: Config, iterations: int, log) -> tuple[dict, dict]:
         trainer = OnPolicyTrainer(run_cfg, env=env, eval_env=env)
         # (The filter form's carry holds a belief, the joint exact form's does not: each
         # row starts from its own state.)
-        state = jax.jit(trainer.init)(jax.random.PRNGKey(cfg.seed))
-        step, compile_s = measure.compile_timed(trainer.iteration, state)
+        # With several devices (num_devices) the envs are split over them as in training.
+        state, shardings = parallel.init_state(
+            trainer, jax.random.PRNGKey(cfg.seed), num_devices, cfg.num_envs
+        )
+        t0 = time.perf_counter()
+        step = parallel.compile_iteration(trainer, state, shardings)
+        compile_s = time.perf_counter() - t0
         mem = measure.memory(step)
         log(f"[bench]   compiled in {compile_s:.1f} s; peak memory {measure.peak_mb(mem)} MB")
         if remat:  # compiled only for its memory
@@ -136,6 +143,7 @@ def _bench_training(cfg: Config, iterations: int, log) -> tuple[dict, dict]:
             )
         results[name] = entry
     results["env_steps_per_iteration"] = steps
+    results["num_devices"] = num_devices
     results["ratio_coherent_over_action"] = (
         results["coherent"]["env_steps_per_s"] / results["action"]["env_steps_per_s"]
     )
