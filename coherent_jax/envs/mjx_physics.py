@@ -71,10 +71,14 @@ class MjxPhysics:
     def _reset_one(self, qpos: jax.Array, qvel: jax.Array):
         from mujoco import mjx
 
-        data = self._blank.replace(
-            qpos=qpos.astype(self._blank.qpos.dtype), qvel=qvel.astype(self._blank.qvel.dtype)
+        qpos = qpos.astype(self._blank.qpos.dtype)
+        data = mjx.forward(
+            self.model, self._blank.replace(qpos=qpos, qvel=qvel.astype(self._blank.qvel.dtype))
         )
-        return mjx.forward(self.model, data)  # cfrc_ext stays zero, as mj_forward leaves it
+        # MJX's forward pass writes free joints' quaternions back normalised; MuJoCo's C
+        # pass normalises a copy, so Gymnasium (and native) observe the pose as drawn.
+        # cfrc_ext stays zero, as mj_forward leaves it.
+        return data.replace(qpos=qpos)
 
     def _step_one(self, data, ctrl: jax.Array):
         from mujoco import mjx
