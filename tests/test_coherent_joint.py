@@ -108,22 +108,31 @@ def test_cholesky_whiten_reverse_pass_equals_jaxs_own(x64, size):
 
     def generic(k, r):
         chol = jnp.linalg.cholesky(k)
-        return chol, jax.scipy.linalg.solve_triangular(chol, r[..., None], lower=True)[..., 0]
+        z = jax.scipy.linalg.solve_triangular(chol, r[..., None], lower=True)[..., 0]
+        return chol, z, jnp.log(jnp.diagonal(chol, axis1=-2, axis2=-1))
 
-    for reads_chol in (False, True):
+    # Which outputs the loss reads: z alone; z and log L_tt (the marginals); L as well
+    # (the chained beliefs); and log L_tt through L's own diagonal.
+    for reads in ("z", "z+logdiag", "z+logdiag+chol", "z+chol_diag"):
 
-        def loss(factor, k, r, reads_chol=reads_chol):
-            chol, z = factor(0.5 * (k + jnp.swapaxes(k, -1, -2)), r)
-            log_diag = jnp.log(jnp.diagonal(chol, axis1=-2, axis2=-1))
-            out = jnp.sum(g * (-0.5 * z**2 - log_diag)) + jnp.sum(jnp.sin(z))
-            return out + (jnp.sum(weights * chol) if reads_chol else 0.0)
+        def loss(factor, k, r, reads=reads):
+            chol, z, log_diag = factor(0.5 * (k + jnp.swapaxes(k, -1, -2)), r)
+            out = jnp.sum(g * (-0.5 * z**2)) + jnp.sum(jnp.sin(z))
+            if "logdiag" in reads:
+                out = out - jnp.sum(g * log_diag) + jnp.sum(jnp.exp(2.0 * log_diag))
+            if "chol_diag" in reads:
+                out = out - jnp.sum(g * jnp.log(jnp.diagonal(chol, axis1=-2, axis2=-1)))
+            if "+chol" in reads and "chol_diag" not in reads:
+                out = out + jnp.sum(weights * chol)
+            return out
 
         want = jax.grad(lambda k, r: loss(generic, k, r), argnums=(0, 1))(cov, resid)
         got = jax.grad(lambda k, r: loss(cholesky_whiten, k, r), argnums=(0, 1))(cov, resid)
         for w, v in zip(want, got, strict=True):
-            np.testing.assert_allclose(v, w, rtol=1e-10, atol=1e-12)
+            np.testing.assert_allclose(v, w, rtol=1e-10, atol=1e-12, err_msg=reads)
     sym = 0.5 * (cov + cov.transpose(0, 1, 3, 2))
-    np.testing.assert_allclose(cholesky_whiten(sym, resid)[1], generic(sym, resid)[1], rtol=1e-12)
+    for got, want in zip(cholesky_whiten(sym, resid), generic(sym, resid), strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14)
     chol = np.linalg.cholesky(sym)
     np.testing.assert_allclose(
         tril_inverse(jnp.asarray(chol)) @ chol, np.broadcast_to(np.eye(size), chol.shape), atol=1e-12

@@ -491,10 +491,10 @@ def segment_marginals_joint(
         mean_a = mean_a + c[:, None] * (xh @ (m0 - mu).T)
     cov_a = 0.5 * (cov_a + jnp.swapaxes(cov_a, -1, -2))
     resid = (a - mean_a).T  # [p, T]
-    chol, white = cholesky_whiten(cov_a, resid)  # [p, T, T], [p, T]
-    diag = jnp.diagonal(chol, axis1=-2, axis2=-1)  # [p, T]
-    logp = jnp.sum(-0.5 * jnp.square(white) - jnp.log(diag) - 0.5 * _LOG_2PI, axis=0)
-    pred_var = jnp.square(diag).T  # [T, p]
+    # The marginals read L through log L_tt only, which keeps the factor's reverse pass cheap.
+    chol, white, log_diag = cholesky_whiten(cov_a, resid)  # [p, T, T], [p, T], [p, T]
+    logp = jnp.sum(-0.5 * jnp.square(white) - log_diag - 0.5 * _LOG_2PI, axis=0)
+    pred_var = jnp.exp(2.0 * log_diag).T  # [T, p]
 
     # Belief over w_T (before a_T): condition the prior of w_T on the segment.
     last = episode == episode[-1]

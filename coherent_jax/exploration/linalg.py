@@ -59,25 +59,28 @@ def _phi(x: jax.Array) -> jax.Array:
     return jnp.tril(x) - 0.5 * x * jnp.eye(x.shape[-1], dtype=x.dtype)
 
 
-def _factor(cov: jax.Array, resid: jax.Array) -> tuple[jax.Array, jax.Array]:
+def _factor(cov: jax.Array, resid: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
     chol = jnp.linalg.cholesky(cov)
     white = solve_triangular(chol, resid[..., None], lower=True)[..., 0]
-    return chol, white
+    return chol, white, jnp.log(jnp.diagonal(chol, axis1=-2, axis2=-1))
 
 
 @jax.custom_vjp
-def cholesky_whiten(cov: jax.Array, resid: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """(L, z) with K = L L' (Cholesky, lower) and z = L^-1 r, batched over leading axes.
+def cholesky_whiten(cov: jax.Array, resid: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """(L, z, log diag L) with K = L L' (Cholesky, lower) and z = L^-1 r, batched over leading axes.
 
     Values are LAPACK's (``jnp.linalg.cholesky`` and a triangular solve). The reverse
-    pass, for cotangents (Lbar, zbar) and M = L^-1: dz = -Phi(M dK M') z and
-    dL = L Phi(M dK M'), so
+    pass, for cotangents (Lbar, zbar, gbar) and M = L^-1: dz = -Phi(M dK M') z,
+    dL = L Phi(M dK M') and d log L_tt = Phi(M dK M')_tt, so
 
-        Kbar = sym(M' [Phi(L' Lbar) - Phi(zbar z')] M),   rbar = M' zbar,
+        Kbar = sym(M' [Phi(L' Lbar) + diag(gbar) / 2 - Phi(zbar z')] M),   rbar = M' zbar,
 
     the gradient with respect to a symmetric K (the callers symmetrise it before the
-    factorisation, as the generic rule assumes). Equal to JAX's own reverse pass to
-    float64 rounding (tests/test_coherent_joint.py).
+    factorisation, as the generic rule assumes). The marginals read L only through
+    log L_tt and z (the end-of-segment belief reads L itself); without Lbar the middle
+    factor times M takes no product at all: row i of Phi(zbar z') M is
+    zbar_i (sum_{j <= i} z_j M_j - z_i M_i / 2), a running sum over rows. Equal to JAX's
+    own reverse pass to float64 rounding (tests/test_coherent_joint.py).
 
     Args:
       cov: [..., T, T] symmetric positive definite.
@@ -88,22 +91,26 @@ def cholesky_whiten(cov: jax.Array, resid: jax.Array) -> tuple[jax.Array, jax.Ar
 
 def _whiten_fwd(cov, resid):
     # With symbolic zeros the primals come wrapped (``CustomVJPPrimal``).
-    chol, white = _factor(cov.value, resid.value)
-    return (chol, white), (chol, white)
+    chol, white, log_diag = _factor(cov.value, resid.value)
+    return (chol, white, log_diag), (chol, white)
 
 
 def _whiten_bwd(res, cotangents):
     chol, white = res
-    chol_bar, white_bar = cotangents
+    chol_bar, white_bar, log_diag_bar = cotangents
     zero = jax.custom_derivatives.SymbolicZero
     inv = tril_inverse(chol)
-    middle = jnp.zeros_like(chol)
-    if not isinstance(chol_bar, zero):  # the end-of-segment belief reads L
-        middle = middle + _phi(jnp.swapaxes(chol, -1, -2) @ chol_bar)
     if isinstance(white_bar, zero):
         white_bar = jnp.zeros_like(white)
-    middle = middle - _phi(white_bar[..., :, None] * white[..., None, :])
-    cov_bar = jnp.swapaxes(inv, -1, -2) @ middle @ inv
+    # middle @ M, with middle = diag(gbar) / 2 - Phi(zbar z') (+ Phi(L' Lbar)).
+    # sum_{j <= i} z_j M_j; a prefix sum in log2(T) rounds (XLA's CPU cumsum is a T-wide window).
+    running = jax.lax.associative_scan(jnp.add, white[..., :, None] * inv, axis=-2)
+    middle_inv = -white_bar[..., :, None] * (running - 0.5 * white[..., :, None] * inv)
+    if not isinstance(log_diag_bar, zero):
+        middle_inv = middle_inv + 0.5 * log_diag_bar[..., :, None] * inv
+    if not isinstance(chol_bar, zero):  # the end-of-segment belief reads L
+        middle_inv = middle_inv + _phi(jnp.swapaxes(chol, -1, -2) @ chol_bar) @ inv
+    cov_bar = jnp.swapaxes(inv, -1, -2) @ middle_inv
     cov_bar = 0.5 * (cov_bar + jnp.swapaxes(cov_bar, -1, -2))
     resid_bar = jnp.einsum("...ts,...t->...s", inv, white_bar)
     return cov_bar, resid_bar
