@@ -164,16 +164,7 @@ def test_mjx_runs_the_same_task_as_native_mujoco(gym_id):
     )
 
     def run(env, options=None):
-        def go(keys, actions):
-            state = env.reset(keys)
-
-            def body(s, a):
-                s = env.step(s, a)
-                return s, (s.obs, s.reward, s.done)
-
-            return state.obs, jax.lax.scan(body, state, actions)[1]
-
-        return jax.device_get(jax.jit(go).lower(keys, actions).compile(options)(keys, actions))
+        return jax.device_get(jax.jit(env.trajectory).lower(keys, actions).compile(options)(keys, actions))
 
     obs0_m, (obs_m, rew_m, done_m) = run(mjx_env, {"xla_backend_optimization_level": 0})
     obs0_n, (obs_n, rew_n, done_n) = run(native_env)

@@ -21,7 +21,14 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from coherent_jax.envs.task import POST_CONSTRAINT_FIELDS, Kinematics, NativeModel, NativeTask, control
+from coherent_jax.envs.task import (
+    POST_CONSTRAINT_FIELDS,
+    Kinematics,
+    NativeModel,
+    NativeTask,
+    TaskPhysics,
+    control,
+)
 
 
 @struct.dataclass
@@ -43,7 +50,7 @@ class MjxState:
     done: jax.Array
 
 
-class MjxPhysics:
+class MjxPhysics(TaskPhysics):
     """Batched reset and step of one native task's model on MJX; pure and jit-able.
 
     The same interface as `coherent_jax.envs.native.NativePhysics` (whole batches in,
@@ -87,19 +94,14 @@ class MjxPhysics:
         data = jax.lax.fori_loop(0, self.n_frames, lambda _, d: mjx.step(self.model, d), data)
         return mjx.rne_postconstraint(self.model, data) if self._post else data
 
-    def reset(self, keys: jax.Array) -> MjxState:
-        """Initial states of len(keys) envs, one key each (the task's reset distribution)."""
-        qpos, qvel = jax.vmap(lambda k: self.spec.reset_noise(k, self.init_q, self.nv))(keys)
-        return self.reset_to(qpos, qvel)
-
     def reset_to(self, qpos: jax.Array, qvel: jax.Array) -> MjxState:
         """n envs at joint positions [n, nq] and velocities [n, nv], as a reset leaves them."""
         n = qpos.shape[0]
         chex.assert_shape([qpos, qvel], [(n, self.nq), (n, self.nv)])
         data = jax.vmap(self._reset_one)(qpos, qvel)
         kin = jax.vmap(self._kinematics)(data)
-        zeros = jnp.zeros((n,), jnp.float32)
-        return MjxState(data=data, kin=kin, obs=jax.vmap(self.spec.observe)(kin), reward=zeros, done=zeros)
+        obs, reward, done = self._outputs(kin)
+        return MjxState(data=data, kin=kin, obs=obs, reward=reward, done=done)
 
     def step(self, state: MjxState, action: jax.Array) -> MjxState:
         """One env step (`n_frames` MJX steps) of every env with `action` [n, action_size]."""
@@ -108,13 +110,5 @@ class MjxPhysics:
         ctrl = control(self.spec, action, self.ctrl_range)
         data = jax.vmap(self._step_one)(state.data, ctrl)
         kin = jax.vmap(self._kinematics)(data)
-        reward, done = jax.vmap(lambda k0, k1, c: self.spec.reward_done(k0, k1, c, self.dt))(
-            state.kin, kin, ctrl
-        )
-        return MjxState(
-            data=data,
-            kin=kin,
-            obs=jax.vmap(self.spec.observe)(kin),
-            reward=reward.astype(jnp.float32),
-            done=done.astype(jnp.float32),
-        )
+        obs, reward, done = self._outputs(kin, state.kin, ctrl)
+        return MjxState(data=data, kin=kin, obs=obs, reward=reward, done=done)

@@ -43,6 +43,7 @@ from coherent_jax.envs.task import (
     Kinematics,
     NativeModel,
     NativeTask,
+    TaskPhysics,
     control,
     quat_rotate,
     uniform_reset,
@@ -374,7 +375,7 @@ class _Host:
         return tuple(o.reshape(lead + o.shape[1:]) for o in out)
 
 
-class NativePhysics:
+class NativePhysics(TaskPhysics):
     """Batched reset and step of one task on native MuJoCo, callable under jit.
 
     Unlike a Brax env (one env, vmapped by the caller) both methods take the
@@ -409,11 +410,6 @@ class NativePhysics:
     def _kinematics(self, arrays) -> Kinematics:
         return Kinematics(**dict(zip(self._field_shapes, arrays, strict=True)))
 
-    def reset(self, keys: jax.Array) -> NativeState:
-        """Initial states of len(keys) envs, one key each (the task's reset distribution)."""
-        qpos, qvel = jax.vmap(lambda k: self.spec.reset_noise(k, self.init_q, self.nv))(keys)
-        return self.reset_to(qpos, qvel)
-
     def reset_to(self, qpos: jax.Array, qvel: jax.Array) -> NativeState:
         """n envs at joint positions [n, nq] and velocities [n, nv], as a reset leaves them."""
         n = qpos.shape[0]
@@ -422,13 +418,8 @@ class NativePhysics:
             self.host.reset, self._shapes(n), qpos, qvel, vmap_method="broadcast_all"
         )
         kin = self._kinematics(arrays)
-        return NativeState(
-            integration=rows,
-            kin=kin,
-            obs=jax.vmap(self.spec.observe)(kin),
-            reward=jnp.zeros((n,), jnp.float32),
-            done=jnp.zeros((n,), jnp.float32),
-        )
+        obs, reward, done = self._outputs(kin)
+        return NativeState(integration=rows, kin=kin, obs=obs, reward=reward, done=done)
 
     def step(self, state: NativeState, action: jax.Array) -> NativeState:
         """One env step (`n_frames` MuJoCo steps) of every env with `action` [n, action_size]."""
@@ -439,13 +430,5 @@ class NativePhysics:
             self.host.step, self._shapes(n), state.integration, ctrl, vmap_method="broadcast_all"
         )
         kin = self._kinematics(arrays)
-        reward, done = jax.vmap(lambda k0, k1, c: self.spec.reward_done(k0, k1, c, self.dt))(
-            state.kin, kin, ctrl
-        )
-        return NativeState(
-            integration=rows,
-            kin=kin,
-            obs=jax.vmap(self.spec.observe)(kin),
-            reward=reward.astype(jnp.float32),
-            done=done.astype(jnp.float32),
-        )
+        obs, reward, done = self._outputs(kin, state.kin, ctrl)
+        return NativeState(integration=rows, kin=kin, obs=obs, reward=reward, done=done)

@@ -120,6 +120,49 @@ def control(task: NativeTask, action: jax.Array, ctrl_range) -> jax.Array:
     return (high + low) / 2 + ctrl * ((high - low) / 2)
 
 
+class TaskPhysics:
+    """What every engine of a `NativeTask` shares (`NativePhysics`, `MjxPhysics`): the reset
+    distribution, and observation, reward and termination from the `Kinematics` an engine
+    produces. Subclasses set ``spec``, ``init_q``, ``nv``, ``dt`` and write ``reset_to``."""
+
+    spec: NativeTask
+    init_q: jax.Array
+    nv: int
+    dt: float
+
+    def reset(self, keys: jax.Array):
+        """Initial states of len(keys) envs, one key each (the task's reset distribution)."""
+        qpos, qvel = jax.vmap(lambda k: self.spec.reset_noise(k, self.init_q, self.nv))(keys)
+        return self.reset_to(qpos, qvel)
+
+    def reset_to(self, qpos: jax.Array, qvel: jax.Array):
+        raise NotImplementedError
+
+    def trajectory(self, keys: jax.Array, actions: jax.Array):
+        """Resets len(keys) envs from ``keys``, then steps them with ``actions`` [T, n, nu]
+        (a `lax.scan`; jit it). Returns (first obs [n, o], (obs [T, n, o], reward [T, n],
+        done [T, n])): what comparisons of two engines or against Gymnasium read."""
+
+        def body(state, action):
+            state = self.step(state, action)
+            return state, (state.obs, state.reward, state.done)
+
+        state = self.reset(keys)
+        return state.obs, jax.lax.scan(body, state, actions)[1]
+
+    def _outputs(self, kin: Kinematics, before: Kinematics | None = None, ctrl: jax.Array | None = None):
+        """(obs, reward, done) of every env [n, ...]: after a step from ``before`` with ``ctrl``,
+        or after a reset (``before`` None: reward and done 0)."""
+        obs = jax.vmap(self.spec.observe)(kin)
+        if before is None:
+            zeros = jnp.zeros(obs.shape[:1], jnp.float32)
+            return obs, zeros, zeros
+        reward, done = jax.vmap(lambda k0, k1, c: self.spec.reward_done(k0, k1, c, self.dt))(
+            before, kin, ctrl
+        )
+        return obs, reward.astype(jnp.float32), done.astype(jnp.float32)
+
+
 def uniform_reset(q_scale: float, qd_scale: float, qd_normal: bool):
     """Reset noise q0 + U(-q_scale, q_scale); qd = qd_scale N(0, 1) or U(-qd_scale, qd_scale).
 
