@@ -87,6 +87,13 @@ ONPOLICY_TASK_SETTINGS: dict[str, tuple[str, ...]] = {
     "walker2d": ("normalize_rewards=true", "num_minibatches=32"),
 }
 
+# A2C takes one gradient step per iteration (Algorithm 1: 4,096 env steps per step, 244
+# steps in 1M): at the default lr 3e-4 action-noise A2C reached 469 on HalfCheetah and
+# Coherent-A2C did not move (-2.5; 5 seeds each). At 3e-3 (1 seed each) they reached
+# 1,935 and 1,580: the step size, not the method, had stalled them. Every A2C cell takes
+# it (as tests/test_pairs.py and tests/test_train.py do).
+A2C_SETTINGS = ("lr=0.003",)
+
 # Rough env steps/s of one point, used by --status for cells with nothing measured yet
 # (README, Figures: PPO 64 envs on native physics; coherent about 0.3-0.5x of it).
 # SAC's figure is at UTD 1 and scales with 1 / utd_ratio.
@@ -149,6 +156,8 @@ def _cell(suite: str, task: str, algo: str, explore: str, *extra: str, seeds: in
         overrides += SAC_SETTINGS
     else:
         overrides += ONPOLICY_TASK_SETTINGS.get(task, ())
+    if algo == "a2c":
+        overrides += A2C_SETTINGS
     overrides += list(extra)
     name = f"{task}/{algo}/{explore}" + (f"-{tag}" if tag else "")
     return Cell(suite, name, tuple(overrides), seeds)

@@ -46,6 +46,8 @@ def test_every_cell_is_a_valid_config_with_its_tasks_settings_for_every_strategy
             assert not cfg.normalize_rewards, cell.name
         else:
             assert all(item in cell.overrides for item in task_settings), cell.name
+        if cfg.algo == "a2c":  # one gradient step per iteration: its own step size
+            assert cfg.lr == 3e-3, cell.name
     assert parse_overrides(["env=hopper", *reproduce.ONPOLICY_TASK_SETTINGS["hopper"]]).normalize_rewards
     assert "halfcheetah" not in reproduce.ONPOLICY_TASK_SETTINGS  # the ablations' and done cells' defaults
 
