@@ -114,12 +114,17 @@ def verdict(poi: dict[str, float]) -> str:
 
 
 def normalised(scores: dict[str, dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
-    """strategy -> task -> per-seed scores  =>  strategy -> [seeds, tasks], min-max per task."""
-    tasks = sorted({t for by_task in scores.values() for t in by_task})
+    """strategy -> task -> per-seed scores  =>  strategy -> [seeds, tasks], min-max per task.
+
+    Only the tasks every strategy has finished count, so that strategies are compared on
+    the same tasks while a suite is incomplete (a task one strategy lacks is left out
+    for all; none in common: nothing)."""
+    tasks = sorted(set.intersection(*(set(by_task) for by_task in scores.values()))) if scores else []
+    if not tasks:
+        return {}
     out = {}
     for name, by_task in scores.items():
-        if set(by_task) != set(tasks):
-            continue
+        by_task = {t: by_task[t] for t in tasks}
         n = min(len(v) for v in by_task.values())
         cols = []
         for t in tasks:
@@ -233,9 +238,17 @@ def build(
                 if len(norm) < 2:
                     continue
                 agg = aggregate(norm)
-                num_tasks = next(iter(norm.values())).shape[1]
+                common = sorted(set.intersection(*(set(by_task) for by_task in table.values())))
+                left_out = sorted({t for by_task in table.values() for t in by_task} - set(common))
                 lines += [
-                    f"**{algo}, {what}**, normalised per task over {num_tasks} task(s):",
+                    f"**{algo}, {what}**, normalised per task over {len(common)} task(s) "
+                    f"({', '.join(common)})"
+                    + (
+                        f"; left out until every strategy has finished it: {', '.join(left_out)}"
+                        if left_out
+                        else ""
+                    )
+                    + ":",
                     "",
                     "| strategy | IQM (95% CI) | optimality gap (95% CI) |",
                     "|---|---|---|",

@@ -11,6 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from helpers import child_env
 
@@ -181,3 +182,19 @@ def test_report_counts_a_seed_as_reaching_the_sparse_reward_at_its_first_positiv
     assert report.reached_reward(run([-1.0, 0.0])) is None
     assert ("beta=0.01", "psne") in report._pairs("sparse", {"beta=0.01": 0, "beta=0": 0, "psne": 0})
     assert ("coherent", "psne") in report._pairs("thesis", {"coherent": 0, "psne": 0})
+
+
+def test_report_aggregates_only_the_tasks_every_strategy_has_finished():
+    spec = importlib.util.spec_from_file_location("report", ROOT / "experiments" / "report.py")
+    report = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(report)
+    scores = {
+        "action": {"hopper": np.array([1.0, 3.0]), "halfcheetah": np.array([10.0, 30.0])},
+        "coherent": {"halfcheetah": np.array([20.0, 40.0])},
+    }
+    norm = report.normalised(scores)
+    assert set(norm) == {"action", "coherent"}
+    # One task in common, min-max over both strategies' runs of it.
+    np.testing.assert_allclose(norm["action"], [[0.0], [2 / 3]])
+    np.testing.assert_allclose(norm["coherent"], [[1 / 3], [1.0]])
+    assert report.normalised({"a": {"hopper": np.ones(2)}, "b": {"walker2d": np.ones(2)}}) == {}
