@@ -230,8 +230,9 @@ def decode_checkpoint(path: Path, cfg: Config) -> Checkpoint:
         )
     if meta["fingerprint"] not in (config_fingerprint(cfg), config_fingerprint(cfg, _LEGACY_RESUMABLE_KEYS)):
         raise CheckpointError(
-            f"checkpoint {str(path)!r} belongs to another run: its config fingerprint "
-            f"{meta['fingerprint'][:12]} differs from this config's {config_fingerprint(cfg)[:12]}"
+            f"checkpoint {str(path)!r} belongs to another run (or to a version of coherent_jax "
+            f"with other config fields): its config fingerprint {meta['fingerprint'][:12]} "
+            f"differs from this config's {config_fingerprint(cfg)[:12]}"
         )
     loop = dict(meta["loop"])
     loop["last_return"] = _from_json(loop["last_return"])
