@@ -158,6 +158,27 @@ def aggregate(norm: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
     return out
 
 
+def aggregate_table(algo: str, what: str, table: dict[str, dict[str, np.ndarray]], norm) -> list[str]:
+    """RESULTS.md lines: IQM and optimality gap of every strategy on the tasks all have finished."""
+    agg = aggregate(norm)
+    common = sorted(set.intersection(*(set(by_task) for by_task in table.values())))
+    left_out = sorted({t for by_task in table.values() for t in by_task} - set(common))
+    lines = [
+        f"**{algo}, {what}**, normalised per task over {len(common)} task(s) ({', '.join(common)})"
+        + (f"; left out until every strategy has finished it: {', '.join(left_out)}" if left_out else "")
+        + ":",
+        "",
+        "| strategy | IQM (95% CI) | optimality gap (95% CI) |",
+        "|---|---|---|",
+    ]
+    for k, v in sorted(agg.items()):
+        lines.append(
+            f"| {k} | {v['iqm']:.2f} ({v['iqm_low']:.2f}, {v['iqm_high']:.2f}) | "
+            f"{v['gap']:.2f} ({v['gap_low']:.2f}, {v['gap_high']:.2f}) |"
+        )
+    return [*lines, ""]
+
+
 def _label(cell: reproduce.Cell, run: plot.Run) -> str:
     """The strategy (``coherent``, ``psne``, ``coherent-mc``...); a beta grid's points by their beta."""
     name = cell.name.split("/", 2)[2]
@@ -235,34 +256,21 @@ def build(
         for algo in sorted(finals):
             for what, table in (("final return", finals[algo]), ("area under curve", aucs[algo])):
                 norm = normalised(table)
-                if len(norm) < 2:
-                    continue
-                agg = aggregate(norm)
-                common = sorted(set.intersection(*(set(by_task) for by_task in table.values())))
-                left_out = sorted({t for by_task in table.values() for t in by_task} - set(common))
-                lines += [
-                    f"**{algo}, {what}**, normalised per task over {len(common)} task(s) "
-                    f"({', '.join(common)})"
-                    + (
-                        f"; left out until every strategy has finished it: {', '.join(left_out)}"
-                        if left_out
-                        else ""
-                    )
-                    + ":",
-                    "",
-                    "| strategy | IQM (95% CI) | optimality gap (95% CI) |",
-                    "|---|---|---|",
-                ]
-                for k, v in sorted(agg.items()):
-                    lines.append(
-                        f"| {k} | {v['iqm']:.2f} ({v['iqm_low']:.2f}, {v['iqm_high']:.2f}) | "
-                        f"{v['gap']:.2f} ({v['gap_low']:.2f}, {v['gap_high']:.2f}) |"
-                    )
-                lines.append("")
-                for coherent, baseline in _pairs(suite, norm):
-                    poi = probability_of_improvement(norm[coherent], norm[baseline])
+                if len(norm) >= 2:
+                    lines += aggregate_table(algo, what, table, norm)
+                # Each claim on the tasks both of its strategies have finished.
+                for coherent, baseline in _pairs(suite, table):
+                    pair = normalised({coherent: table[coherent], baseline: table[baseline]})
+                    if not pair:
+                        continue
+                    poi = probability_of_improvement(pair[coherent], pair[baseline])
+                    tasks = pair[coherent].shape[1]
                     claims.append(
-                        (f"{suite}, {algo}, {what}: {coherent} improves on {baseline}", verdict(poi), poi)
+                        (
+                            f"{suite}, {algo}, {what}: {coherent} improves on {baseline} ({tasks} task(s))",
+                            verdict(poi),
+                            poi,
+                        )
                     )
     if claims:
         lines += ["## Verdicts", "", "| claim | P(improvement) (95% CI) | verdict |", "|---|---|---|"]
@@ -296,7 +304,7 @@ def _reference_cells(suite: str, done: list[reproduce.Cell], results: Path) -> l
     ]
 
 
-def _pairs(suite: str, norm: dict[str, np.ndarray]) -> list[tuple[str, str]]:
+def _pairs(suite: str, norm: dict) -> list[tuple[str, str]]:
     """(coherent variant, what it is compared with) for the claims of each suite."""
     if suite == "ablations":
         pairs = [
