@@ -37,7 +37,7 @@ import jax.numpy as jnp
 from coherent_jax.exploration.adaptive import SigmaRule, adapt_sigma, policy_distance
 from coherent_jax.exploration.base import ActOutput, OffPolicyBehaviour, OnPolicyStrategy, SegmentLogProb
 from coherent_jax.exploration.chain import chain_step, innovation_var
-from coherent_jax.exploration.linalg import cholesky_whiten
+from coherent_jax.exploration.linalg import cholesky_whiten, masked_gram
 from coherent_jax.networks import MLP, augment, squash
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -480,16 +480,14 @@ def segment_marginals_joint(
     chain = jnp.where(same_episode, powers[lag], 0.0)  # [T, T]
 
     xd = xh[None, :, :] * var_w[:, None, :]  # [p, T, n]  D_i xh_s
-    gram_d = jnp.einsum("isk,tk->ist", xd, xh)  # xh_s' D_i xh_t
-    eye = jnp.eye(num_steps, dtype=dtype)
-    cov_a = chain[None] * gram_d + jnp.square(action_std)[:, None, None] * eye[None]
+    # chain * xh_s' D_i xh_t + action_std_i^2 I, symmetric by construction.
+    cov_a = masked_gram(xh, var_w, chain, jnp.square(action_std))
     mean_a = xh @ mu.T  # [T, p]
     if not from_prior:
         xp0 = jnp.einsum("ikl,sl->isk", p0, xh)  # [p, T, n]  P0_i xh_s
-        gram_p = jnp.einsum("isk,tk->ist", xp0, xh) - gram_d  # xh_s' (P0_i - D_i) xh_t
+        gram_p = jnp.einsum("isk,tk->ist", xp0 - xd, xh)  # xh_s' (P0_i - D_i) xh_t
         cov_a = cov_a + (c[:, None] * c[None, :])[None] * gram_p
         mean_a = mean_a + c[:, None] * (xh @ (m0 - mu).T)
-    cov_a = 0.5 * (cov_a + jnp.swapaxes(cov_a, -1, -2))
     resid = (a - mean_a).T  # [p, T]
     # The marginals read L through log L_tt only, which keeps the factor's reverse pass cheap.
     chol, white, log_diag = cholesky_whiten(cov_a, resid)  # [p, T, T], [p, T], [p, T]

@@ -60,7 +60,9 @@ def _phi(x: jax.Array) -> jax.Array:
 
 
 def _factor(cov: jax.Array, resid: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-    chol = jnp.linalg.cholesky(cov)
+    # LAPACK reads the lower triangle only; ``jnp.linalg.cholesky`` would first average K
+    # with its transpose, a transposing copy that cost a tenth of the loss's gradient.
+    chol = jax.lax.linalg.cholesky(cov, symmetrize_input=False)
     white = solve_triangular(chol, resid[..., None], lower=True)[..., 0]
     return chol, white, jnp.log(jnp.diagonal(chol, axis1=-2, axis2=-1))
 
@@ -75,8 +77,9 @@ def cholesky_whiten(cov: jax.Array, resid: jax.Array) -> tuple[jax.Array, jax.Ar
 
         Kbar = sym(M' [Phi(L' Lbar) + diag(gbar) / 2 - Phi(zbar z')] M),   rbar = M' zbar,
 
-    the gradient with respect to a symmetric K (the callers symmetrise it before the
-    factorisation, as the generic rule assumes). The marginals read L only through
+    the gradient with respect to a symmetric K. Only K's lower triangle is read, so K
+    must be symmetric by construction (as `masked_gram`'s is); it is not symmetrised
+    here. The marginals read L only through
     log L_tt and z (the end-of-segment belief reads L itself); without Lbar the middle
     factor times M takes no product at all: row i of Phi(zbar z') M is
     zbar_i (sum_{j <= i} z_j M_j - z_i M_i / 2), a running sum over rows. Equal to JAX's
@@ -117,3 +120,51 @@ def _whiten_bwd(res, cotangents):
 
 
 cholesky_whiten.defvjp(_whiten_fwd, _whiten_bwd, symbolic_zeros=True)
+
+
+@jax.custom_vjp
+def masked_gram(x: jax.Array, var: jax.Array, mask: jax.Array, noise_var: jax.Array) -> jax.Array:
+    """K_i = mask * (X diag(var_i) X') + noise_var_i I, one T x T matrix per row i of ``var``.
+
+    The covariance of the joint form (`coherent.segment_marginals_joint`), symmetric
+    whenever ``mask`` is. Its reverse pass uses that symmetry: with G_i = mask * Kbar_i and
+    S_i = G_i + G_i', one product Y_i = S_i X per matrix gives
+
+        Xbar = sum_i Y_i diag(var_i),   varbar_i = sum_s X_s * Y_i,s / 2,
+
+    where differentiating the two sides of X D X' separately takes two products (and a
+    transposed copy of Kbar for the second). Any cotangent Kbar is handled, symmetric or
+    not; ``maskbar`` and ``noise_varbar`` are sum_i Kbar_i * (X D_i X') and tr Kbar_i.
+
+    Args:
+      x: [T, n] features.
+      var: [p, n] the diagonal of each D_i.
+      mask: [T, T] elementwise factor (the chain's (1-beta)^|s-t| within an episode).
+      noise_var: [p] added to each diagonal.
+
+    Returns:
+      [p, T, T].
+    """
+    return _masked_gram_fwd(x, var, mask, noise_var)[0]
+
+
+def _masked_gram_fwd(x, var, mask, noise_var):
+    gram = jnp.einsum("isk,tk->ist", x[None, :, :] * var[:, None, :], x)  # X D_i X'
+    eye = jnp.eye(x.shape[0], dtype=x.dtype)
+    cov = mask[None] * gram + noise_var[:, None, None] * eye[None]
+    return cov, (x, var, mask, gram)
+
+
+def _masked_gram_bwd(res, cov_bar):
+    x, var, mask, gram = res
+    sym = mask[None] * (cov_bar + jnp.swapaxes(cov_bar, -1, -2))  # S_i
+    y = jnp.einsum("ist,tk->isk", sym, x)  # [p, T, n]
+    # Sums of products rather than einsums: as dots these transposed y twice.
+    x_bar = jnp.sum(y * var[:, None, :], axis=0)
+    var_bar = 0.5 * jnp.sum(y * x[None], axis=1)
+    mask_bar = jnp.sum(cov_bar * gram, axis=0)
+    noise_var_bar = jnp.trace(cov_bar, axis1=-2, axis2=-1)
+    return x_bar, var_bar, mask_bar, noise_var_bar
+
+
+masked_gram.defvjp(_masked_gram_fwd, _masked_gram_bwd)
