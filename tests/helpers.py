@@ -46,3 +46,35 @@ BRAX_SIZES = {
 # MuJoCo to MJX step by step; it also makes the registry smoke test's checks of them
 # (test_envs.py), so that each MJX program is compiled once in the suite.
 MJX_SIDE_BY_SIDE = ("brax-inverted_pendulum", "brax-halfcheetah")
+
+
+def native_and_mjx_rollouts(task: str, n: int, steps: int):
+    """Obs after reset, then (obs, reward, done) of `steps` steps, for MJX and native from the same keys.
+
+    MJX's program is compiled without XLA's backend optimisation, as in the smoke test of
+    `test_envs.py`: a few steps run in no time either way, and the compile is most of the
+    test's time."""
+    import jax
+
+    from coherent_jax.envs import make_brax_env
+    from coherent_jax.envs.native import NativePhysics
+
+    native, brax_env = NativePhysics(task), make_brax_env(task)
+    keys = jax.random.split(jax.random.PRNGKey(0), n)
+    actions = jax.random.uniform(jax.random.PRNGKey(1), (steps, n, native.action_size), minval=-1, maxval=1)
+
+    def run(reset, step, options=None):
+        def go(keys, actions):
+            state = reset(keys)
+
+            def body(s, a):
+                s = step(s, a)
+                return s, (s.obs, s.reward, s.done)
+
+            return state.obs, jax.lax.scan(body, state, actions)[1]
+
+        return jax.jit(go).lower(keys, actions).compile(options)(keys, actions)
+
+    mjx = run(jax.vmap(brax_env.reset), jax.vmap(brax_env.step), {"xla_backend_optimization_level": 0})
+    nat = run(native.reset, native.step)
+    return mjx, nat

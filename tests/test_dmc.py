@@ -74,3 +74,83 @@ def test_dmc_task_under_the_vectorized_wrapper():
     # The reset after the time limit is a fresh draw, not the first state replayed.
     assert not np.array_equal(states.obs[limit - 1], state0.obs)
     assert not np.array_equal(outcomes.final_obs[limit - 1], states.obs[limit - 1])
+
+
+def _playground_formulas(task: str, qpos, mocap=None):
+    """(obs, reward) of our native task's formulas and of Playground's own, on identical states.
+
+    Each state is MuJoCo's forward pass at ``qpos`` (zero velocity; the mocap bodies at
+    ``mocap``); ours read its `Kinematics` fields, Playground's ``_get_obs`` and
+    ``_get_reward`` read the same MjData handed to MJX with ``mjx.put_data`` (indexing and
+    arithmetic, run eagerly)."""
+    import mujoco
+    from mujoco import mjx
+
+    from coherent_jax.envs.native import NATIVE_TASKS
+    from coherent_jax.envs.task import Kinematics
+
+    spec, raw = NATIVE_TASKS[task], make_brax_env(task)
+    model = spec.load().model
+    data = mujoco.MjData(model)
+    ours, theirs = [], []
+    for i in range(len(qpos)):
+        mujoco.mj_resetData(model, data)
+        data.qpos[:] = qpos[i]
+        if mocap is not None:
+            data.mocap_pos[:] = mocap[i]
+        mujoco.mj_forward(model, data)
+        kin = Kinematics(**{f: jnp.asarray(getattr(data, f), jnp.float32) for f in spec.fields})
+        ours.append((np.asarray(spec.observe(kin)), float(spec.reward_done(kin, kin, None, 0.0)[0])))
+        d = mjx.put_data(model, data)
+        theirs.append((np.asarray(raw._get_obs(d, {})), float(raw._get_reward(d, None, {}, {}))))
+    return tuple([np.stack(v) for v in zip(*pairs, strict=True)] for pairs in (ours, theirs))
+
+
+def test_native_dmc_formulas_are_playgrounds_on_identical_states():
+    """Native ball-in-cup and finger-turn compute Playground's observation and sparse reward
+    (float32 against Playground's own functions on the same MuJoCo state), on grids of
+    states where the reward is both 0 and 1: the ball swept through the cup, the hinged
+    body turned past the target through a full turn."""
+    grid = np.stack(np.meshgrid(np.linspace(-0.06, 0.06, 7), np.linspace(0.3, 0.4, 7)), -1).reshape(-1, 2)
+    qpos = np.zeros((len(grid), 4))
+    qpos[:, 2:] = grid  # ball_x, ball_z; the cup stays at its origin
+    (obs, reward), (ref_obs, ref_reward) = _playground_formulas("dmc-ball_in_cup", qpos)
+    np.testing.assert_allclose(obs, ref_obs, atol=1e-6)
+    np.testing.assert_array_equal(reward, ref_reward)
+    assert 0 < reward.sum() < len(reward)
+
+    from coherent_jax.envs.dmc_native import _finger_layout
+
+    lay = _finger_layout("FingerTurnHard")
+    turn = np.linspace(-np.pi, np.pi, 91)
+    qpos = np.zeros((len(turn), 3))
+    qpos[:, 0], qpos[:, 1], qpos[:, 2] = 0.3, -0.4, turn  # the finger off the body
+    mocap = np.broadcast_to(lay.mocap_pos, (len(turn), *lay.mocap_pos.shape)).copy()
+    mocap[:, lay.mocap, 0] = lay.hinge[0] + lay.radius * np.sin(1.0)  # the target at angle 1
+    mocap[:, lay.mocap, 2] = lay.hinge[2] + lay.radius * np.cos(1.0)
+    (obs, reward), (ref_obs, ref_reward) = _playground_formulas("dmc-finger_turn_hard", qpos, mocap)
+    np.testing.assert_allclose(obs, ref_obs, atol=2e-6)
+    np.testing.assert_array_equal(reward, ref_reward)
+    assert 0 < reward.sum() < len(reward)
+
+
+@pytest.mark.parametrize("task", ["dmc-ball_in_cup", "dmc-finger_turn_hard"])
+def test_native_dmc_steps_match_playground_side_by_side(task):
+    """From the same keys (the same initial state, the finger's target included) and
+    actions, native MuJoCo and Playground's MJX env give the same observations (relative
+    1e-3), rewards and terminations for the first steps, which move the state."""
+    import os
+
+    from helpers import native_and_mjx_rollouts
+
+    if not os.environ.get("COHERENT_ALL_PHYSICS"):
+        pytest.skip("MJX compile is slow; set COHERENT_ALL_PHYSICS=1 to step Playground's env")
+    steps = 8
+    mjx, native = native_and_mjx_rollouts(task, 2, steps)
+    (obs0_m, (obs_m, rew_m, done_m)), (obs0_n, (obs_n, rew_n, done_n)) = mjx, native
+    np.testing.assert_allclose(np.asarray(obs0_n), np.asarray(obs0_m), atol=1e-6)
+    scale = 1.0 + np.abs(np.asarray(obs_m))
+    assert np.max(np.abs(np.asarray(obs_n) - np.asarray(obs_m)) / scale) < 1e-3
+    np.testing.assert_array_equal(np.asarray(rew_n), np.asarray(rew_m))
+    np.testing.assert_array_equal(np.asarray(done_n), np.asarray(done_m))
+    assert np.max(np.abs(np.asarray(obs_m[-1]) - np.asarray(obs0_m))) > 1e-2

@@ -6,44 +6,17 @@ import os
 import jax
 import numpy as np
 import pytest
-from helpers import BRAX_SIZES, MJX_SIDE_BY_SIDE
+from helpers import BRAX_SIZES, MJX_SIDE_BY_SIDE, native_and_mjx_rollouts
 
 from coherent_jax.agents.onpolicy import OnPolicyTrainer
 from coherent_jax.config import ConfigError, parse_overrides
 from coherent_jax.envs import VecEnv, env_sizes, make_brax_env
-from coherent_jax.envs.native import NATIVE_TASKS, NativePhysics, NativeState, PhysicsError, resolve_physics
+from coherent_jax.envs.native import NATIVE_TASKS, NativeState, PhysicsError, resolve_physics
 
 # MJX programs take 10-60 s each to compile here: the suite checks two tasks;
 # COHERENT_ALL_PHYSICS=1 checks every native Brax task the same way.
 ALWAYS = MJX_SIDE_BY_SIDE
 BRAX_NATIVE = [task for task in NATIVE_TASKS if task.startswith("brax-")]
-
-
-def _rollouts(task: str, n: int, steps: int):
-    """Obs after reset, then (obs, reward, done) of `steps` steps, for MJX and native from the same keys.
-
-    MJX's program is compiled without XLA's backend optimisation, as in the smoke test of
-    `test_envs.py`: a few steps run in no time either way, and the compile is most of the
-    test's time."""
-    native, brax_env = NativePhysics(task), make_brax_env(task)
-    keys = jax.random.split(jax.random.PRNGKey(0), n)
-    actions = jax.random.uniform(jax.random.PRNGKey(1), (steps, n, native.action_size), minval=-1, maxval=1)
-
-    def run(reset, step, options=None):
-        def go(keys, actions):
-            state = reset(keys)
-
-            def body(s, a):
-                s = step(s, a)
-                return s, (s.obs, s.reward, s.done)
-
-            return state.obs, jax.lax.scan(body, state, actions)[1]
-
-        return jax.jit(go).lower(keys, actions).compile(options)(keys, actions)
-
-    mjx = run(jax.vmap(brax_env.reset), jax.vmap(brax_env.step), {"xla_backend_optimization_level": 0})
-    nat = run(native.reset, native.step)
-    return mjx, nat
 
 
 @pytest.mark.parametrize("task", BRAX_NATIVE)
@@ -58,7 +31,8 @@ def test_native_steps_match_mjx_side_by_side(task):
     if task not in ALWAYS and not os.environ.get("COHERENT_ALL_PHYSICS"):
         pytest.skip("MJX compile is slow; set COHERENT_ALL_PHYSICS=1 to check every native task")
     steps = 5
-    (obs0_m, (obs_m, rew_m, done_m)), (obs0_n, (obs_n, rew_n, done_n)) = _rollouts(task, 2, steps)
+    mjx, native = native_and_mjx_rollouts(task, 2, steps)
+    (obs0_m, (obs_m, rew_m, done_m)), (obs0_n, (obs_n, rew_n, done_n)) = mjx, native
     # Same reset distribution (to float32 rounding: ant's quaternion is normalised in float64 here).
     np.testing.assert_allclose(np.asarray(obs0_n), np.asarray(obs0_m), rtol=1e-6, atol=1e-7)
     scale = 1.0 + np.abs(np.asarray(obs_m))

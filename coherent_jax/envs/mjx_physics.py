@@ -94,8 +94,10 @@ class MjxPhysics(TaskPhysics):
         data = jax.lax.fori_loop(0, self.n_frames, lambda _, d: mjx.step(self.model, d), data)
         return mjx.rne_postconstraint(self.model, data) if self._post else data
 
-    def reset_to(self, qpos: jax.Array, qvel: jax.Array) -> MjxState:
+    def reset_to(self, qpos: jax.Array, qvel: jax.Array, mocap_pos: jax.Array | None = None) -> MjxState:
         """n envs at joint positions [n, nq] and velocities [n, nv], as a reset leaves them."""
+        if mocap_pos is not None:  # no task run here places mocap bodies
+            raise NotImplementedError("MjxPhysics does not place mocap bodies")
         n = qpos.shape[0]
         chex.assert_shape([qpos, qvel], [(n, self.nq), (n, self.nv)])
         data = jax.vmap(self._reset_one)(qpos, qvel)

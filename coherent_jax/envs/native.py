@@ -5,7 +5,7 @@ slower than MuJoCo's own C engine (``DESIGN.md`` §5). This module steps MuJoCo
 models with the C engine instead: all envs of a call at once, on a thread pool
 (``mujoco.batch.Batch``), reached from JAX through ``jax.pure_callback``, so the
 training iteration stays one jitted function. A task (`NativeTask`) names the MjData
-fields it reads and gives its formulas in JAX; two families run here:
+fields it reads and gives its formulas in JAX; three families run here:
 
 * Gymnasium's MuJoCo v5 tasks (`coherent_jax.envs.gym_v5`), the standard ones, with
   Gymnasium's own MJCF, integrator and solver;
@@ -13,7 +13,9 @@ fields it reads and gives its formulas in JAX; two families run here:
   ``MjModel`` Brax builds, with the MJX task's solver options (``TaskSpec.ls_iterations``
   and Brax's own overrides, such as ant's Newton solver with one iteration) copied
   onto it, the same substeps, the same reset noise drawn from the same JAX keys, and
-  the formulas of Brax's env classes, written below.
+  the formulas of Brax's env classes, written below;
+* two of MuJoCo Playground's DeepMind Control tasks (``dmc-ball_in_cup``,
+  ``dmc-finger_turn_hard``; `coherent_jax.envs.dmc_native`), the ones MJX runs slowest.
 
 The physics state lives in JAX, not in the engine: each env's float64
 ``mjSTATE_INTEGRATION`` row (positions, velocities, controls, solver warm start,
@@ -36,6 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from coherent_jax.envs.dmc_native import DMC_NATIVE
 from coherent_jax.envs.gym_v5 import GYM_TASKS, SHORT_NAMES
 from coherent_jax.envs.registry import MJX_REFUSAL, check_task, make_brax_env
 from coherent_jax.envs.task import (
@@ -216,11 +219,13 @@ _BRAX_NATIVE: dict[str, NativeTask] = {
     ),
 }
 
-# Every task native MuJoCo runs, by registry name: Gymnasium's (by id and by short name) and six of Brax's.
+# Every task native MuJoCo runs, by registry name: Gymnasium's (by id and by short name), six
+# of Brax's and two of the DeepMind Control Suite's.
 NATIVE_TASKS: dict[str, NativeTask] = {
     **{short: GYM_TASKS[gym_id] for short, gym_id in SHORT_NAMES.items()},
     **GYM_TASKS,
     **_BRAX_NATIVE,
+    **DMC_NATIVE,
 }
 
 
@@ -233,8 +238,8 @@ def resolve_physics(task: str, physics: str) -> str:
 
     Gymnasium's tasks run on native MuJoCo with ``auto`` and ``native``, and their own
     model on MJX with ``mjx`` (`coherent_jax.envs.mjx_physics`) except where MJX cannot
-    run it (refused with the reason). Brax's re-creations: ``auto`` picks native MuJoCo on a CPU
-    for the six that have it (several times faster there, see
+    run it (refused with the reason). Brax's re-creations and Playground's tasks: ``auto`` picks
+    native MuJoCo on a CPU for those that have it (faster there, see
     ``python -m coherent_jax.bench physics``) and MJX on accelerators. Raises
     `PhysicsError` with a one-line message otherwise.
     """
@@ -338,11 +343,16 @@ class _Host:
                         post[name][i] = getattr(self._data, name)
         return (rows.copy(), *(post[f] if f in post else b.bind(f).astype(np.float32) for f in self.fields))
 
-    def reset(self, qpos: np.ndarray, qvel: np.ndarray) -> tuple[np.ndarray, ...]:
+    def reset(
+        self, qpos: np.ndarray, qvel: np.ndarray, mocap_pos: np.ndarray | None = None
+    ) -> tuple[np.ndarray, ...]:
         """Fresh states at (qpos, qvel), zero controls and warm start, then mj_forward.
 
         Brax's tasks normalise quaternions first, as MJX's forward pass does to Brax's
-        noisy initial poses (MuJoCo's C forward pass only normalises a copy).
+        noisy initial poses (MuJoCo's C forward pass only normalises a copy). ``mocap_pos``
+        [..., nmocap, 3] is written into the state after the forward pass and the fields
+        are read, so they describe the model's default mocap bodies until the first step
+        (MuJoCo Playground's order).
         """
         import mujoco
 
@@ -359,6 +369,10 @@ class _Host:
             b.bind("qvel")[:] = qvel.reshape(qpos.shape[0], -1)
             b.forward()
             out = self._read(b, after_step=False)
+            if mocap_pos is not None:
+                b.bind("mocap_pos")[:] = np.asarray(mocap_pos, np.float64).reshape(qpos.shape[0], -1, 3)
+                rows = np.ascontiguousarray(b.state).view(np.uint32).reshape(qpos.shape[0], -1)
+                out = (rows.copy(), *out[1:])
         return tuple(o.reshape(lead + o.shape[1:]) for o in out)
 
     def step(self, rows: np.ndarray, ctrl: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -410,13 +424,14 @@ class NativePhysics(TaskPhysics):
     def _kinematics(self, arrays) -> Kinematics:
         return Kinematics(**dict(zip(self._field_shapes, arrays, strict=True)))
 
-    def reset_to(self, qpos: jax.Array, qvel: jax.Array) -> NativeState:
-        """n envs at joint positions [n, nq] and velocities [n, nv], as a reset leaves them."""
+    def reset_to(self, qpos: jax.Array, qvel: jax.Array, mocap_pos: jax.Array | None = None) -> NativeState:
+        """n envs at joint positions [n, nq] and velocities [n, nv] (and mocap bodies at
+        ``mocap_pos`` [n, nmocap, 3], see `_Host.reset`), as a reset leaves them."""
         n = qpos.shape[0]
         chex.assert_shape([qpos, qvel], [(n, self.nq), (n, self.nv)])
-        rows, *arrays = jax.pure_callback(
-            self.host.reset, self._shapes(n), qpos, qvel, vmap_method="broadcast_all"
-        )
+        args = (qpos, qvel) if mocap_pos is None else (qpos, qvel, mocap_pos)
+        shapes = self._shapes(n)
+        rows, *arrays = jax.pure_callback(self.host.reset, shapes, *args, vmap_method="broadcast_all")
         kin = self._kinematics(arrays)
         obs, reward, done = self._outputs(kin)
         return NativeState(integration=rows, kin=kin, obs=obs, reward=reward, done=done)

@@ -39,6 +39,7 @@ class Kinematics(NamedTuple):
       cvel: [nbody, 6] com-based body velocities.
       cfrc_ext: [nbody, 6] com-based external (contact) forces, as ``mj_rnePostConstraint``
         computes them after the step.
+      sensordata: [nsensordata] the model's sensors, as the forward pass of the step left them.
     """
 
     qpos: jax.Array
@@ -52,6 +53,7 @@ class Kinematics(NamedTuple):
     cinert: Any = None
     cvel: Any = None
     cfrc_ext: Any = None
+    sensordata: Any = None
 
 
 # Fields that ``mj_step`` leaves stale and ``mj_rnePostConstraint`` computes.
@@ -81,7 +83,9 @@ class NativeTask:
     Attributes:
       load: () -> `NativeModel`, builds the model (called once per process).
       fields: the `Kinematics` fields the formulas read.
-      reset_noise: (key, init_q, nv) -> (qpos, qvel), the initial-state distribution.
+      reset_noise: (key, init_q, nv) -> (qpos, qvel), the initial-state distribution; or
+        (qpos, qvel, mocap_pos [nmocap, 3]) for a task that also places mocap bodies, which
+        are set after the reset's forward pass (as MuJoCo Playground sets its targets).
       observe: `Kinematics` -> obs.
       reward_done: (kin before, kin after, ctrl, dt) -> (reward, done); ``ctrl`` is the
         control applied (the action mapped to the actuators' range where `scale_action`).
@@ -132,10 +136,10 @@ class TaskPhysics:
 
     def reset(self, keys: jax.Array):
         """Initial states of len(keys) envs, one key each (the task's reset distribution)."""
-        qpos, qvel = jax.vmap(lambda k: self.spec.reset_noise(k, self.init_q, self.nv))(keys)
-        return self.reset_to(qpos, qvel)
+        draws = jax.vmap(lambda k: self.spec.reset_noise(k, self.init_q, self.nv))(keys)
+        return self.reset_to(*draws)
 
-    def reset_to(self, qpos: jax.Array, qvel: jax.Array):
+    def reset_to(self, qpos: jax.Array, qvel: jax.Array, mocap_pos: jax.Array | None = None):
         raise NotImplementedError
 
     def trajectory(self, keys: jax.Array, actions: jax.Array):

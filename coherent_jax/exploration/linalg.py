@@ -163,7 +163,7 @@ def _masked_gram_bwd(res, cov_bar):
     x_bar = jnp.sum(y * var[:, None, :], axis=0)
     var_bar = 0.5 * jnp.sum(y * x[None], axis=1)
     mask_bar = jnp.sum(cov_bar * gram, axis=0)
-    noise_var_bar = jnp.trace(cov_bar, axis1=-2, axis2=-1)
+    noise_var_bar = jnp.sum(jnp.diagonal(cov_bar, axis1=-2, axis2=-1), axis=-1)
     return x_bar, var_bar, mask_bar, noise_var_bar
 
 
