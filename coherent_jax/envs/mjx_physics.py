@@ -16,7 +16,6 @@ Humanoid-v5 solves its contacts with PGS, which MJX does not implement: refused
 
 from __future__ import annotations
 
-import chex
 import jax
 import jax.numpy as jnp
 from flax import struct
@@ -26,28 +25,14 @@ from coherent_jax.envs.task import (
     Kinematics,
     NativeModel,
     NativeTask,
+    PhysicsState,
     TaskPhysics,
-    control,
 )
 
 
 @struct.dataclass
-class MjxState:
-    """Physics state of `n` envs stepped by MJX.
-
-    Attributes:
-      data: batched ``mjx.Data`` (leading axis n).
-      kin: `Kinematics` of every env, [n, ...].
-      obs: [n, obs_size] observation.
-      reward: [n] reward of the step that led here (0 after a reset).
-      done: [n] 1.0 where the task's termination condition holds.
-    """
-
-    data: object
-    kin: Kinematics
-    obs: jax.Array
-    reward: jax.Array
-    done: jax.Array
+class MjxState(PhysicsState):
+    """`PhysicsState` of envs stepped by MJX: ``engine`` is a batched ``mjx.Data`` (leading axis n)."""
 
 
 class MjxPhysics(TaskPhysics):
@@ -56,6 +41,8 @@ class MjxPhysics(TaskPhysics):
     The same interface as `coherent_jax.envs.native.NativePhysics` (whole batches in,
     whole batches out), so `VecEnv` uses either in the same way.
     """
+
+    state_type = MjxState
 
     def __init__(self, task: str, spec: NativeTask, native_model: NativeModel):
         from mujoco import mjx
@@ -94,23 +81,12 @@ class MjxPhysics(TaskPhysics):
         data = jax.lax.fori_loop(0, self.n_frames, lambda _, d: mjx.step(self.model, d), data)
         return mjx.rne_postconstraint(self.model, data) if self._post else data
 
-    def reset_to(self, qpos: jax.Array, qvel: jax.Array, mocap_pos: jax.Array | None = None) -> MjxState:
-        """n envs at joint positions [n, nq] and velocities [n, nv], as a reset leaves them."""
+    def _place(self, qpos: jax.Array, qvel: jax.Array, mocap_pos: jax.Array | None):
         if mocap_pos is not None:  # no task run here places mocap bodies
             raise NotImplementedError("MjxPhysics does not place mocap bodies")
-        n = qpos.shape[0]
-        chex.assert_shape([qpos, qvel], [(n, self.nq), (n, self.nv)])
         data = jax.vmap(self._reset_one)(qpos, qvel)
-        kin = jax.vmap(self._kinematics)(data)
-        obs, reward, done = self._outputs(kin)
-        return MjxState(data=data, kin=kin, obs=obs, reward=reward, done=done)
+        return data, jax.vmap(self._kinematics)(data)
 
-    def step(self, state: MjxState, action: jax.Array) -> MjxState:
-        """One env step (`n_frames` MJX steps) of every env with `action` [n, action_size]."""
-        n = state.obs.shape[0]
-        chex.assert_shape(action, (n, self.action_size))
-        ctrl = control(self.spec, action, self.ctrl_range)
-        data = jax.vmap(self._step_one)(state.data, ctrl)
-        kin = jax.vmap(self._kinematics)(data)
-        obs, reward, done = self._outputs(kin, state.kin, ctrl)
-        return MjxState(data=data, kin=kin, obs=obs, reward=reward, done=done)
+    def _advance(self, data, ctrl: jax.Array):
+        data = jax.vmap(self._step_one)(data, ctrl)
+        return data, jax.vmap(self._kinematics)(data)

@@ -32,7 +32,6 @@ import os
 import threading
 from typing import Any
 
-import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -46,8 +45,8 @@ from coherent_jax.envs.task import (
     Kinematics,
     NativeModel,
     NativeTask,
+    PhysicsState,
     TaskPhysics,
-    control,
     quat_rotate,
     uniform_reset,
 )
@@ -61,22 +60,9 @@ DEFAULT_THREADS = 1
 
 
 @struct.dataclass
-class NativeState:
-    """Physics state of `n` envs stepped by native MuJoCo.
-
-    Attributes:
-      integration: [n, 2 * nstate] uint32, the float64 ``mjSTATE_INTEGRATION`` rows bit for bit.
-      kin: `Kinematics` of every env, [n, ...].
-      obs: [n, obs_size] observation.
-      reward: [n] reward of the step that led here (0 after a reset).
-      done: [n] 1.0 where the task's termination condition holds.
-    """
-
-    integration: jax.Array
-    kin: Kinematics
-    obs: jax.Array
-    reward: jax.Array
-    done: jax.Array
+class NativeState(PhysicsState):
+    """`PhysicsState` of envs stepped by native MuJoCo: ``engine`` is [n, 2 * nstate] uint32,
+    the float64 ``mjSTATE_INTEGRATION`` rows bit for bit."""
 
 
 # --- Brax's tasks (Brax 0.14.2, brax/envs/<task>.py; `dt` is the env step). Body 1 is the torso.
@@ -396,6 +382,8 @@ class NativePhysics(TaskPhysics):
     whole batch: the callback hands all envs to MuJoCo's thread pool at once.
     """
 
+    state_type = NativeState
+
     def __init__(self, task: str, nthread: int = DEFAULT_THREADS):
         model, self.n_frames, self.dt, init_q = mujoco_model(task)  # raises for a task it cannot run
         self.task = task
@@ -424,26 +412,13 @@ class NativePhysics(TaskPhysics):
     def _kinematics(self, arrays) -> Kinematics:
         return Kinematics(**dict(zip(self._field_shapes, arrays, strict=True)))
 
-    def reset_to(self, qpos: jax.Array, qvel: jax.Array, mocap_pos: jax.Array | None = None) -> NativeState:
-        """n envs at joint positions [n, nq] and velocities [n, nv] (and mocap bodies at
-        ``mocap_pos`` [n, nmocap, 3], see `_Host.reset`), as a reset leaves them."""
-        n = qpos.shape[0]
-        chex.assert_shape([qpos, qvel], [(n, self.nq), (n, self.nv)])
+    def _place(self, qpos: jax.Array, qvel: jax.Array, mocap_pos: jax.Array | None):
         args = (qpos, qvel) if mocap_pos is None else (qpos, qvel, mocap_pos)
-        shapes = self._shapes(n)
+        shapes = self._shapes(qpos.shape[0])
         rows, *arrays = jax.pure_callback(self.host.reset, shapes, *args, vmap_method="broadcast_all")
-        kin = self._kinematics(arrays)
-        obs, reward, done = self._outputs(kin)
-        return NativeState(integration=rows, kin=kin, obs=obs, reward=reward, done=done)
+        return rows, self._kinematics(arrays)
 
-    def step(self, state: NativeState, action: jax.Array) -> NativeState:
-        """One env step (`n_frames` MuJoCo steps) of every env with `action` [n, action_size]."""
-        n = state.integration.shape[0]
-        chex.assert_shape(action, (n, self.action_size))
-        ctrl = control(self.spec, action, self.ctrl_range)
-        rows, *arrays = jax.pure_callback(
-            self.host.step, self._shapes(n), state.integration, ctrl, vmap_method="broadcast_all"
-        )
-        kin = self._kinematics(arrays)
-        obs, reward, done = self._outputs(kin, state.kin, ctrl)
-        return NativeState(integration=rows, kin=kin, obs=obs, reward=reward, done=done)
+    def _advance(self, rows: jax.Array, ctrl: jax.Array):
+        shapes = self._shapes(rows.shape[0])
+        rows, *arrays = jax.pure_callback(self.host.step, shapes, rows, ctrl, vmap_method="broadcast_all")
+        return rows, self._kinematics(arrays)

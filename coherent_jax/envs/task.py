@@ -12,9 +12,11 @@ import dataclasses
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flax import struct
 
 
 class Kinematics(NamedTuple):
@@ -124,22 +126,70 @@ def control(task: NativeTask, action: jax.Array, ctrl_range) -> jax.Array:
     return (high + low) / 2 + ctrl * ((high - low) / 2)
 
 
+@struct.dataclass
+class PhysicsState:
+    """Physics state of `n` envs of a `TaskPhysics` engine.
+
+    Attributes:
+      engine: the engine's own state of every env (`NativePhysics`: the MjData rows;
+        `MjxPhysics`: a batched ``mjx.Data``).
+      kin: `Kinematics` of every env, [n, ...].
+      obs: [n, obs_size] observation.
+      reward: [n] reward of the step that led here (0 after a reset).
+      done: [n] 1.0 where the task's termination condition holds.
+    """
+
+    engine: Any
+    kin: Kinematics
+    obs: jax.Array
+    reward: jax.Array
+    done: jax.Array
+
+
 class TaskPhysics:
     """What every engine of a `NativeTask` shares (`NativePhysics`, `MjxPhysics`): the reset
-    distribution, and observation, reward and termination from the `Kinematics` an engine
-    produces. Subclasses set ``spec``, ``init_q``, ``nv``, ``dt`` and write ``reset_to``."""
+    distribution, the action map, and observation, reward and termination from the
+    `Kinematics` an engine produces. Subclasses set ``spec``, ``init_q``, ``nq``, ``nv``,
+    ``dt``, ``action_size``, ``ctrl_range`` and ``state_type``, and write how their engine
+    places a fresh state (`_place`) and advances one env step (`_advance`)."""
 
     spec: NativeTask
     init_q: jax.Array
+    nq: int
     nv: int
     dt: float
+    action_size: int
+    ctrl_range: Any
+    state_type: type[PhysicsState] = PhysicsState
 
-    def reset(self, keys: jax.Array):
+    def reset(self, keys: jax.Array) -> PhysicsState:
         """Initial states of len(keys) envs, one key each (the task's reset distribution)."""
         draws = jax.vmap(lambda k: self.spec.reset_noise(k, self.init_q, self.nv))(keys)
         return self.reset_to(*draws)
 
-    def reset_to(self, qpos: jax.Array, qvel: jax.Array, mocap_pos: jax.Array | None = None):
+    def reset_to(self, qpos: jax.Array, qvel: jax.Array, mocap_pos: jax.Array | None = None) -> PhysicsState:
+        """n envs at joint positions [n, nq] and velocities [n, nv] (and mocap bodies at
+        ``mocap_pos`` [n, nmocap, 3], placed after the forward pass), as a reset leaves them."""
+        n = qpos.shape[0]
+        chex.assert_shape([qpos, qvel], [(n, self.nq), (n, self.nv)])
+        engine, kin = self._place(qpos, qvel, mocap_pos)
+        obs, reward, done = self._outputs(kin)
+        return self.state_type(engine=engine, kin=kin, obs=obs, reward=reward, done=done)
+
+    def step(self, state: PhysicsState, action: jax.Array) -> PhysicsState:
+        """One env step (the task's substeps) of every env with `action` [n, action_size]."""
+        chex.assert_shape(action, (state.obs.shape[0], self.action_size))
+        ctrl = control(self.spec, action, self.ctrl_range)
+        engine, kin = self._advance(state.engine, ctrl)
+        obs, reward, done = self._outputs(kin, state.kin, ctrl)
+        return self.state_type(engine=engine, kin=kin, obs=obs, reward=reward, done=done)
+
+    def _place(self, qpos: jax.Array, qvel: jax.Array, mocap_pos: jax.Array | None):
+        """(engine state, `Kinematics`) of fresh envs after the forward pass."""
+        raise NotImplementedError
+
+    def _advance(self, engine: Any, ctrl: jax.Array):
+        """(engine state, `Kinematics`) after one env step with controls ``ctrl`` [n, nu]."""
         raise NotImplementedError
 
     def trajectory(self, keys: jax.Array, actions: jax.Array):

@@ -38,7 +38,7 @@ class EnvState:
 
     Attributes:
       physics: batched Brax ``State`` (pipeline state, obs, reward, done, ...), or a
-        `NativeState` with native MuJoCo physics.
+        `NativeState` with native MuJoCo physics, `MjxState` with a native task on MJX.
       obs: [n, obs_size] observation the agent acts on now.
       first: [n] True where ``obs`` is the first observation of an episode.
       step: [n] steps taken in the current episode.
