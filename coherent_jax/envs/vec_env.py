@@ -88,9 +88,10 @@ class VecEnv:
 
     ``physics`` chooses the engine (`coherent_jax.envs.native.resolve_physics`):
     ``native`` (MuJoCo's C engine on a thread pool through a callback, `NativePhysics`:
-    Gymnasium's tasks always, six of Brax's re-creations with their MJX model, reward
-    and termination), ``mjx`` (Brax's MJX env, vmapped; for Gymnasium's tasks their own
-    model and formulas on MJX, `MjxPhysics`) or ``auto`` (native on CPU
+    Gymnasium's tasks always, six of Brax's re-creations and two of Playground's DeepMind
+    Control tasks with their MJX env's model, reward and termination), ``mjx`` (Brax's or
+    Playground's MJX env, vmapped; for Gymnasium's tasks their own model and formulas on
+    MJX, `MjxPhysics`) or ``auto`` (native on CPU
     where the task has it, else MJX); ``physics_threads`` is native MuJoCo's thread
     count (0 = every core). ``episode_length`` defaults to the task's own time limit.
     """
