@@ -68,9 +68,12 @@ SPARSE_STEPS = 1_000_000
 
 SEEDS = 5
 ONPOLICY_STEPS = 1_000_000
-# SAC at UTD 1 with [256, 256] networks runs about 70 updates/s on the 2-core CPU, so
-# 1M steps for 5 seeds would take about 20 hours per cell. We keep SAC's own settings
-# and cut the budget to 200k steps at UTD 0.25 (50k updates per seed).
+# SAC with [256, 256] networks, 5 seeds vmapped at UTD 0.25 on HalfCheetah: 610 env
+# steps/s over all seeds, about 150 seed-updates/s (two other cells running beside it;
+# `python -m coherent_jax.sweep env=halfcheetah algo=sac seeds=5 utd_ratio=0.25
+# total_steps=15000`). 1M steps for 5 seeds at UTD 1 would take about 9 hours per cell,
+# 81 for the nine. We keep SAC's own settings and cut the budget to 200k steps at UTD
+# 0.25 (50k updates per seed): about 35 minutes per cell.
 SAC_STEPS = 200_000
 SAC_SETTINGS = ("utd_ratio=0.25",)
 
@@ -98,8 +101,8 @@ A2C_SETTINGS = ("lr=0.003",)
 
 # Rough env steps/s of one point, used by --status for cells with nothing measured yet
 # (README, Figures: PPO 64 envs on native physics; coherent about 0.3-0.5x of it).
-# SAC's figure is at UTD 1 and scales with 1 / utd_ratio.
-DEFAULT_RATE = {"ppo": 6000.0, "a2c": 8000.0, "sac": 60.0}
+# SAC's figure is at UTD 1 and scales with 1 / utd_ratio (measured above).
+DEFAULT_RATE = {"ppo": 6000.0, "a2c": 8000.0, "sac": 150.0}
 # Tasks whose own rate differs from the locomotion tasks' (PPO, action noise, measured).
 TASK_RATE = {
     "dmc-cartpole_swingup_sparse": 22000.0,
@@ -107,7 +110,10 @@ TASK_RATE = {
     "dmc-ball_in_cup": 19000.0,  # native MuJoCo (physics=auto on a CPU); 11.9k on MJX
     "dmc-finger_turn_hard": 25000.0,  # native; 17.3k on MJX
 }
-STRATEGY_COST = {"coherent": 2.5, "noisynet": 1.5, "psne": 3.0, "gsde": 1.3, "pink": 1.1}
+# A2C/PPO iteration time relative to action noise. SAC's strategies cost about the same
+# as its action noise (HalfCheetah, one seed: coherent 0.93x, psne 1.05x): its updates
+# dominate, and they do not depend on the strategy.
+STRATEGY_COST = {"coherent": 2.5, "noisynet": 1.5, "psne": 2.2, "gsde": 1.3, "pink": 1.1}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -374,9 +380,10 @@ def estimated_seconds(cell: Cell, results: Path) -> float:
     if rate is None:
         algo, explore = cell.setting("algo", "ppo"), cell.setting("explore", "action")
         base = TASK_RATE.get(cell.setting("env", ""), DEFAULT_RATE.get(algo, 5000.0))
-        per_point = base / STRATEGY_COST.get(explore, 1.0)
         if algo == "sac":
-            per_point /= float(cell.setting("utd_ratio", "1.0"))
+            per_point = base / float(cell.setting("utd_ratio", "1.0"))
+        else:
+            per_point = base / STRATEGY_COST.get(explore, 1.0)
         rate = per_point  # vmapped points share the cores: about one point's rate in total
     return (1.0 - fraction) * cell.env_steps / rate
 

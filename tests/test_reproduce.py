@@ -136,7 +136,12 @@ def test_cell_states_and_compute_left(tmp_path):
     # One point of five has run half of its steps: a tenth of the cell.
     assert reproduce.progress(stopped, tmp_path)[0] == pytest.approx(0.5 / 5)
     assert reproduce.estimated_seconds(done, tmp_path) == 0.0
-    assert reproduce.estimated_seconds(missing, tmp_path) > reproduce.estimated_seconds(stopped, tmp_path) > 0
+    # Compute left: the stopped cell's nine tenths of its full estimate, the missing one's all.
+    nothing = tmp_path / "nothing-run"
+    full = reproduce.estimated_seconds(stopped, nothing)
+    assert full > 0
+    assert reproduce.estimated_seconds(stopped, tmp_path) == pytest.approx(0.9 * full)
+    assert reproduce.estimated_seconds(missing, tmp_path) == reproduce.estimated_seconds(missing, nothing) > 0
     text = reproduce.status([done, stopped, running, missing], tmp_path)
     assert "done" in text and "stopped" in text and "running" in text and "missing" in text
     # A stale lock (its process is gone) reads as stopped.

@@ -6,6 +6,8 @@ variance formula, NoisyNet's explicit weight matrix) on many envs held at one
 state, so the behaviour noise is exactly the strategy's noise.
 """
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -238,11 +240,15 @@ def test_psne_perturbation_is_fixed_per_episode():
 
 def test_psne_minibatch_log_prob_draws_each_episode_once_and_equals_per_segment():
     """`batch_log_prob` equals `log_prob` segment by segment, values and gradients, at two
-    parameter points, both when the minibatch's episodes fit the shared draws and when
-    they do not (every step draws its own)."""
+    parameter points, both when the minibatch's episodes fit the chunked layout and when
+    they do not (every step draws its own): too many chunks, or too many draws. A
+    segment's first episode takes its eps from the carry, except where the segment
+    starts with a new episode (segment 2, whose carry holds a wrong eps to show it)."""
     strategy, _ = build("explore=psne")
     T, m, p = 16, 4, 2
-    starts = [[], [5], [9], [3, 6, 9, 12, 15]]  # episode starts after t = 0: D = 1+2+2+6 = 11
+    # Chunks of L = 8 steps: 2 per segment, plus one per episode start off the grid (5; 9;
+    # 3, 6, 9, 12, 15; segment 2's start at 0 is on it): C = 8 + 7 = 15 chunks, F = 8 draws.
+    starts = [[], [5], [9], [3, 6, 9, 12, 15]]
     first = np.zeros((T, m), bool)
     keys = np.zeros((T, m, 2), np.uint32)
     for i, s in enumerate(starts):
@@ -258,8 +264,9 @@ def test_psne_minibatch_log_prob_draws_each_episode_once_and_equals_per_segment(
         [x + 0.05 * jax.random.normal(k, x.shape) for x, k in zip(leaves, noise, strict=True)]
     )
     hp = strategy.init_hparams()
+    held = jnp.asarray(keys[0]).at[2].set(jax.random.PRNGKey(99))  # segment 2: the old episode's
     carry0 = strategy.init_carry(k_p, params0, hp, m)._replace(
-        key=jnp.asarray(keys[0]), sigma=jnp.arange(1.0, 5.0) / 10
+        key=jnp.asarray(keys[0]), sigma=jnp.arange(1.0, 5.0) / 10, eps=strategy._draw(params0, held)
     )
     obs = jax.random.normal(k_o, (T, m, OBS_SIZE))
     actions = jax.random.normal(k_a, (T, m, p))
@@ -271,23 +278,38 @@ def test_psne_minibatch_log_prob_draws_each_episode_once_and_equals_per_segment(
             params, hp, carry0, obs, actions, first, keys
         ).log_prob
 
-    def batched(params, capacity):
-        return strategy.batch_log_prob(
-            params, hp, carry0, obs, actions, first, keys, capacity=capacity
-        ).log_prob
+    @functools.partial(jax.jit, static_argnums=1)
+    def batched(params, capacities, carry0):
+        """The values and the gradient of sum(weights * values), in one compile per capacity."""
+        capacity, draw_capacity = capacities
 
+        def weighted(q):
+            values = strategy.batch_log_prob(
+                q, hp, carry0, obs, actions, first, keys, capacity=capacity, draw_capacity=draw_capacity
+            ).log_prob
+            return jnp.sum(weights * values), values
+
+        (_, values), grad = jax.value_and_grad(weighted, has_aux=True)(params)
+        return values, grad
+
+    # Capacities (chunks, draws): chunked; per-step (too many chunks); per-step (too many draws).
+    capacities = ((15, 8), (14, 8), (15, 7))
     for params in (params0, params1):
         want = jax.jit(reference)(params)
         want_grad = jax.jit(jax.grad(lambda q: jnp.sum(weights * reference(q))))(params)
-        for capacity in (11, 10):  # D = 11: shared draws at capacity 11, per-step draws at 10
-            got = jax.jit(batched, static_argnums=1)(params, capacity)
+        for capacity in capacities:
+            got, grad = batched(params, capacity, carry0)
             np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6)
-            grad = jax.jit(jax.grad(lambda q, c: jnp.sum(weights * batched(q, c))), static_argnums=1)(
-                params, capacity
-            )
             for g, w in zip(jax.tree.leaves(grad), jax.tree.leaves(want_grad), strict=True):
                 np.testing.assert_allclose(g, w, rtol=1e-5, atol=1e-6 * float(np.max(np.abs(w))))
     assert not np.allclose(jax.jit(reference)(params0), jax.jit(reference)(params1))
+    # Which path ran: only the chunked one reads segment 0's eps from the carry.
+    wrong = carry0._replace(eps=carry0.eps.at[0].multiply(-1.0))
+    want = jax.jit(reference)(params0)
+    for capacity, chunked in zip(capacities, (True, False, False), strict=True):
+        got, _ = batched(params0, capacity, wrong)
+        assert np.allclose(got[:, 1:], want[:, 1:], rtol=1e-6, atol=1e-6)
+        assert np.allclose(got[:, 0], want[:, 0], rtol=1e-6, atol=1e-6) != chunked
 
 
 @pytest.mark.parametrize("delta,factor", [(1e3, 1.5), (1e-6, 1 / 1.5)])
@@ -347,17 +369,28 @@ def test_behaviour_log_prob_equals_segment_recompute(overrides):
         recomputed = jax.vmap(strategy.log_prob, in_axes=(None, None, 0, 1, 1, 1, 1), out_axes=1)(
             params, hp, carry, data.obs, data.action, data.first, data.extras
         )
-        return env_state, carry_end, data._replace(log_prob=log_prob), recomputed
+        # The loss's minibatch form, also with room for every episode (psne: chunked).
+        batched = [strategy.batch_log_prob(params, hp, carry, data.obs, data.action, data.first, data.extras)]
+        if strategy.name == "psne":
+            room = {"capacity": 40, "draw_capacity": 40}
+            batched.append(
+                strategy.batch_log_prob(
+                    params, hp, carry, data.obs, data.action, data.first, data.extras, **room
+                )
+            )
+        return env_state, carry_end, data._replace(log_prob=log_prob), recomputed, batched
 
     env_state, carry = state.env_state, state.carry
     for key in jax.random.split(jax.random.PRNGKey(1), 2):
-        env_state, carry, data, recomputed = collect_and_score(env_state, carry, key)
+        env_state, carry, data, recomputed, batched = collect_and_score(env_state, carry, key)
         assert np.asarray(data.first)[1:].any()
         assert np.isfinite(np.asarray(data.log_prob)).all()
         np.testing.assert_allclose(recomputed.log_prob, data.log_prob, rtol=2e-5, atol=2e-4)
+        for seg in batched:
+            np.testing.assert_allclose(seg.log_prob, data.log_prob, rtol=2e-5, atol=2e-4)
         assert np.isfinite(np.asarray(recomputed.entropy)).all()
-    _, _, again, _ = collect_and_score(state.env_state, state.carry, jax.random.PRNGKey(5))
-    _, _, same, _ = collect_and_score(state.env_state, state.carry, jax.random.PRNGKey(5))
+    _, _, again, _, _ = collect_and_score(state.env_state, state.carry, jax.random.PRNGKey(5))
+    _, _, same, _, _ = collect_and_score(state.env_state, state.carry, jax.random.PRNGKey(5))
     np.testing.assert_array_equal(again.action, same.action)
 
 
