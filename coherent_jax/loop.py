@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Any
 
 from coherent_jax.config import Config
+from coherent_jax.points import vmap_points
 from coherent_jax.runs import (
     CHECKPOINT,
     METRICS,
@@ -333,7 +334,7 @@ def run_loop(
         # Several processes: each reads the checkpoint, only process 0 has a run_dir.
         checkpoint_path = Path(cfg.resume or job.run_dir or ".") / CHECKPOINT
         if job.points:
-            template = jax.eval_shape(jax.vmap(trainer.init), init_key, job.hparams)
+            template = jax.eval_shape(vmap_points(trainer.init), init_key, job.hparams)
             state = restore_state(template, resume.state_bytes, checkpoint_path)
             state, shardings = parallel.shard_points(state, num_devices)
         else:
@@ -349,7 +350,7 @@ def run_loop(
             jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves if jnp.issubdtype(x.dtype, jnp.inexact)])
         )
 
-    vmapped = jax.vmap if job.points else (lambda f: f)
+    vmapped = vmap_points if job.points else (lambda f: f)
     iteration = parallel.compile_iteration(trainer, state, shardings, points=job.points)
     evaluate = jax.jit(vmapped(trainer.evaluate)).lower(state, key).compile()
     check_params = jax.jit(vmapped(params_finite)).lower(state).compile()

@@ -29,9 +29,9 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from coherent_jax.config import ConfigError
+from coherent_jax.points import POINT_AXIS, vmap_points
 
 ENV_AXIS = "envs"
-POINT_AXIS = "points"
 # Fields of a train state whose arrays carry one row per env (leading axis num_envs).
 PER_ENV_FIELDS = ("env_state", "carry", "reward_norm")
 
@@ -147,7 +147,7 @@ def init_points(trainer: Any, init_keys: jax.Array, hparams: Any, num_devices: i
     Returns:
       (states, shardings): ``shardings`` is None on one device, else `point_shardings`.
     """
-    init = jax.vmap(trainer.init)
+    init = vmap_points(trainer.init)
     if num_devices == 1:
         return jax.jit(init)(init_keys, hparams), None
     mesh = make_mesh(num_devices, POINT_AXIS)
@@ -174,7 +174,7 @@ def compile_iteration(trainer: Any, state: Any, shardings: Any = None, points: b
     sweep's split like its points. XLA's SPMD partitioner splits the work over the
     devices.
     """
-    step = jax.vmap(trainer.iteration) if points else trainer.iteration
+    step = vmap_points(trainer.iteration) if points else trainer.iteration
     if shardings is None:
         return jax.jit(step, donate_argnums=0).lower(state).compile()
     mesh = jax.tree.leaves(shardings)[0].mesh

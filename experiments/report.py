@@ -245,7 +245,10 @@ def build(
         if suite == "sparse":
             lines += [
                 "Seeds whose exploration ever reached the sparse reward (a training episode",
-                "with positive return), and the median env step of the first one:",
+                "with positive return), and the median env step of the first one. The",
+                "tasks' episodes are 1,000 steps and all 64 envs end theirs together, so",
+                "a seed reports returns every 64,000 env steps: that is the resolution of",
+                "the first step.",
                 "",
                 "| task | strategy | seeds that reached it | first reached at (median env steps) |",
                 "|---|---|---|---|",

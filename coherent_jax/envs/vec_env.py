@@ -30,6 +30,7 @@ from coherent_jax.envs.native import (
     resolve_physics,
 )
 from coherent_jax.envs.registry import check_task, env_sizes, make_brax_env
+from coherent_jax.points import any_point
 
 
 @struct.dataclass
@@ -169,7 +170,7 @@ class VecEnv:
             fresh = self._reset_physics(reset_key)
             return jax.tree.map(lambda f, p: _select(done, f, p), fresh, phys)
 
-        physics = jax.lax.cond(jnp.any(done), with_resets, lambda p: p, physics)
+        physics = jax.lax.cond(any_point(jnp.any(done)), with_resets, lambda p: p, physics)
         new_state = EnvState(
             physics=physics,
             obs=physics.obs,

@@ -36,6 +36,7 @@ import numpy as np
 from coherent_jax.exploration.action import ActionNoise, gaussian_log_prob
 from coherent_jax.exploration.base import ActOutput, OffPolicyBehaviour
 from coherent_jax.networks import squash
+from coherent_jax.points import any_point
 
 
 def spectrum_scales(length: int, exponent: float) -> np.ndarray:
@@ -120,7 +121,7 @@ def next_noise(key: chex.PRNGKey, carry: PinkCarry, first: chex.Array, exponent:
     chex.assert_rank(first, 1)
     num_envs, length, action_size = carry.noise.shape
     noise = jax.lax.cond(
-        jnp.any(first),
+        any_point(jnp.any(first)),
         lambda: jnp.where(
             first[:, None, None],
             draw_episode_noise(key, exponent, length, num_envs, action_size),

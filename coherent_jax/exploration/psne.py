@@ -39,6 +39,7 @@ from coherent_jax.exploration.action import gaussian_entropy, gaussian_log_prob
 from coherent_jax.exploration.adaptive import SigmaRule, adapt_sigma, policy_distance
 from coherent_jax.exploration.base import ActOutput, OffPolicyBehaviour, OnPolicyStrategy, SegmentLogProb
 from coherent_jax.networks import MeanHead, squash
+from coherent_jax.points import all_points, any_point
 
 
 def _noisy_paths(flat: dict, skip) -> list:
@@ -161,7 +162,7 @@ class ParameterNoise(OnPolicyStrategy):
         keys = episode_keys(k_ep, carry.key, first)
         # New draws only at a step where some episode starts (all envs at once, kept where none does).
         eps = jax.lax.cond(
-            jnp.any(first),
+            any_point(jnp.any(first)),
             lambda: jnp.where(first[:, None], self._draw(params, keys), carry.eps),
             lambda: carry.eps,
         )
@@ -245,7 +246,7 @@ class ParameterNoise(OnPolicyStrategy):
             return self._perturbed_mean(params, keys, sigma, flat_obs)
 
         fits = (chunk[-1] < capacity) & (start_index[-1] < draw_capacity)
-        mean = jax.lax.cond(fits, chunked, per_step)
+        mean = jax.lax.cond(all_points(fits), chunked, per_step)  # one branch for a whole sweep
         mean = jnp.swapaxes(mean.reshape(m, T, -1), 0, 1)
         log_std = jnp.broadcast_to(params["log_std"], mean.shape)
         return SegmentLogProb(gaussian_log_prob(actions, mean, log_std), gaussian_entropy(log_std))
