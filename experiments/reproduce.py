@@ -31,6 +31,7 @@ import fnmatch
 import hashlib
 import json
 import os
+import statistics
 import subprocess
 import sys
 import time
@@ -99,7 +100,8 @@ ONPOLICY_TASK_SETTINGS: dict[str, tuple[str, ...]] = {
 # it (as tests/test_pairs.py and tests/test_train.py do).
 A2C_SETTINGS = ("lr=0.003",)
 
-# Rough env steps/s of one point, used by --status for cells with nothing measured yet
+# Rough env steps/s of one point, used by --status when no cell of the same task and
+# algorithm has finished yet
 # (README, Figures: PPO 64 envs on native physics; coherent about 0.3-0.5x of it).
 # SAC's figure is at UTD 1 and scales with 1 / utd_ratio (measured above).
 DEFAULT_RATE = {"ppo": 6000.0, "a2c": 8000.0, "sac": 150.0}
@@ -374,17 +376,57 @@ def _measured_rate(sweep: Path) -> float | None:
         return None
 
 
+def _cost(cell: Cell) -> float:
+    """Iteration time relative to action noise (1 for SAC, whose updates dominate)."""
+    if cell.setting("algo", "ppo") == "sac":
+        return 1.0
+    return STRATEGY_COST.get(cell.setting("explore", "action") or "action", 1.0)
+
+
+def _kind(cell: Cell) -> tuple[str | None, ...]:
+    """What sets a cell's rate apart from its strategy: task, algorithm, SAC's UTD."""
+    return (cell.setting("env"), cell.setting("algo", "ppo"), cell.setting("utd_ratio"))
+
+
+def _finished_cells(results: Path) -> list[tuple[Cell, float]]:
+    """Every finished cell under ``results`` (any suite) with its measured rate."""
+    found = []
+    for spec_file in sorted(results.glob("*/**/cell.json")):
+        rate = _measured_rate(spec_file.parent / "sweep")
+        if rate is None:
+            continue
+        try:
+            spec = json.loads(spec_file.read_text())["spec"]
+            cell = Cell(spec["suite"], spec["name"], tuple(spec["overrides"]), int(spec["seeds"]))
+        except (OSError, KeyError, TypeError, ValueError):
+            continue
+        found.append((cell, rate))
+    return found
+
+
 def estimated_seconds(cell: Cell, results: Path) -> float:
-    """Compute the cell still needs, from its own measured rate or the defaults above."""
+    """Compute the cell still needs.
+
+    From its own measured rate once it has one; else from the finished cells of the
+    same task and algorithm (any suite), each rescaled by STRATEGY_COST to this cell's
+    strategy (median over them); else from the defaults above. Vmapped points share
+    the cores, so a cell's total rate is about one point's, whatever its points.
+    """
     fraction, rate = progress(cell, results)
     if rate is None:
-        algo, explore = cell.setting("algo", "ppo"), cell.setting("explore", "action")
-        base = TASK_RATE.get(cell.setting("env", ""), DEFAULT_RATE.get(algo, 5000.0))
-        if algo == "sac":
-            per_point = base / float(cell.setting("utd_ratio", "1.0"))
+        kin = [
+            r * _cost(other) / _cost(cell)
+            for other, r in _finished_cells(results)
+            if _kind(other) == _kind(cell)
+        ]
+        if kin:
+            rate = statistics.median(kin)
         else:
-            per_point = base / STRATEGY_COST.get(explore, 1.0)
-        rate = per_point  # vmapped points share the cores: about one point's rate in total
+            algo = cell.setting("algo", "ppo")
+            base = TASK_RATE.get(cell.setting("env", ""), DEFAULT_RATE.get(algo, 5000.0))
+            if algo == "sac":
+                base /= float(cell.setting("utd_ratio", "1.0"))
+            rate = base / _cost(cell)
     return (1.0 - fraction) * cell.env_steps / rate
 
 

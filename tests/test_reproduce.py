@@ -136,12 +136,25 @@ def test_cell_states_and_compute_left(tmp_path):
     # One point of five has run half of its steps: a tenth of the cell.
     assert reproduce.progress(stopped, tmp_path)[0] == pytest.approx(0.5 / 5)
     assert reproduce.estimated_seconds(done, tmp_path) == 0.0
-    # Compute left: the stopped cell's nine tenths of its full estimate, the missing one's all.
+    # Compute left: the stopped cell's nine tenths, the missing one's all, each at the
+    # finished hopper/a2c/action cell's measured 1,000 env steps/s rescaled by its
+    # strategy's cost (coherent 2.5x, psne 2.2x).
+    cost = reproduce.STRATEGY_COST
+    assert (stopped.setting("explore"), missing.setting("explore")) == ("coherent", "psne")
+    assert reproduce.estimated_seconds(stopped, tmp_path) == pytest.approx(
+        0.9 * stopped.env_steps * cost["coherent"] / 1000.0
+    )
+    assert reproduce.estimated_seconds(missing, tmp_path) == pytest.approx(
+        missing.env_steps * cost["psne"] / 1000.0
+    )
+    # With nothing finished of the same task and algorithm, the defaults.
     nothing = tmp_path / "nothing-run"
-    full = reproduce.estimated_seconds(stopped, nothing)
-    assert full > 0
-    assert reproduce.estimated_seconds(stopped, tmp_path) == pytest.approx(0.9 * full)
-    assert reproduce.estimated_seconds(missing, tmp_path) == reproduce.estimated_seconds(missing, nothing) > 0
+    default = missing.env_steps * cost["psne"] / reproduce.DEFAULT_RATE["a2c"]
+    assert reproduce.estimated_seconds(missing, nothing) == pytest.approx(default)
+    other = tmp_path / "other-task-run"
+    _fake_sweep(reproduce.select("thesis", ["halfcheetah/a2c/action"])[0], other, finished=True)
+    _fake_sweep(reproduce.select("thesis", ["hopper/ppo/action"])[0], other, finished=True)
+    assert reproduce.estimated_seconds(missing, other) == pytest.approx(default)
     text = reproduce.status([done, stopped, running, missing], tmp_path)
     assert "done" in text and "stopped" in text and "running" in text and "missing" in text
     # A stale lock (its process is gone) reads as stopped.
