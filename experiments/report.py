@@ -186,10 +186,12 @@ def aggregate_table(algo: str, what: str, table: dict[str, dict[str, np.ndarray]
     return [*lines, ""]
 
 
-def _label(cell: reproduce.Cell, run: plot.Run) -> str:
-    """The strategy (``coherent``, ``psne``, ``coherent-mc``...); a beta grid's points by their beta."""
+def _label(cell: reproduce.Cell, run: plot.Run, suite: str | None = None) -> str:
+    """The strategy (``coherent``, ``psne``, ``coherent-mc``...); the cells and grid points
+    that vary beta by their beta, and so, in the ablations, the thesis's coherent cell
+    (the default beta, which every other ablation keeps)."""
     name = cell.name.split("/", 2)[2]
-    if name.endswith("-beta"):
+    if name.startswith("coherent-beta") or (suite == "ablations" and name == "coherent"):
         return f"beta={float(run.settings['beta']):g}"
     return name
 
@@ -235,8 +237,8 @@ def build(
             rs = runs[c.name]
             f = np.array([r.values[-1] for r in rs])
             a = np.array([auc(r) for r in rs])
-            for label in sorted({_label(c, r) for r in rs}):
-                keep = [i for i, r in enumerate(rs) if _label(c, r) == label]
+            for label in sorted({_label(c, r, suite) for r in rs}):
+                keep = [i for i, r in enumerate(rs) if _label(c, r, suite) == label]
                 finals[c.setting("algo")][label][c.setting("env")] = f[keep]
                 aucs[c.setting("algo")][label][c.setting("env")] = a[keep]
             summary = json.loads((reproduce.cell_dir(c, results) / "sweep" / "sweep.json").read_text())
@@ -332,7 +334,7 @@ def _pairs(suite: str, norm: dict) -> list[tuple[str, str]]:
         pairs = [
             ("beta=0.01", "coherent-mc"),  # analytic vs single-sample Monte Carlo, default beta
             ("coherent-mc", "coherent-mc-all"),  # last layer vs all layers, both Monte Carlo
-            ("coherent", "coherent-stored"),  # the thesis's exact gradient vs the stored belief's
+            ("beta=0.01", "coherent-stored"),  # the thesis's exact gradient vs the stored belief's
             ("coherent-stored", "action"),
         ]
         # The chain: intermediate beta vs step-based (1) and trajectory-based (0) exploration.

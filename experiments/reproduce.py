@@ -51,6 +51,7 @@ SAC_STRATEGIES = ("action", "coherent", "psne")
 BEYOND_STRATEGIES = ("gsde", "pink")
 ABLATION_TASK = "halfcheetah"
 ABLATION_BETAS = (0.0, 0.01, 0.1, 0.5, 1.0)
+DEFAULT_BETA = 0.01  # coherent_jax.config.Config.beta: the thesis cells' chain coefficient
 
 # Exploration where rewards are rare (issue: sparse-reward tasks): PPO with every
 # strategy on four sparse DeepMind Control tasks (Playground's ports), coherent at
@@ -183,12 +184,16 @@ def thesis_cells() -> list[Cell]:
 
 
 def ablation_cells() -> list[Cell]:
-    betas = "[" + ",".join(f"{b:g}" for b in ABLATION_BETAS) + "]"
+    """One cell per beta (5 seeds, 25-40 minutes each here), so that every cell fits in one
+    stretch of work; the default beta (0.01) is the thesis suite's coherent cell, which
+    the ablations share rather than run again."""
     cells = []
     for algo in ("ppo", "a2c"):
-        cells.append(
-            _cell("ablations", ABLATION_TASK, algo, "coherent", f"beta={betas}", seeds=SEEDS, tag="beta")
-        )
+        cells += [
+            _cell("ablations", ABLATION_TASK, algo, "coherent", f"beta={b:g}", seeds=SEEDS, tag=f"beta{b:g}")
+            for b in ABLATION_BETAS
+            if b != DEFAULT_BETA
+        ]
         cells.append(
             _cell(
                 "ablations", ABLATION_TASK, algo, "coherent", "coherent.integration=mc", seeds=SEEDS, tag="mc"
@@ -256,11 +261,14 @@ SMOKE_SETTINGS = (
 )
 
 
+SMOKE_KEPT = ("coherent.", "beta=")  # the overrides of a full cell its smoke cell keeps
+
+
 def smoke_cells() -> list[Cell]:
     cells = []
     for full in (*thesis_cells(), *ablation_cells(), *beyond_cells(), *sparse_cells()):
         algo, explore = full.setting("algo"), full.setting("explore")
-        extra = [o for o in full.overrides if o.startswith(("coherent.", "beta="))]
+        extra = [o for o in full.overrides if o.startswith(SMOKE_KEPT)]
         steps = (
             ["total_steps=128", "warmup_steps=32", "batch_size=16", "buffer_size=512"]
             if algo == "sac"
@@ -269,9 +277,18 @@ def smoke_cells() -> list[Cell]:
         overrides = (f"algo={algo}", f"explore={explore}", *SMOKE_SETTINGS, *steps, *extra)
         name = "pointmass/" + full.name.split("/", 1)[1]
         cell = Cell("smoke", name, overrides, 2)
-        if all(c.name != cell.name for c in cells):
+        if all(smoke_kind(c) != smoke_kind(cell) for c in cells):
             cells.append(cell)
     return cells
+
+
+def smoke_kind(cell: Cell) -> tuple[str, ...]:
+    """What the smoke suite runs once: a cell's algorithm, strategy and the keys of the
+    overrides the smoke cells keep (a grid's marked ``[]``). The ablation's cells at beta
+    0, 0.1, 0.5 and 1 are one kind, the sparse suite's beta grid another."""
+    kept = (o.partition("=") for o in cell.overrides if o.startswith(SMOKE_KEPT))
+    keys = sorted({k + ("[]" if v.startswith("[") else "") for k, _, v in kept})
+    return (cell.setting("algo") or "", cell.setting("explore") or "", *keys)
 
 
 SUITES = {

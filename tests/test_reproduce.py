@@ -70,10 +70,22 @@ def test_sparse_suite_runs_every_strategy_on_four_sparse_control_tasks():
 
 
 def test_ablations_vary_one_component_each():
+    from coherent_jax.config import Config
+
     cells = {c.name: c for c in reproduce.ablation_cells()}
-    beta = cells["halfcheetah/ppo/coherent-beta"]
-    assert beta.setting("beta") == "[0,0.01,0.1,0.5,1]"
-    assert beta.env_steps == 5 * 5 * reproduce.ONPOLICY_STEPS  # five betas x five seeds
+    # One cell of five seeds per beta; the default beta is the thesis suite's coherent cell.
+    assert reproduce.DEFAULT_BETA == Config().beta
+    thesis = {c.name: c for c in reproduce.thesis_cells()}
+    for algo in ("ppo", "a2c"):
+        assert thesis[f"halfcheetah/{algo}/coherent"].setting("beta") is None
+        betas = sorted(
+            float(c.setting("beta"))
+            for c in cells.values()
+            if c.setting("algo") == algo and c.name.split("/")[2].startswith("coherent-beta")
+        )
+        assert betas == [0.0, 0.1, 0.5, 1.0]
+    beta = cells["halfcheetah/ppo/coherent-beta0.5"]
+    assert beta.setting("beta") == "0.5" and beta.env_steps == 5 * reproduce.ONPOLICY_STEPS
     assert cells["halfcheetah/a2c/coherent-mc"].setting("coherent.integration") == "mc"
     assert cells["halfcheetah/ppo/coherent-mc-all"].setting("coherent.layers") == "all"
     for algo in ("ppo", "a2c"):
@@ -83,11 +95,18 @@ def test_ablations_vary_one_component_each():
 
 def test_smoke_has_one_cell_per_kind_of_cell():
     smoke = reproduce.smoke_cells()
-    kinds = {c.name.split("/", 1)[1] for c in smoke}
-    full = {c.name.split("/", 1)[1] for s in ("thesis", "ablations", "beyond") for c in reproduce.SUITES[s]()}
-    assert kinds == full
+    kinds = {reproduce.smoke_kind(c) for c in smoke}
+    suites = ("thesis", "ablations", "beyond", "sparse")
+    full = [c for s in suites for c in reproduce.SUITES[s]()]
+    # Pointmass in place of each task, tiny budgets: the smoke kind of a full cell keeps
+    # its algorithm, strategy, override keys and grids.
+    assert {reproduce.smoke_kind(c) for c in full} == kinds
     assert len(smoke) == len(kinds)
     assert all(c.setting("env") == "pointmass" for c in smoke)
+    names = {c.name for c in smoke}
+    assert {"pointmass/ppo/coherent-beta0", "pointmass/ppo/coherent-beta", "pointmass/sac/psne"} <= names
+    (grid,) = [c for c in smoke if c.name == "pointmass/ppo/coherent-beta"]
+    assert grid.setting("beta").startswith("[")
 
 
 def test_fingerprint_changes_with_the_specification():
