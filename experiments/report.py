@@ -335,7 +335,6 @@ def _pairs(suite: str, norm: dict) -> list[tuple[str, str]]:
             ("beta=0.01", "coherent-mc"),  # analytic vs single-sample Monte Carlo, default beta
             ("coherent-mc", "coherent-mc-all"),  # last layer vs all layers, both Monte Carlo
             ("beta=0.01", "coherent-stored"),  # the thesis's exact gradient vs the stored belief's
-            ("coherent-stored", "action"),
         ]
         # The chain: intermediate beta vs step-based (1) and trajectory-based (0) exploration.
         pairs += [(f"beta={b}", f"beta={e}") for b in ("0.01", "0.1", "0.5") for e in ("1", "0")]

@@ -219,6 +219,14 @@ def test_report_counts_a_seed_as_reaching_the_sparse_reward_at_its_first_positiv
     assert report.reached_reward(run([-1.0, 0.0])) is None
     assert ("beta=0.01", "psne") in report._pairs("sparse", {"beta=0.01": 0, "beta=0": 0, "psne": 0})
     assert ("coherent", "psne") in report._pairs("thesis", {"coherent": 0, "psne": 0})
+    # The ablations' claims compare the coherent method with its variants: the thesis's three
+    # components (the chain, analytic integration, last layer) and the exact gradient.
+    labels = ["beta=0.01", "beta=0", "beta=1", "coherent-mc", "coherent-mc-all", "coherent-stored", "action"]
+    ablation = report._pairs("ablations", dict.fromkeys(labels, 0))
+    assert {("beta=0.01", "coherent-mc"), ("coherent-mc", "coherent-mc-all"), ("beta=0.01", "beta=1")} <= set(
+        ablation
+    )
+    assert all("action" not in pair for pair in ablation)
 
 
 def test_report_aggregates_only_the_tasks_every_strategy_has_finished():
