@@ -22,6 +22,14 @@ sys.modules["reproduce"] = reproduce
 _spec.loader.exec_module(reproduce)
 
 
+def _report():
+    """experiments/report.py as a module (it imports plotting and rliable on load)."""
+    spec = importlib.util.spec_from_file_location("report", ROOT / "experiments" / "report.py")
+    report = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(report)
+    return report
+
+
 def test_thesis_suite_covers_every_comparison():
     names = {c.name for c in reproduce.thesis_cells()}
     for task in ("halfcheetah", "walker2d", "hopper"):
@@ -201,13 +209,9 @@ def test_results_of_another_specification_are_refused(tmp_path):
 
 
 def test_report_counts_a_seed_as_reaching_the_sparse_reward_at_its_first_positive_return():
-    import numpy as np
-
     from coherent_jax import plot
 
-    spec = importlib.util.spec_from_file_location("report", ROOT / "experiments" / "report.py")
-    report = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(report)
+    report = _report()
 
     def run(values):
         steps = np.arange(1, len(values) + 1) * 4096
@@ -217,6 +221,10 @@ def test_report_counts_a_seed_as_reaching_the_sparse_reward_at_its_first_positiv
     assert report.reached_reward(run([np.nan, 0.0, 0.0, 3.0, 0.0, 7.0])) == 4 * 4096
     assert report.reached_reward(run([np.nan, 0.0, 0.0])) is None
     assert report.reached_reward(run([-1.0, 0.0])) is None
+
+
+def test_report_pairs_each_claim_with_its_comparison():
+    report = _report()
     assert ("beta=0.01", "psne") in report._pairs("sparse", {"beta=0.01": 0, "beta=0": 0, "psne": 0})
     assert ("coherent", "psne") in report._pairs("thesis", {"coherent": 0, "psne": 0})
     # The ablations' claims compare the coherent method with its variants: the thesis's three
@@ -230,9 +238,7 @@ def test_report_counts_a_seed_as_reaching_the_sparse_reward_at_its_first_positiv
 
 
 def test_report_aggregates_only_the_tasks_every_strategy_has_finished():
-    spec = importlib.util.spec_from_file_location("report", ROOT / "experiments" / "report.py")
-    report = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(report)
+    report = _report()
     scores = {
         "action": {"hopper": np.array([1.0, 3.0]), "halfcheetah": np.array([10.0, 30.0])},
         "coherent": {"halfcheetah": np.array([20.0, 40.0])},
