@@ -171,9 +171,9 @@ def aggregate_table(algo: str, what: str, table: dict[str, dict[str, np.ndarray]
     common = sorted(set.intersection(*(set(by_task) for by_task in table.values())))
     left_out = sorted({t for by_task in table.values() for t in by_task} - set(common))
     lines = [
-        f"**{algo}, {what}**, normalised per task over {len(common)} task(s) ({', '.join(common)})"
-        + (f"; left out until every strategy has finished it: {', '.join(left_out)}" if left_out else "")
-        + ":",
+        f"**{algo}, {what}**, normalised per task over {len(common)} task(s) ({', '.join(common)}"
+        + (f"; {', '.join(left_out)} left out until every strategy has finished it" if left_out else "")
+        + "):",
         "",
         "| strategy | IQM (95% CI) | optimality gap (95% CI) |",
         "|---|---|---|",

@@ -248,4 +248,9 @@ def test_report_aggregates_only_the_tasks_every_strategy_has_finished():
     # One task in common, min-max over both strategies' runs of it.
     np.testing.assert_allclose(norm["action"], [[0.0], [2 / 3]])
     np.testing.assert_allclose(norm["coherent"], [[1 / 3], [1.0]])
+    # The table says which task it aggregates and which it leaves out, and why.
+    assert report.aggregate_table("ppo", "final return", scores, norm)[0] == (
+        "**ppo, final return**, normalised per task over 1 task(s)"
+        " (halfcheetah; hopper left out until every strategy has finished it):"
+    )
     assert report.normalised({"a": {"hopper": np.ones(2)}, "b": {"walker2d": np.ones(2)}}) == {}
