@@ -16,18 +16,23 @@ import pytest
 from helpers import child_env
 
 ROOT = Path(__file__).resolve().parents[1]
-_spec = importlib.util.spec_from_file_location("reproduce", ROOT / "experiments" / "reproduce.py")
-reproduce = importlib.util.module_from_spec(_spec)
-sys.modules["reproduce"] = reproduce
-_spec.loader.exec_module(reproduce)
+
+
+def _load(name: str):
+    """experiments/NAME.py as a module, registered so that report.py can import reproduce."""
+    spec = importlib.util.spec_from_file_location(name, ROOT / "experiments" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+reproduce = _load("reproduce")
 
 
 def _report():
-    """experiments/report.py as a module (it imports plotting and rliable on load)."""
-    spec = importlib.util.spec_from_file_location("report", ROOT / "experiments" / "report.py")
-    report = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(report)
-    return report
+    """experiments/report.py (it imports plotting and rliable on load, so only where needed)."""
+    return _load("report")
 
 
 def test_thesis_suite_covers_every_comparison():
