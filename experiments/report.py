@@ -16,8 +16,12 @@ writes ``experiments/RESULTS.md`` with its figures in ``experiments/results/figu
 * env steps/s and wall time per cell, and the compute spent in all;
 * for each claim of the thesis, a verdict: *reproduced* when the 95% interval of the
   probability of improvement lies above 0.5, *not reproduced* when it lies below,
-  *inconclusive* otherwise (on the sparse tasks, which the thesis did not run, the
-  comparison *holds* or *does not hold*).
+  *inconclusive* otherwise (on the sparse tasks, which the thesis did not run, and for
+  coherent against gSDE and pink, which it did not compare, the comparison *holds* or
+  *does not hold*).
+
+The ablations are read beside the thesis suite's action and coherent cells of their task,
+and `beyond` (gSDE, pink) beside every thesis strategy on the same tasks and algorithms.
 
 Missing cells are listed, never silently left out.
 """
@@ -312,20 +316,28 @@ def build(
 
 
 def _reference_cells(suite: str, done: list[reproduce.Cell], results: Path) -> list[reproduce.Cell]:
-    """For the ablations: the thesis suite's finished action and coherent cells of the same
-    task and algorithms, the defaults each ablation varies one component of (coherent:
-    beta 0.01, analytic integration, the exact gradient)."""
-    if suite != "ablations":
+    """The thesis suite's finished cells a suite is read beside. The ablations: the action
+    and coherent cells of their task and algorithms, the defaults each ablation varies one
+    component of (coherent: beta 0.01, analytic integration, the exact gradient). `beyond`:
+    every thesis strategy on each task and algorithm gSDE or pink has run, at the same
+    settings, so that the newer strategies are compared with all four."""
+    if suite == "ablations":
+        algos = {c.setting("algo") for c in done}
+
+        def keep(c: reproduce.Cell) -> bool:
+            return (
+                c.setting("env") == reproduce.ABLATION_TASK
+                and c.setting("algo") in algos
+                and c.setting("explore") in ("action", "coherent")
+            )
+    elif suite == "beyond":
+        runs = {(c.setting("env"), c.setting("algo")) for c in done}
+
+        def keep(c: reproduce.Cell) -> bool:
+            return (c.setting("env"), c.setting("algo")) in runs
+    else:
         return []
-    algos = {c.setting("algo") for c in done}
-    return [
-        c
-        for c in reproduce.thesis_cells()
-        if c.setting("env") == reproduce.ABLATION_TASK
-        and c.setting("algo") in algos
-        and c.setting("explore") in ("action", "coherent")
-        and reproduce.cell_state(c, results) == "done"
-    ]
+    return [c for c in reproduce.thesis_cells() if keep(c) and reproduce.cell_state(c, results) == "done"]
 
 
 def _pairs(suite: str, norm: dict) -> list[tuple[str, str]]:
@@ -340,6 +352,8 @@ def _pairs(suite: str, norm: dict) -> list[tuple[str, str]]:
         pairs += [(f"beta={b}", f"beta={e}") for b in ("0.01", "0.1", "0.5") for e in ("1", "0")]
         return [p for p in pairs if p[0] in norm and p[1] in norm]
     others = [b for b in (*BASELINES, "gsde", "pink") if b in norm]
+    if suite == "beyond":  # the thesis suite's own comparisons are its verdicts, not these
+        others = [b for b in reproduce.BEYOND_STRATEGIES if b in norm]
     if suite == "sparse":  # coherent at each beta of its grid against every baseline
         return [(c, b) for c in sorted(norm) if c.startswith("beta=") for b in others]
     return [("coherent", b) for b in others if "coherent" in norm]

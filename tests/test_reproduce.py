@@ -242,6 +242,35 @@ def test_report_pairs_each_claim_with_its_comparison():
     assert all("action" not in pair for pair in ablation)
 
 
+def test_report_reads_ablations_and_beyond_beside_the_thesis_cells(tmp_path):
+    report = _report()
+    for name in ("halfcheetah/ppo/*", "hopper/a2c/coherent", "hopper/ppo/psne"):
+        for cell in reproduce.select("thesis", [name]):
+            _fake_sweep(cell, tmp_path, finished=True)
+    _fake_sweep(reproduce.select("thesis", ["hopper/a2c/action"])[0], tmp_path, finished=False)
+    names = lambda cells: sorted(c.name for c in cells)  # noqa: E731
+    # Ablations: the thesis's action and coherent cells of the ablation task, finished ones only.
+    ablations = reproduce.select("ablations", ["halfcheetah/ppo/*"])
+    assert names(report._reference_cells("ablations", ablations, tmp_path)) == [
+        "halfcheetah/ppo/action",
+        "halfcheetah/ppo/coherent",
+    ]
+    # beyond: every finished thesis strategy of each task and algorithm gSDE or pink has run.
+    beyond = reproduce.select("beyond", ["hopper/a2c/pink", "halfcheetah/ppo/gsde"])
+    assert names(report._reference_cells("beyond", beyond, tmp_path)) == [
+        "halfcheetah/ppo/action",
+        "halfcheetah/ppo/coherent",
+        "halfcheetah/ppo/noisynet",
+        "halfcheetah/ppo/psne",
+        "hopper/a2c/coherent",
+    ]
+    assert report._reference_cells("sparse", beyond, tmp_path) == []
+    # Their verdicts: coherent against the newer strategies, not the thesis suite's again.
+    labels = dict.fromkeys(["coherent", "action", "noisynet", "psne", "gsde", "pink"], 0)
+    assert report._pairs("beyond", labels) == [("coherent", "gsde"), ("coherent", "pink")]
+    assert report.verdict({"p": 0.8, "low": 0.6, "high": 0.9}, "beyond") == "holds"
+
+
 def test_report_aggregates_only_the_tasks_every_strategy_has_finished():
     report = _report()
     scores = {
