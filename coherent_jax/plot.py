@@ -150,15 +150,23 @@ def load_run(path: Path, metric: str) -> Run:
 
 
 def labels(runs: Sequence[Run]) -> dict[int, str]:
-    """Legend label of each run: the settings (task aside) in which its group differs from others.
+    """Legend label of each run: the settings in which its group differs from others on its task.
 
-    Runs with equal labels have equal settings but for the seed, so a label names one
-    group, and the same group on several tasks has the same label (the aggregate
-    pairs them). Algorithm and strategy are shown bare (``ppo coherent``), other
-    settings as ``key=value``; with one group per task the label is the strategy.
+    Runs of one task with equal labels have equal settings but for the seed, so a label
+    names one group per task, and the same group on several tasks has the same label
+    (the aggregate pairs them). A setting that changes only with the task (a per-task
+    hyperparameter such as reward scaling on Hopper alone) is part of the task and
+    splits no group, so it is left out. Algorithm and strategy are shown bare (``ppo
+    coherent``), other settings as ``key=value``; with one group per task the label is
+    the strategy.
     """
     keys = sorted({k for r in runs for k in r.settings} - {"env"})
-    differing = [k for k in keys if len({repr(r.settings.get(k)) for r in runs}) > 1]
+    envs = {r.env for r in runs}
+
+    def varies_within_a_task(k: str) -> bool:
+        return any(len({repr(r.settings.get(k)) for r in runs if r.env == env}) > 1 for env in envs)
+
+    differing = [k for k in keys if varies_within_a_task(k)]
     if not differing:
         return {id(r): r.explore for r in runs}
     ordered = [k for k in _BARE if k in differing] + [k for k in differing if k not in _BARE]

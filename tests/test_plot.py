@@ -85,6 +85,29 @@ def test_normalisation_is_min_max_per_task(tmp_path):
     np.testing.assert_allclose(scores["coherent"], [[0.0, 100 / 101]])  # one seed on ant limits to one row
 
 
+def test_settings_that_change_only_with_the_task_split_no_group(tmp_path):
+    """Per-task settings (reward scaling on hopper alone) are not in the labels, so the
+    aggregate pairs each strategy across tasks; a setting that varies on one task is."""
+    scaled = ["normalize_rewards=true"]
+    runs = [
+        load_run(write_run(tmp_path, env, ex, 0, off, extra, name=name), "eval/episode_return")
+        for env, ex, off, extra, name in [
+            ("hopper", "action", 0.0, scaled, "h-a"),
+            ("hopper", "coherent", 100.0, scaled, "h-c"),
+            ("ant", "action", 0.0, [], "a-a"),
+            ("ant", "coherent", -50.0, [], "a-c"),
+        ]
+    ]
+    scores, _ = normalized_final_scores(runs)
+    assert sorted(scores) == ["action", "coherent"]
+    np.testing.assert_allclose(scores["action"], [[1.0, 0.0]])
+    # The same key varying within one task labels every group on every task.
+    other = write_run(tmp_path, "ant", "coherent", 0, 0.0, scaled, name="a-c2")
+    runs.append(load_run(other, "eval/episode_return"))
+    scores, _ = normalized_final_scores(runs)
+    assert "coherent normalize_rewards=True" in scores and "coherent normalize_rewards=False" not in scores
+
+
 def png_pixels(path):
     from PIL import Image
 
