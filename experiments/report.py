@@ -351,9 +351,10 @@ def _pairs(suite: str, norm: dict) -> list[tuple[str, str]]:
         # The chain: intermediate beta vs step-based (1) and trajectory-based (0) exploration.
         pairs += [(f"beta={b}", f"beta={e}") for b in ("0.01", "0.1", "0.5") for e in ("1", "0")]
         return [p for p in pairs if p[0] in norm and p[1] in norm]
-    others = [b for b in (*BASELINES, "gsde", "pink") if b in norm]
-    if suite == "beyond":  # the thesis suite's own comparisons are its verdicts, not these
-        others = [b for b in reproduce.BEYOND_STRATEGIES if b in norm]
+    # beyond: only the newer strategies; the thesis suite's own comparisons are its verdicts.
+    newer = reproduce.BEYOND_STRATEGIES
+    candidates = newer if suite == "beyond" else (*BASELINES, *newer)
+    others = [b for b in candidates if b in norm]
     if suite == "sparse":  # coherent at each beta of its grid against every baseline
         return [(c, b) for c in sorted(norm) if c.startswith("beta=") for b in others]
     return [("coherent", b) for b in others if "coherent" in norm]
