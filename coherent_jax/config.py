@@ -191,8 +191,17 @@ class Config:
         _sweep(_ON_POLICY),
     )
     vf_coef: float = _field("optimisation", 0.5, "weight of the value loss", _sweep(_ON_POLICY))
+    vf_lr: float = _field(
+        "optimisation",
+        0.0,
+        "a2c/ppo: the value's own Adam rate (with vf_iters); 0 = joint loss",
+        _sweep(_ON_POLICY),
+    )
+    vf_iters: int = _field(
+        "optimisation", 0, "a2c/ppo: full-batch value steps per iteration after the policy's; 0 = joint loss"
+    )
     ent_coef: float = _field("optimisation", 0.0, "weight of the entropy bonus", _sweep(_ON_POLICY))
-    max_grad_norm: float = _field("optimisation", 0.5, "global gradient-norm clip")
+    max_grad_norm: float = _field("optimisation", 0.5, "global gradient-norm clip; 0 = none")
     normalize_advantages: bool = _field("optimisation", True, "standardise advantages per minibatch")
     normalize_obs: bool = _field("optimisation", True, "running mean/std observation normalisation")
     normalize_rewards: bool = _field(
@@ -403,7 +412,6 @@ def validate(cfg: Config) -> Config:
     for key in (
         "lr",
         "clip_eps",
-        "max_grad_norm",
         "init_std",
         "action_std",
         "w_std_init",
@@ -416,9 +424,11 @@ def validate(cfg: Config) -> Config:
     for key in ("gamma", "gae_lambda", "beta"):
         value = getattr(cfg, key)
         _check(math.isfinite(value) and 0.0 <= value <= 1.0, key, value, "a number in [0, 1]")
-    for key in ("target_kl", "vf_coef", "ent_coef"):
+    for key in ("target_kl", "vf_coef", "ent_coef", "max_grad_norm", "vf_lr"):
         value = getattr(cfg, key)
         _check(math.isfinite(value) and value >= 0, key, value, "a finite number >= 0")
+    separate = f"an integer >= 1 with vf_lr={cfg.vf_lr}" if cfg.vf_lr > 0 else "0 with vf_lr=0 (joint loss)"
+    _check(cfg.vf_iters >= 0 and (cfg.vf_iters > 0) == (cfg.vf_lr > 0), "vf_iters", cfg.vf_iters, separate)
     for key in ("policy_hidden", "value_hidden"):
         value = list(getattr(cfg, key))
         _check(len(value) >= 1 and all(v >= 1 for v in value), key, value, "a list of ints >= 1")

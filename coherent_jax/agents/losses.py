@@ -179,6 +179,7 @@ def onpolicy_loss(
     value_net: nn.Module,
     clipped: bool,
     normalize_advantages: bool,
+    value_in_loss: bool = True,
 ) -> tuple[jax.Array, dict[str, jax.Array]]:
     """Policy + value loss of one minibatch of whole segments (Algorithms 1, 2, 4, 5).
 
@@ -186,10 +187,13 @@ def onpolicy_loss(
 
     with L_pi the PPO-Clip objective (2.41 / 4.53) if ``clipped`` else A2C's, on the
     strategy's log-probabilities of each stored segment (for coherent: the marginals
-    log p(a_t | a_<t, s_<=t), 4.37), and L_V the value loss.
+    log p(a_t | a_<t, s_<=t), 4.37), and L_V the value loss. Without ``value_in_loss``
+    (a value function fitted on its own) L = L_pi - ent_coef mean_t H_t and the value
+    network is not evaluated.
 
     Returns:
-      (L, metrics: policy_loss, value_loss, entropy, approx_kl, clip_fraction).
+      (L, metrics: policy_loss, value_loss (only with ``value_in_loss``), entropy,
+      approx_kl, clip_fraction).
     """
     chex.assert_rank([batch.behaviour_log_prob, batch.advantages, batch.targets], 2)
     seg = strategy.batch_log_prob(
@@ -200,14 +204,13 @@ def onpolicy_loss(
         pi_loss, info = ppo_clip_loss(seg.log_prob, batch.behaviour_log_prob, adv, hparams.clip_eps)
     else:
         pi_loss, info = a2c_loss(seg.log_prob, batch.behaviour_log_prob, adv)
-    v_loss = value_loss(value_net.apply(params.value, batch.obs), batch.targets)
     entropy = jnp.mean(seg.entropy)
-    total = pi_loss + hparams.vf_coef * v_loss - hparams.ent_coef * entropy
-    metrics = {
-        "policy_loss": pi_loss,
-        "value_loss": v_loss,
-        "entropy": entropy,
-        "approx_kl": info.approx_kl,
-        "clip_fraction": info.clip_fraction,
-    }
+    metrics = {"policy_loss": pi_loss}
+    if value_in_loss:
+        v_loss = value_loss(value_net.apply(params.value, batch.obs), batch.targets)
+        total = pi_loss + hparams.vf_coef * v_loss - hparams.ent_coef * entropy
+        metrics["value_loss"] = v_loss
+    else:
+        total = pi_loss - hparams.ent_coef * entropy
+    metrics.update(entropy=entropy, approx_kl=info.approx_kl, clip_fraction=info.clip_fraction)
     return total, metrics

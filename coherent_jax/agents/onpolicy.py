@@ -8,6 +8,12 @@ time order, never shuffled single steps: the coherent strategy's log-probability
 is a filter over the segment. A segment that starts mid-episode starts from the
 strategy carry stored when it was collected (like a recurrent policy's stored
 hidden state), treated as a constant by the loss.
+
+The value function is trained in one of two ways. By default (``vf_iters=0``) one
+joint loss, policy + ``vf_coef`` x value, takes every step on one Adam at ``lr``. With
+``vf_iters > 0`` (Spinning Up's PPO and VPG) the policy's steps see the policy loss
+alone, and then the value takes ``vf_iters`` full-batch steps on its own Adam at
+``vf_lr`` (thesis Algorithm 1, steps 4 and 5, as two separate fits).
 """
 
 from __future__ import annotations
@@ -31,7 +37,11 @@ from coherent_jax.rollout import episode_metrics, evaluation_metrics, unroll
 
 @struct.dataclass
 class HParams:
-    """Scalars that may vary across the points of a vmapped sweep (all arrays)."""
+    """Scalars that may vary across the points of a vmapped sweep (all arrays).
+
+    ``vf_lr`` is None (no leaf, so the state of a joint-loss run is what it always was)
+    unless the value function has its own optimiser (``vf_iters > 0``).
+    """
 
     lr: jax.Array
     gamma: jax.Array
@@ -41,6 +51,7 @@ class HParams:
     vf_coef: jax.Array
     ent_coef: jax.Array
     explore: dict[str, jax.Array]
+    vf_lr: jax.Array | None = None
 
 
 @struct.dataclass
@@ -67,12 +78,25 @@ class AgentParams:
 
 
 @struct.dataclass
+class SplitOptState:
+    """The optimiser state of a separately trained value function (``vf_iters > 0``).
+
+    Attributes:
+      policy: the policy's Adam state (its steps at ``lr``).
+      value: the value function's own Adam state (its steps at ``vf_lr``).
+    """
+
+    policy: Any
+    value: Any
+
+
+@struct.dataclass
 class TrainState:
     """Everything an iteration reads and writes.
 
     Attributes:
       params: policy (trunk + exploration head) and value parameters.
-      opt_state: Adam state.
+      opt_state: Adam state: of all parameters (joint loss), or a `SplitOptState`.
       obs_stats: running observation statistics.
       env_state: the vectorized environments.
       carry: per-env exploration state (noise, sampled weights, beliefs).
@@ -97,8 +121,10 @@ class TrainState:
 
 
 def make_optimizer(cfg: Config) -> optax.GradientTransformation:
-    """Gradient clipping then Adam's scaling; the learning rate (sweepable) is applied by hand."""
-    return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.scale_by_adam(eps=1e-5))
+    """Gradient clipping (none if ``max_grad_norm=0``) then Adam's scaling; the learning
+    rate (sweepable) is applied by hand. A separately trained value function has its own."""
+    clip = [optax.clip_by_global_norm(cfg.max_grad_norm)] if cfg.max_grad_norm > 0 else []
+    return optax.chain(*clip, optax.scale_by_adam(eps=1e-5))
 
 
 def init_learner(
@@ -108,13 +134,22 @@ def init_learner(
     k_policy: jax.Array,
     k_value: jax.Array,
     obs_size: int,
+    separate_value: bool = False,
 ) -> tuple[AgentParams, Any, RunningStats]:
-    """The leading fields of `TrainState`: (params, opt_state, obs_stats) at initialisation."""
+    """The leading fields of `TrainState`: (params, opt_state, obs_stats) at initialisation.
+
+    With `separate_value` the policy and the value function get an optimiser state each
+    (`SplitOptState`); else one state covers both.
+    """
     params = AgentParams(
         policy=strategy.init(k_policy, obs_size),
         value=value_net.init(k_value, jnp.zeros((1, obs_size))),
     )
-    return params, optimizer.init(params), RunningStats.create(obs_size)
+    if separate_value:
+        opt_state = SplitOptState(policy=optimizer.init(params.policy), value=optimizer.init(params.value))
+    else:
+        opt_state = optimizer.init(params)
+    return params, opt_state, RunningStats.create(obs_size)
 
 
 def learner_template(cfg: Config, obs_size: int, action_size: int) -> tuple[AgentParams, Any, RunningStats]:
@@ -125,8 +160,9 @@ def learner_template(cfg: Config, obs_size: int, action_size: int) -> tuple[Agen
     strategy = make_strategy(cfg, action_size)
     value_net = ValueNetwork(tuple(cfg.value_hidden), cfg.activation)
     key = jax.random.PRNGKey(0)
+    optimizer, separate = make_optimizer(cfg), cfg.vf_iters > 0
     return jax.eval_shape(
-        lambda k: init_learner(strategy, value_net, make_optimizer(cfg), k, k, obs_size), key
+        lambda k: init_learner(strategy, value_net, optimizer, k, k, obs_size, separate), key
     )
 
 
@@ -157,8 +193,10 @@ class OnPolicyTrainer:
             value_net=self.value_net,
             clipped=cfg.algo == "ppo",
             normalize_advantages=cfg.normalize_advantages,
+            value_in_loss=cfg.vf_iters == 0,
         )
         self.optimizer = make_optimizer(cfg)
+        self.separate_value = cfg.vf_iters > 0
         if cfg.algo == "ppo":
             self.num_epochs, self.num_minibatches = cfg.num_epochs, cfg.num_minibatches
         else:  # A2C: one gradient step on the whole batch (Algorithm 1)
@@ -177,13 +215,20 @@ class OnPolicyTrainer:
             vf_coef=f(c.vf_coef),
             ent_coef=f(c.ent_coef),
             explore=self.strategy.init_hparams(),
+            vf_lr=f(c.vf_lr) if self.separate_value else None,
         )
 
     def init(self, key: jax.Array, hparams: HParams | None = None) -> TrainState:
         hparams = self.init_hparams() if hparams is None else hparams
         k_pol, k_val, k_env, k_carry, key = jax.random.split(key, 5)
         params, opt_state, obs_stats = init_learner(
-            self.strategy, self.value_net, self.optimizer, k_pol, k_val, self.env.observation_size
+            self.strategy,
+            self.value_net,
+            self.optimizer,
+            k_pol,
+            k_val,
+            self.env.observation_size,
+            self.separate_value,
         )
         return TrainState(
             params=params,
@@ -237,44 +282,8 @@ class OnPolicyTrainer:
             targets=targets,
             carry0=carry0,
         )
-        n, mb = self.env.num_envs, self.num_minibatches
-        grad_fn = jax.value_and_grad(self.loss, has_aux=True)
-
-        def sgd_step(c, env_idx):
-            params, opt_state, stopped = c
-            # Time-major fields split on their env axis (1), the carry on its own (0).
-            sub = jax.tree.map(lambda x: x[:, env_idx], batch._replace(carry0=()))
-            sub = sub._replace(carry0=jax.tree.map(lambda x: x[env_idx], batch.carry0))
-            (_, aux), grads = grad_fn(params, hp, sub)
-            # Algorithm 2/5: stop the epochs once the approximate KL is too large.
-            too_far = jnp.logical_and(hp.target_kl > 0, aux["approx_kl"] > 1.5 * hp.target_kl)
-            stop = jnp.logical_or(stopped, too_far)
-
-            def apply(args):
-                params, opt_state = args
-                updates, opt_state = self.optimizer.update(grads, opt_state, params)
-                params = jax.tree.map(lambda p, u: p - hp.lr * u, params, updates)
-                return params, opt_state
-
-            params, opt_state = jax.lax.cond(stop, lambda a: a, apply, (params, opt_state))
-            aux["grad_norm"] = optax.global_norm(grads)
-            aux["applied"] = (~stop).astype(jnp.float32)
-            return (params, opt_state, stop), aux
-
-        def epoch(c, k):
-            perm = jax.random.permutation(k, n).reshape(mb, n // mb)
-            return jax.lax.scan(sgd_step, c, perm)
-
-        (new_params, opt_state, _), aux = jax.lax.scan(
-            epoch,
-            (params, state.opt_state, jnp.zeros((), bool)),
-            jax.random.split(k_perm, self.num_epochs),
-        )
-        applied = aux.pop("applied")
-        weight = applied / jnp.maximum(applied.sum(), 1.0)
-        metrics = {f"train/{k}": jnp.sum(v * weight) for k, v in aux.items()}
-        metrics["train/updates_applied"] = applied.sum()
-        metrics["train/kl_first_minibatch"] = aux["approx_kl"][0, 0]
+        new_params, opt_state, metrics = self._update(params, state.opt_state, hp, batch, k_perm)
+        n = self.env.num_envs
 
         metrics.update(episode_metrics(data))
         var_t = targets.var()
@@ -296,6 +305,101 @@ class OnPolicyTrainer:
             env_steps=state.env_steps + n * cfg.unroll_length,
         )
         return new_state, metrics
+
+    def _update(self, params: AgentParams, opt_state, hp: HParams, batch, key: jax.Array):
+        """The update of one iteration: the joint loss's steps, or (``vf_iters > 0``) the
+        policy's steps on the policy loss alone, then the value's on its own optimiser.
+
+        Returns:
+          (params, opt_state, metrics).
+        """
+        if not self.separate_value:
+            return self._policy_steps(params, opt_state, lambda p, sub: self.loss(p, hp, sub), hp, batch, key)
+        policy, policy_opt, metrics = self._policy_steps(
+            params.policy,
+            opt_state.policy,
+            lambda pol, sub: self.loss(params.replace(policy=pol), hp, sub),
+            hp,
+            batch,
+            key,
+        )
+        value, value_opt, value_metrics = self._value_steps(
+            params.value, opt_state.value, hp, batch.obs, batch.targets
+        )
+        metrics.update(value_metrics)
+        return AgentParams(policy=policy, value=value), SplitOptState(policy_opt, value_opt), metrics
+
+    def _policy_steps(self, trainable, opt_state, loss_fn, hp: HParams, batch, key: jax.Array):
+        """``num_epochs`` x ``num_minibatches`` Adam steps at ``lr`` on `loss_fn`, stopping early.
+
+        `trainable` is every parameter (the joint loss) or the policy's alone;
+        ``loss_fn(trainable, minibatch) -> (loss, metrics)``. Each step first evaluates the
+        loss and its approximate KL at the current parameters, and once the KL exceeds
+        1.5 x ``target_kl`` no further step is applied (Algorithms 2 and 5).
+
+        Returns:
+          (trainable, opt_state, metrics averaged over the applied steps).
+        """
+        n, mb = self.env.num_envs, self.num_minibatches
+        grad_fn = jax.value_and_grad(loss_fn, has_aux=True)
+
+        def sgd_step(c, env_idx):
+            params, opt_state, stopped = c
+            # Time-major fields split on their env axis (1), the carry on its own (0).
+            sub = jax.tree.map(lambda x: x[:, env_idx], batch._replace(carry0=()))
+            sub = sub._replace(carry0=jax.tree.map(lambda x: x[env_idx], batch.carry0))
+            (_, aux), grads = grad_fn(params, sub)
+            # Algorithm 2/5: stop the epochs once the approximate KL is too large.
+            too_far = jnp.logical_and(hp.target_kl > 0, aux["approx_kl"] > 1.5 * hp.target_kl)
+            stop = jnp.logical_or(stopped, too_far)
+
+            def apply(args):
+                params, opt_state = args
+                updates, opt_state = self.optimizer.update(grads, opt_state, params)
+                params = jax.tree.map(lambda p, u: p - hp.lr * u, params, updates)
+                return params, opt_state
+
+            params, opt_state = jax.lax.cond(stop, lambda a: a, apply, (params, opt_state))
+            aux["grad_norm"] = optax.global_norm(grads)
+            aux["applied"] = (~stop).astype(jnp.float32)
+            return (params, opt_state, stop), aux
+
+        def epoch(c, k):
+            perm = jax.random.permutation(k, n).reshape(mb, n // mb)
+            return jax.lax.scan(sgd_step, c, perm)
+
+        (trainable, opt_state, _), aux = jax.lax.scan(
+            epoch, (trainable, opt_state, jnp.zeros((), bool)), jax.random.split(key, self.num_epochs)
+        )
+        applied = aux.pop("applied")
+        weight = applied / jnp.maximum(applied.sum(), 1.0)
+        metrics = {f"train/{k}": jnp.sum(v * weight) for k, v in aux.items()}
+        metrics["train/updates_applied"] = applied.sum()
+        metrics["train/kl_first_minibatch"] = aux["approx_kl"][0, 0]
+        return trainable, opt_state, metrics
+
+    def _value_steps(self, value_params, opt_state, hp: HParams, obs: jax.Array, targets: jax.Array):
+        """``vf_iters`` Adam steps at ``vf_lr`` on the value loss of the whole batch (Algorithm 1, step 5).
+
+        Returns:
+          (value_params, opt_state, metrics: the value loss and gradient norm, averaged over the steps).
+        """
+
+        def loss(v):
+            return losses.value_loss(self.value_net.apply(v, obs), targets)
+
+        def step(c, _):
+            v, o = c
+            value, grads = jax.value_and_grad(loss)(v)
+            updates, o = self.optimizer.update(grads, o, v)
+            v = jax.tree.map(lambda p, u: p - hp.vf_lr * u, v, updates)
+            return (v, o), (value, optax.global_norm(grads))
+
+        (value_params, opt_state), (value, grad_norm) = jax.lax.scan(
+            step, (value_params, opt_state), None, length=self.cfg.vf_iters
+        )
+        metrics = {"train/value_loss": value.mean(), "train/value_grad_norm": grad_norm.mean()}
+        return value_params, opt_state, metrics
 
     def _scaled_rewards(self, norm: RewardNorm, data, gamma: jax.Array) -> tuple[RewardNorm, jax.Array]:
         """The rewards GAE and the value targets see: as collected, or with
