@@ -314,7 +314,7 @@ class Config:
         metadata={
             "group": "exploration",
             "help": "coherent ablations: coherent.integration=analytic|mc coherent.layers=last|all "
-            "coherent.gradient=exact|stored",
+            "coherent.gradient=exact|stored coherent.episode_restart=true|false",
         },
     )
     noisynet_sigma0: float = _field(
@@ -580,15 +580,9 @@ def parse_overrides(overrides: Sequence[str], base: Config | None = None) -> Con
         if key not in known:
             raise ConfigError(f"unknown key {key!r}; valid keys: {', '.join(sorted(known))}")
         _check_yaml(key, item.split("=", 1)[1])
-        if key == "algo":
-            algo = item.split("=", 1)[1].strip()
-    base = base if base is not None else Config()
-    if algo is not None and algo != base.algo and algo in ALGO_DEFAULTS:
-        changes = dict(ALGO_DEFAULTS[algo])
-        for group in groups:
-            if group in changes:
-                changes[group] = dataclasses.replace(getattr(base, group), **changes[group])
-        base = dataclasses.replace(base, **changes)
+        if key in chosen:
+            chosen[key] = item.split("=", 1)[1].strip()
+    base = layered_base(base if base is not None else Config(), **chosen)
     schema = OmegaConf.structured(base)
     try:
         merged = OmegaConf.merge(schema, OmegaConf.from_dotlist(list(overrides)))

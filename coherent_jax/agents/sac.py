@@ -5,7 +5,9 @@ collect ``unroll_length`` steps of ``num_envs`` envs (`lax.scan`), insert them i
 the replay ring buffer held in the state, then ``updates_per_iteration`` gradient
 updates (another `lax.scan`), then let the exploration strategy adapt its noise
 scale on a replay batch. Collection uses uniform random actions until
-``warmup_steps`` env steps are done, and updates start once they are.
+``warmup_steps`` env steps are done, and updates start once ``update_after`` are
+(by default the same number; Spinning Up starts updates earlier, during the random
+actions: start_steps 10,000, update_after 1,000).
 
 Each gradient update (Algorithm 3, steps 9-14):
 
@@ -323,7 +325,7 @@ class SACTrainer:
             )
             return params, opt, explore, m, adapt_m
 
-        ready = env_steps >= cfg.warmup_steps
+        ready = env_steps >= (cfg.warmup_steps if cfg.update_after is None else cfg.update_after)
         _, _, _, m_shape, a_shape = jax.eval_shape(train, (state.params, state.opt_state, hp.explore))
         nan_like = lambda tree: jax.tree.map(lambda s: jnp.full(s.shape, jnp.nan, s.dtype), tree)  # noqa: E731
 
