@@ -100,6 +100,13 @@ class CoherentOptions:
             "segment starts from the belief stored at collection, held constant)"
         },
     )
+    episode_restart: bool = dataclasses.field(
+        default=True,
+        metadata={
+            "help": "coherent: restart the chain at every episode start (false: the chain runs across "
+            "resets within a segment, as the thesis's buffer does)"
+        },
+    )
 
     def __str__(self) -> str:
         return "{" + ",".join(f"{f.name}={getattr(self, f.name)}" for f in dataclasses.fields(self)) + "}"
@@ -435,6 +442,8 @@ def validate(cfg: Config) -> Config:
     _check(cfg.buffer_size >= 1, "buffer_size", cfg.buffer_size, "an integer >= 1")
     _check(cfg.batch_size >= 1, "batch_size", cfg.batch_size, "an integer >= 1")
     _check(cfg.warmup_steps >= 0, "warmup_steps", cfg.warmup_steps, "an integer >= 0")
+    after = cfg.update_after
+    _check(after is None or 0 <= after < 2**31, "update_after", after, "an integer >= 0 or null")
     _check(math.isfinite(cfg.tau) and 0 < cfg.tau <= 1, "tau", cfg.tau, "a number in (0, 1]")
     _check(
         math.isfinite(cfg.sigma_init) and cfg.sigma_init >= 0,
