@@ -25,6 +25,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from coherent_jax.envs.native import DEFAULT_THREADS, NATIVE_TASKS, PHYSICS, PhysicsError, resolve_physics
 from coherent_jax.envs.registry import TASKS
+from coherent_jax.presets import NO_PRESET, PRESETS, help_lines, layered_base
 
 ALGOS = ("ppo", "a2c", "sac")
 ON_POLICY = ("ppo", "a2c")
@@ -48,28 +49,6 @@ REFUSED: dict[tuple[str, str], str] = {
 COHERENT_INTEGRATION = ("analytic", "mc")
 COHERENT_LAYERS = ("last", "all")
 COHERENT_GRADIENT = ("exact", "stored")
-# Defaults that differ by algorithm (applied before the user's overrides): SAC's
-# networks, batch and env count follow Haarnoja et al. 2018 / CleanRL rather than PPO.
-ALGO_DEFAULTS: dict[str, dict[str, Any]] = {
-    "sac": {
-        "total_steps": 300_000,
-        "num_envs": 8,
-        "unroll_length": 16,
-        "lr": 3e-4,
-        "policy_hidden": [256, 256],
-        "value_hidden": [256, 256],
-        "activation": "relu",
-        "normalize_obs": False,
-        "eval_every": 20,
-        # A checkpoint holds the replay buffer (1M transitions: 170 MB per seed on
-        # HalfCheetah). Every 10 iterations of 128 steps, writing it took longer than the
-        # training between (a 5-seed sweep at UTD 0.25: 12-17 s stalls every 1,280
-        # steps, 45% of the wall time); every 200 it is a few percent.
-        "checkpoint_every": 200,
-        # Coherent-SAC uses the sampled w_t (thesis §4.3): there is no log-prob to integrate.
-        "coherent": {"integration": "mc"},
-    },
-}
 ACTIVATIONS = ("tanh", "relu", "elu", "swish")
 COHERENT_INFERENCE = ("joint", "filter")
 
@@ -174,6 +153,9 @@ class Config:
         "run", "ppo", "algorithm: " + ", ".join(ALGOS) + " (sac changes some defaults: see ALGO_DEFAULTS)"
     )
     explore: str = _field("run", "action", "exploration strategy: " + ", ".join(EXPLORES))
+    preset: str | None = _field(
+        "run", "", "a protocol's values over the algo's defaults: " + ", ".join(PRESETS)
+    )
     seed: int = _field("run", 0, "PRNG seed; the same seed gives the same run")
     total_steps: int = _field("run", 2_000_000, "environment steps to train for")
     # --- collection
@@ -254,7 +236,8 @@ class Config:
     utd_ratio: float = _field(
         "sac", 1.0, "sac: gradient updates per env step (per iteration: utd_ratio * num_envs * unroll_length)"
     )
-    warmup_steps: int = _field("sac", 5000, "sac: env steps of uniform random actions before updates start")
+    warmup_steps: int = _field("sac", 5000, "sac: env steps of uniform random actions")
+    update_after: int | None = _field("sac", None, "sac: env steps before updates start; null = warmup_steps")
     tau: float = _field(
         "sac",
         0.005,
@@ -409,6 +392,8 @@ def validate(cfg: Config) -> Config:
         value = getattr(cfg, key)
         _check(1 <= value < 2**31, key, value, "an integer >= 1")
     _check(cfg.seed >= 0, "seed", cfg.seed, "an integer >= 0")
+    _check(cfg.preset in NO_PRESET or cfg.preset in PRESETS, "preset", cfg.preset, ", ".join(PRESETS))
+    cfg = dataclasses.replace(cfg, preset="") if cfg.preset in NO_PRESET else cfg
     _check(cfg.num_minibatches >= 1, "num_minibatches", cfg.num_minibatches, "an integer >= 1")
     _check(
         cfg.algo not in ON_POLICY or cfg.num_envs % cfg.num_minibatches == 0,
@@ -575,13 +560,14 @@ def parse_overrides(overrides: Sequence[str], base: Config | None = None) -> Con
     Lists are written ``policy_hidden=[64,64]``. Raises `ConfigError` with a
     one-line message for a malformed override, an unknown key, a value of the
     wrong type or out of range. The defaults of the chosen algorithm
-    (`ALGO_DEFAULTS`) apply first, so ``algo=sac num_envs=4`` keeps SAC's network
-    sizes and takes the user's env count.
+    (`presets.ALGO_DEFAULTS`) apply first, then the chosen preset's values for it, then the
+    overrides (`coherent_jax.presets.layered_base`): ``algo=sac num_envs=4`` keeps
+    SAC's network sizes and takes the user's env count.
     """
     groups = _group_fields()
     known = {f.name for f in dataclasses.fields(Config)} - set(groups)
     known |= {f"{g}.{k}" for g, keys in groups.items() for k in keys}
-    algo = None
+    chosen: dict[str, str | None] = {"algo": None, "preset": None}
     for item in overrides:
         if "=" not in item or item.startswith("="):
             raise ConfigError(f"malformed override {item!r}: expected key=value")
@@ -634,6 +620,7 @@ def _choices() -> dict[str, tuple[str, ...]]:
         "physics": tuple(PHYSICS),
         "coherent.integration": COHERENT_INTEGRATION,
         "coherent.layers": COHERENT_LAYERS,
+        "preset": tuple(PRESETS),
     }
 
 
@@ -650,13 +637,7 @@ def to_dict(cfg: Config) -> dict[str, Any]:
 
 def help_text() -> str:
     """Every option with its default and a one-line description, grouped."""
-    lines = ["usage: python -m coherent_jax.train [key=value ...]", ""]
-    for algo, defaults in ALGO_DEFAULTS.items():
-        flat = {}
-        for k, v in defaults.items():
-            flat.update({f"{k}.{g}": w for g, w in v.items()} if isinstance(v, dict) else {k: v})
-        changed = " ".join(f"{k}={v}".replace(" ", "") for k, v in flat.items())
-        lines.append(f"algo={algo} changes these defaults: {changed}")
+    lines = ["usage: python -m coherent_jax.train [key=value ...]", "", *help_lines()]
     lines.append(f"sweepable (a list runs a grid with coherent_jax.sweep): {', '.join(SWEEPABLE)}")
     for group in GROUPS:
         lines += ["", f"{group}:"]
