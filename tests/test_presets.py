@@ -1,0 +1,322 @@
+"""``preset=thesis`` (Spinning Up's defaults), its layering under the user's overrides, its
+round trip through ``config.yaml``, and the keys it needs: a value function on its own
+optimiser (``vf_lr``, ``vf_iters``), ``max_grad_norm=0`` and SAC's ``update_after``."""
+
+import dataclasses
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+from helpers import child_env
+
+from coherent_jax.agents import losses, make_trainer
+from coherent_jax.config import SWEEPABLE, ConfigError, help_text, parse_overrides
+from coherent_jax.policy import load_policy
+from coherent_jax.runs import load_config, read_metrics, resume_config, write_config
+from coherent_jax.sweep import parse_sweep
+from coherent_jax.train import main
+
+ROOT = Path(__file__).resolve().parents[1]
+DOC = ROOT / "docs" / "presets.md"
+
+# The values docs/presets.md documents, with their Spinning Up sources there. Written out
+# here, not read from coherent_jax.presets, so that a change to either shows.
+_ON_POLICY = {
+    "num_envs": 4,
+    "unroll_length": 1000,
+    "episode_length": 1000,
+    "gamma": 0.99,
+    "gae_lambda": 0.97,
+    "lr": 3e-4,
+    "vf_lr": 1e-3,
+    "vf_iters": 80,
+    "ent_coef": 0.0,
+    "max_grad_norm": 0.0,
+    "normalize_advantages": True,
+    "normalize_obs": False,
+    "normalize_rewards": False,
+    "policy_hidden": [64, 64],
+    "value_hidden": [64, 64],
+    "activation": "tanh",
+    "init_std": math.exp(-0.5),
+    "coherent.episode_restart": False,
+}
+THESIS = {
+    "ppo": {**_ON_POLICY, "clip_eps": 0.2, "num_epochs": 80, "num_minibatches": 1, "target_kl": 0.01},
+    "a2c": {**_ON_POLICY, "num_epochs": 1, "num_minibatches": 1},
+    "sac": {
+        "num_envs": 1,
+        "unroll_length": 50,
+        "episode_length": 1000,
+        "utd_ratio": 1.0,
+        "lr": 1e-3,
+        "gamma": 0.99,
+        "tau": 0.005,
+        "temperature": 0.2,
+        "auto_temperature": False,
+        "batch_size": 100,
+        "buffer_size": 1_000_000,
+        "warmup_steps": 10_000,
+        "update_after": 1_000,
+        "policy_hidden": [256, 256],
+        "value_hidden": [256, 256],
+        "activation": "relu",
+        "normalize_obs": False,
+        "eval_every": 80,
+        "eval_episodes": 10,
+    },
+}
+TINY = [
+    "env=pointmass",
+    "num_envs=4",
+    "unroll_length=8",
+    "episode_length=20",
+    "num_minibatches=2",
+    "num_epochs=2",
+    "policy_hidden=[8]",
+    "value_hidden=[8]",
+    "eval_episodes=2",
+    "progress=false",
+    "tensorboard=false",
+]
+
+
+def get(cfg, key):
+    group, _, name = key.rpartition(".")
+    return getattr(getattr(cfg, group) if group else cfg, name)
+
+
+def shown(value) -> str:
+    """A value as docs/presets.md writes it in ``key=value``."""
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    if isinstance(value, list):
+        return "[" + ",".join(map(str, value)) + "]"
+    return str(value)
+
+
+@pytest.mark.parametrize("algo", ["ppo", "a2c", "sac"])
+def test_thesis_preset_resolves_to_the_documented_values(algo):
+    cfg = parse_overrides(["env=halfcheetah", f"algo={algo}", "preset=thesis"])
+    assert cfg.preset == "thesis"
+    for key, value in THESIS[algo].items():
+        assert get(cfg, key) == pytest.approx(value), key
+    if algo == "sac":
+        assert (cfg.steps_per_iteration, cfg.updates_per_iteration) == (50, 50)  # update_every=50
+        assert cfg.coherent.integration == "mc"  # algo=sac's own default, which the preset leaves
+        assert cfg.coherent.episode_restart is True
+    else:
+        assert cfg.steps_per_iteration == 4000  # steps_per_epoch
+
+
+@pytest.mark.parametrize("algo", ["ppo", "a2c", "sac"])
+def test_docs_give_every_value_of_the_preset(algo):
+    doc = DOC.read_text()
+    section = doc.split(f"## preset=thesis, algo={algo}")[1].split("\n## ")[0]
+    for key, value in THESIS[algo].items():
+        assert f"`{key}={shown(value)}`" in section, key
+
+
+def test_no_preset_is_todays_config():
+    assert parse_overrides(["preset="]) == parse_overrides([]) == parse_overrides(["preset=none"])
+    assert parse_overrides([]).preset == ""
+    assert parse_overrides(["algo=sac", "preset=null"]) == parse_overrides(["algo=sac"])
+
+
+def test_user_overrides_beat_the_preset_and_the_preset_beats_algo_defaults():
+    items = ["algo=sac", "lr=3e-3", "coherent.episode_restart=false", "num_envs=2"]
+    for order in (["preset=thesis", *items], [*items, "preset=thesis"]):
+        cfg = parse_overrides(order)
+        assert (cfg.lr, cfg.num_envs, cfg.coherent.episode_restart) == (3e-3, 2, False)
+        assert (cfg.batch_size, cfg.update_after) == (100, 1000)  # the preset's
+        assert (cfg.total_steps, cfg.checkpoint_every) == (300_000, 200)  # algo=sac's, under the preset
+    cfg = parse_overrides(["preset=thesis", "vf_iters=10", "num_epochs=5", "coherent.episode_restart=true"])
+    assert (cfg.vf_iters, cfg.num_epochs, cfg.coherent.episode_restart, cfg.vf_lr) == (10, 5, True, 1e-3)
+
+
+def test_preset_round_trips_through_config_yaml_and_resume(tmp_path):
+    cfg = parse_overrides(["env=pointmass", "preset=thesis", "lr=1e-4", f"run_dir={tmp_path}"])
+    write_config(tmp_path, cfg)
+    text = (tmp_path / "config.yaml").read_text()
+    assert "preset: thesis" in text and "vf_iters: 80" in text and "lr: 0.0001" in text
+    assert load_config(tmp_path) == cfg
+    # The preset is not applied again over the stored config (its lr=1e-4 stays).
+    for again in ([], ["preset=thesis"], ["algo=ppo", "preset=thesis"]):
+        resumed, _ = resume_config(str(tmp_path), again)
+        assert dataclasses.replace(resumed, resume="") == cfg
+    with pytest.raises(ConfigError, match="'preset' with resume"):
+        resume_config(str(tmp_path), ["preset=none"])
+
+
+def test_unknown_preset_is_refused_in_one_line(tmp_path):
+    with pytest.raises(ConfigError) as err:
+        parse_overrides(["preset=spinningup"])
+    assert str(err.value) == "invalid value for 'preset': 'spinningup' (allowed: thesis)"
+    proc = subprocess.run(
+        [sys.executable, "-m", "coherent_jax.train", "preset=x", f"run_dir={tmp_path / 'run'}"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        env=child_env(),
+        timeout=120,
+    )
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == ["error: invalid value for 'preset': 'x' (allowed: thesis)"]
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_help_lists_the_preset_per_algo():
+    text = help_text()
+    assert "preset=thesis:" in text
+    for algo in ("ppo", "a2c", "sac"):
+        line = next(ln for ln in text.splitlines() if ln.startswith(f"  with algo={algo}:"))
+        for key in ("num_envs", "unroll_length", "lr"):
+            assert f"{key}={shown(THESIS[algo][key])}" in line, (algo, key)
+    assert "vf_iters=80" in text and "update_after=1000" in text and "coherent.episode_restart=False" in text
+
+
+def test_separate_value_keys_are_checked_together_and_vf_lr_is_sweepable():
+    assert "vf_lr" in SWEEPABLE
+    plan = parse_sweep(["env=pointmass", "preset=thesis", "vf_lr=[0.001,0.0003]"])
+    assert [(p.cfg.vf_lr, p.cfg.vf_iters) for p in plan.points] == [(1e-3, 80), (3e-4, 80)]
+    with pytest.raises(ConfigError, match="'vf_iters'"):  # the joint loss has no vf_lr to vary
+        parse_sweep(["env=pointmass", "vf_lr=[0.001,0.0003]"])
+    with pytest.raises(ConfigError, match="'vf_iters'.*vf_lr=0.001"):
+        parse_overrides(["vf_lr=1e-3"])
+    with pytest.raises(ConfigError, match="'vf_iters'.*vf_lr=0"):
+        parse_overrides(["vf_iters=4"])
+    with pytest.raises(ConfigError, match="'max_grad_norm'"):
+        parse_overrides(["max_grad_norm=-1"])
+
+
+def run_iterations(overrides, iterations=2):
+    return run_variants(overrides, [{}], iterations)[0]
+
+
+def run_variants(overrides, variants, iterations=2):
+    """(state, metrics) after `iterations` of one compiled trainer, for each dict of
+    sweepable hyperparameters in `variants` (set in the state, as a sweep does)."""
+    trainer = make_trainer(parse_overrides([*TINY, *overrides]))
+    init, step = jax.jit(trainer.init), jax.jit(trainer.iteration)
+    out = []
+    for changes in variants:
+        hparams = trainer.init_hparams()
+        hparams = hparams.replace(**{k: jnp.asarray(v, jnp.float32) for k, v in changes.items()})
+        state = init(jax.random.PRNGKey(0), hparams)
+        for _ in range(iterations):
+            state, metrics = step(state)
+        out.append((state, metrics))
+    return out
+
+
+def leaves_equal(a, b) -> bool:
+    return all(np.array_equal(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True))
+
+
+def leaves_close(a, b) -> bool:
+    """Equal up to float32 rounding (two different programs may round differently)."""
+    pairs = zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True)
+    return all(np.allclose(x, y, rtol=1e-5, atol=1e-6) for x, y in pairs)
+
+
+def test_separate_value_keeps_the_value_loss_out_of_the_policy_step():
+    """With its own optimiser, vf_coef does not reach the policy (clipping on, so a shared
+    global norm would couple them); with the joint loss it does."""
+    vf_coefs = [{"vf_coef": 0.5}, {"vf_coef": 50.0}]
+    (a, _), (b, _) = run_variants(["vf_lr=1e-3", "vf_iters=3", "max_grad_norm=0.05"], vf_coefs)
+    assert leaves_equal(a.params.policy, b.params.policy)
+    assert leaves_equal(a.params.value, b.params.value)
+    (c, _), (d, _) = run_variants(["max_grad_norm=0.05"], vf_coefs)
+    assert not leaves_equal(c.params.policy, d.params.policy)
+
+
+def test_value_takes_vf_iters_adam_steps_on_its_own_optimizer():
+    state, metrics = run_iterations(["vf_lr=1e-3", "vf_iters=3"], iterations=2)
+    # Adam's step counters: 3 value steps per iteration, the policy's applied steps apart.
+    assert int(state.opt_state.value[-1].count) == 2 * 3  # (clip, Adam)
+    assert int(state.opt_state.policy[-1].count) == 2 * 4  # num_epochs x num_minibatches
+    assert np.isfinite(metrics["train/value_loss"]) and "train/value_grad_norm" in metrics
+    assert float(state.hparams.vf_lr) == pytest.approx(1e-3)
+
+    # The value steps against Adam at vf_lr written out (optax.adam, eps as the trainer's).
+    trainer = make_trainer(parse_overrides([*TINY, "vf_lr=1e-2", "vf_iters=3", "max_grad_norm=0"]))
+    init = trainer.init(jax.random.PRNGKey(1))
+    obs = jax.random.normal(jax.random.PRNGKey(2), (8, 4, 6))
+    targets = jax.random.normal(jax.random.PRNGKey(3), (8, 4))
+    got, _, m = trainer._value_steps(init.params.value, init.opt_state.value, init.hparams, obs, targets)
+
+    def loss(v):
+        return losses.value_loss(trainer.value_net.apply(v, obs), targets)
+
+    adam = optax.adam(1e-2, eps=1e-5)
+    want, opt, first = init.params.value, adam.init(init.params.value), []
+    for i in range(3):
+        value, grads = jax.value_and_grad(loss)(want)
+        first.append(value)
+        if i == 2:
+            two_steps = want
+        updates, opt = adam.update(grads, opt, want)
+        want = optax.apply_updates(want, updates)
+    for g, w, t in zip(jax.tree.leaves(got), jax.tree.leaves(want), jax.tree.leaves(two_steps), strict=True):
+        np.testing.assert_allclose(g, w, rtol=1e-6, atol=1e-7)
+        assert not np.allclose(g, t)
+    assert float(m["train/value_loss"]) == pytest.approx(float(jnp.mean(jnp.stack(first))), rel=1e-6)
+
+
+def test_max_grad_norm_zero_means_no_clipping():
+    free, metrics = run_iterations(["max_grad_norm=0"])
+    huge, _ = run_iterations(["max_grad_norm=1e30"])  # a clip that never binds
+    tight, _ = run_iterations(["max_grad_norm=1e-3"])
+    assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(free.params))
+    assert leaves_close(free.params, huge.params)
+    assert not leaves_close(free.params, tight.params)
+    assert float(metrics["train/grad_norm"]) > 1e-3  # so the tight clip did bind
+
+
+def test_sac_updates_start_at_update_after_during_the_random_actions():
+    trainer = make_trainer(
+        parse_overrides(
+            [*TINY, "algo=sac", "num_envs=1", "warmup_steps=40", "update_after=16", "batch_size=8"]
+            + ["buffer_size=64", "utd_ratio=0.5"]
+        )
+    )
+    state = jax.jit(trainer.init)(jax.random.PRNGKey(0))
+    step = jax.jit(trainer.iteration)
+    rows = []
+    for _ in range(6):
+        state, m = step(state)
+        rows.append((int(state.env_steps), float(m["train/warmup"]), float(m["train/updates_applied"])))
+    # 8 steps per iteration: random actions while fewer than 40 steps were done before
+    # the iteration, updates (4 each) once 16 are.
+    assert rows == [(8, 1, 0), (16, 1, 4), (24, 1, 4), (32, 1, 4), (40, 1, 4), (48, 0, 4)]
+
+
+def test_separate_value_run_resumes_to_the_uninterrupted_run(tmp_path):
+    """The value's optimiser state is in the checkpoint: a run stopped and resumed equals
+    one run straight through, and its policy loads from the checkpoint."""
+    args = [*TINY, "preset=thesis", "num_epochs=3", "vf_iters=4", "checkpoint_every=1", "eval_every=2"]
+    straight, split = tmp_path / "straight", tmp_path / "split"
+    assert main([*args, "total_steps=96", f"run_dir={straight}"]) == 0
+    assert main([*args, "total_steps=64", f"run_dir={split}"]) == 0
+    assert main([f"resume={split}", "total_steps=96"]) == 0
+
+    def rows(run):
+        return [{k: v for k, v in r.items() if k != "time_s"} for r in read_metrics(run / "metrics.jsonl")]
+
+    assert [r["iteration"] for r in rows(split)] == [1, 2, 3]
+    assert rows(split) == rows(straight)
+    assert (split / "params.msgpack").read_bytes() == (straight / "params.msgpack").read_bytes()
+    summary = json.loads((split / "summary.json").read_text())
+    assert summary["resumed_from"] == 2
+    policy, where = load_policy(split, 6, 2)
+    assert where["iteration"] == 3
+    assert np.all(np.isfinite(policy.mean_action(jnp.zeros((1, 6)))))
