@@ -48,7 +48,7 @@ REFUSED: dict[tuple[str, str], str] = {
 }
 COHERENT_INTEGRATION = ("analytic", "mc")
 COHERENT_LAYERS = ("last", "all")
-COHERENT_GRADIENT = ("exact", "stored")
+COHERENT_GRADIENT = ("exact", "stored", "episode")
 ACTIVATIONS = ("tanh", "relu", "elu", "swish")
 COHERENT_INFERENCE = ("joint", "filter")
 
@@ -75,8 +75,10 @@ class CoherentOptions:
         default="exact",
         metadata={
             "help": "coherent, analytic: exact (the chain restarts at each segment start, as at t = 0 "
-            "of Algorithm 5, so the loss has the thesis's gradient) or stored (the chain runs on; a "
-            "segment starts from the belief stored at collection, held constant)"
+            "of Algorithm 5: the thesis's gradient of a chain cut every unroll_length steps), episode "
+            "(the chain runs on through the episode; the loss re-infers each segment's episode prefix "
+            "under the current parameters: the thesis's gradient of that chain) or stored (the chain "
+            "runs on; a segment starts from the belief stored at collection, held constant)"
         },
     )
     episode_restart: bool = dataclasses.field(
@@ -304,7 +306,7 @@ class Config:
         metadata={
             "group": "exploration",
             "help": "coherent ablations: coherent.integration=analytic|mc coherent.layers=last|all "
-            "coherent.gradient=exact|stored coherent.episode_restart=true|false",
+            "coherent.gradient=exact|episode|stored coherent.episode_restart=true|false",
         },
     )
     noisynet_sigma0: float = _field(
@@ -499,6 +501,24 @@ def _validate_strategies(cfg: Config) -> None:
     _check(co.gradient in COHERENT_GRADIENT, "coherent.gradient", co.gradient, ", ".join(COHERENT_GRADIENT))
     if cfg.explore == "coherent":
         _check(
+            co.gradient != "episode" or cfg.coherent_inference == "joint",
+            "coherent_inference",
+            cfg.coherent_inference,
+            "joint with coherent.gradient=episode (the loss re-infers the episode prefix in joint form)",
+        )
+        _check(
+            co.episode_restart or co.gradient != "episode",
+            "coherent.episode_restart",
+            co.episode_restart,
+            "true with coherent.gradient=episode (the prefix it re-infers starts at the episode start)",
+        )
+        _check(
+            co.episode_restart or (cfg.algo in ON_POLICY and co.integration == "analytic"),
+            "coherent.episode_restart",
+            co.episode_restart,
+            "true with algo=sac or coherent.integration=mc (the switch is the analytic chain's)",
+        )
+        _check(
             cfg.algo in ON_POLICY or co.integration == "mc",
             "coherent.integration",
             co.integration,
@@ -620,7 +640,7 @@ def _choices() -> dict[str, tuple[str, ...]]:
         "physics": tuple(PHYSICS),
         "coherent.integration": COHERENT_INTEGRATION,
         "coherent.layers": COHERENT_LAYERS,
-        "preset": tuple(PRESETS),
+        "coherent.gradient": COHERENT_GRADIENT,
     }
 
 

@@ -44,6 +44,41 @@ class Transition(NamedTuple):
         return jnp.logical_or(self.terminated, self.truncated)
 
 
+class EpisodeHistory(NamedTuple):
+    """Each env's last H steps before the current segment, time-major [H, n, ...].
+
+    What a strategy with ``history_length = H > 0`` reads before each segment (coherent's
+    episode prefix, ``coherent.gradient=episode``). Observations are raw, so that the
+    trainer normalises them with the statistics of the iteration that reads them. Before
+    any step was taken the rows are padding: ``first`` is True there, so each padding
+    step is an episode of its own and changes nothing after it.
+
+    Attributes:
+      obs: [H, n, o] s_t, raw.
+      action: [H, n, p] a_t.
+      first: [H, n] bool, s_t starts an episode.
+    """
+
+    obs: jax.Array
+    action: jax.Array
+    first: jax.Array
+
+    @classmethod
+    def empty(cls, length: int, num_envs: int, obs_size: int, action_size: int) -> EpisodeHistory:
+        return cls(
+            obs=jnp.zeros((length, num_envs, obs_size), jnp.float32),
+            action=jnp.zeros((length, num_envs, action_size), jnp.float32),
+            first=jnp.ones((length, num_envs), bool),
+        )
+
+    def extend(self, data: Transition) -> EpisodeHistory:
+        """The last H steps once the segment ``data`` [T, n] has been taken."""
+        length = self.first.shape[0]
+        join = lambda old, new: jnp.concatenate([old, new.astype(old.dtype)])[-length:]  # noqa: E731
+        obs, action = join(self.obs, data.obs), join(self.action, data.action)
+        return EpisodeHistory(obs=obs, action=action, first=join(self.first, data.first))
+
+
 # act(key, carry, raw_obs, first) -> ActOutput
 ActFn = Callable[[jax.Array, Any, jax.Array, jax.Array], ActOutput]
 

@@ -16,6 +16,7 @@ import jax
 import pytest
 from helpers import CACHE_MIN_COMPILE_S
 from helpers import CACHE_VAR as _CACHE_VAR
+from references import x64_enabled
 
 from coherent_jax.config import parse_overrides
 from coherent_jax.envs import native
@@ -74,3 +75,10 @@ def leaves_global_state_as_found():
     yield
     changed = _differences(before, _snapshot())
     assert not changed, "test left process-wide state changed: " + "; ".join(changed)
+
+
+@pytest.fixture
+def x64():
+    """Runs the test with jax_enable_x64 on (the float64 references), restored after it."""
+    with x64_enabled():
+        yield

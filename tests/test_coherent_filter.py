@@ -8,13 +8,13 @@ float64 run inside the ``x64`` fixture, which restores JAX's default afterwards 
 other test files still run in float32.
 """
 
-import contextlib
 import math
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from references import x64_enabled
 
 from coherent_jax.exploration import coherent
 
@@ -23,24 +23,6 @@ _LOG_2PI = math.log(2.0 * math.pi)
 # One compiled program per input shape and dtype; beta is a traced argument.
 _log_marginals = jax.jit(coherent.log_marginals)
 _log_marginals_from = jax.jit(coherent.log_marginals_from, static_argnames="remat")
-
-
-@contextlib.contextmanager
-def x64_enabled():
-    """jax_enable_x64 on inside the block, the previous setting restored after it."""
-    previous = jax.config.read("jax_enable_x64")
-    jax.config.update("jax_enable_x64", True)
-    try:
-        yield
-    finally:
-        jax.config.update("jax_enable_x64", previous)
-
-
-@pytest.fixture
-def x64():
-    """Runs the test with jax_enable_x64 on."""
-    with x64_enabled():
-        yield
 
 
 # ---------------------------------------------------------------- numpy references

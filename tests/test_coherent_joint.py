@@ -13,14 +13,6 @@ import pytest
 from coherent_jax.exploration import coherent as C
 
 
-@pytest.fixture
-def x64():
-    prev = jax.config.jax_enable_x64
-    jax.config.update("jax_enable_x64", True)
-    yield
-    jax.config.update("jax_enable_x64", prev)
-
-
 def random_problem(rng, T, p, q, resets):
     x = rng.normal(size=(T, q))
     a = rng.normal(size=(T, p))

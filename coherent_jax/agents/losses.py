@@ -158,6 +158,8 @@ class SegmentBatch(NamedTuple):
       advantages: [T, m] GAE advantages.
       targets: [T, m] value targets.
       carry0: the strategy's carry at each segment's start, [m, ...].
+      context: for a strategy with ``history_length = H > 0``, the H steps before each
+        segment (`rollout.EpisodeHistory`, observations normalised), [H, m, ...]; else ().
     """
 
     obs: jax.Array
@@ -168,6 +170,29 @@ class SegmentBatch(NamedTuple):
     advantages: jax.Array
     targets: jax.Array
     carry0: Any
+    context: Any = ()
+
+
+def segment_log_prob(strategy: OnPolicyStrategy, policy: Any, hparams: Any, batch: SegmentBatch) -> Any:
+    """The strategy's `SegmentLogProb` of each segment of ``batch`` [T, m]: with a context
+    (H steps before each segment), of the windows context + segment, last T steps kept."""
+    if not batch.context:
+        return strategy.batch_log_prob(
+            policy, hparams, batch.carry0, batch.obs, batch.action, batch.first, batch.extras
+        )
+    if batch.extras != ():
+        raise ValueError("a strategy that reads a history stores no per-step extras")
+    ctx, num_steps = batch.context, batch.obs.shape[0]
+    join = lambda h, s: jnp.concatenate([h, s.astype(h.dtype)])  # noqa: E731
+    seg = strategy.batch_log_prob(
+        policy,
+        hparams,
+        batch.carry0,
+        join(ctx.obs, batch.obs),
+        join(ctx.action, batch.action),
+        join(ctx.first, batch.first),
+    )
+    return jax.tree.map(lambda v: v[-num_steps:], seg)
 
 
 def onpolicy_loss(
@@ -196,9 +221,7 @@ def onpolicy_loss(
       approx_kl, clip_fraction).
     """
     chex.assert_rank([batch.behaviour_log_prob, batch.advantages, batch.targets], 2)
-    seg = strategy.batch_log_prob(
-        params.policy, hparams.explore, batch.carry0, batch.obs, batch.action, batch.first, batch.extras
-    )
+    seg = segment_log_prob(strategy, params.policy, hparams.explore, batch)
     adv = standardize(batch.advantages) if normalize_advantages else batch.advantages
     if clipped:
         pi_loss, info = ppo_clip_loss(seg.log_prob, batch.behaviour_log_prob, adv, hparams.clip_eps)

@@ -32,7 +32,7 @@ from coherent_jax.envs.vec_env import EnvState, VecEnv
 from coherent_jax.exploration import make_strategy
 from coherent_jax.exploration.base import OnPolicyStrategy
 from coherent_jax.networks import RunningStats, ValueNetwork, normalize, scale_rewards, update_stats
-from coherent_jax.rollout import episode_metrics, evaluation_metrics, unroll
+from coherent_jax.rollout import EpisodeHistory, episode_metrics, evaluation_metrics, unroll
 
 
 @struct.dataclass
@@ -106,6 +106,8 @@ class TrainState:
       key: PRNG key.
       iteration: iterations done.
       env_steps: environment steps done.
+      history: each env's last ``strategy.history_length`` steps (`EpisodeHistory`), or
+        () for a strategy that reads none.
     """
 
     params: AgentParams
@@ -118,6 +120,7 @@ class TrainState:
     key: jax.Array
     iteration: jax.Array
     env_steps: jax.Array
+    history: Any = ()
 
 
 def make_optimizer(cfg: Config) -> optax.GradientTransformation:
@@ -241,7 +244,15 @@ class OnPolicyTrainer:
             key=key,
             iteration=jnp.zeros((), jnp.int32),
             env_steps=jnp.zeros((), jnp.int32),
+            history=self._empty_history(),
         )
+
+    def _empty_history(self) -> EpisodeHistory | tuple:
+        length = self.strategy.history_length
+        if not length:
+            return ()
+        env = self.env
+        return EpisodeHistory.empty(length, env.num_envs, env.observation_size, env.action_size)
 
     # ------------------------------------------------------------- iteration
     def _norm(self, stats: RunningStats, obs: jax.Array) -> jax.Array:
@@ -259,11 +270,10 @@ class OnPolicyTrainer:
         carry0 = state.carry
         env_state, carry, data = unroll(self.env, act, state.env_state, carry0, k_roll, cfg.unroll_length)
         obs = self._norm(stats, data.obs)
+        context = self._context(state.history, stats)
         # Strategies may score the whole segment at once (coherent: joint Gaussian), and
         # adapt their noise on its states (PSNE).
-        behaviour_log_prob, carry = strategy.score_segment(
-            params.policy, hp.explore, carry0, carry, obs, data.action, data.first, data.log_prob
-        )
+        behaviour_log_prob, carry = self._score(params, hp, carry0, carry, obs, data, context)
         carry = strategy.adapt(params.policy, hp.explore, carry, obs)
         data = data._replace(log_prob=behaviour_log_prob)
         values = self.value_net.apply(params.value, obs)
@@ -281,6 +291,7 @@ class OnPolicyTrainer:
             advantages=advantages,
             targets=targets,
             carry0=carry0,
+            context=context,
         )
         new_params, opt_state, metrics = self._update(params, state.opt_state, hp, batch, k_perm)
         n = self.env.num_envs
@@ -303,6 +314,7 @@ class OnPolicyTrainer:
             key=key,
             iteration=state.iteration + 1,
             env_steps=state.env_steps + n * cfg.unroll_length,
+            history=state.history.extend(data) if state.history else (),
         )
         return new_state, metrics
 
@@ -400,6 +412,33 @@ class OnPolicyTrainer:
         )
         metrics = {"train/value_loss": value.mean(), "train/value_grad_norm": grad_norm.mean()}
         return value_params, opt_state, metrics
+
+    def _context(self, history: EpisodeHistory | tuple, stats: RunningStats) -> EpisodeHistory | tuple:
+        """The steps before the segment as the loss reads them: observations normalised with
+        this iteration's statistics, like the segment's."""
+        if not history:
+            return ()
+        return history._replace(obs=self._norm(stats, history.obs))
+
+    def _score(self, params, hp, carry0, carry, obs, data, context) -> tuple[jax.Array, Any]:
+        """`strategy.score_segment` of the segment [T, n], on windows context + segment when
+        the strategy reads a history (the last T log-probabilities kept)."""
+        if not context:
+            return self.strategy.score_segment(
+                params.policy, hp.explore, carry0, carry, obs, data.action, data.first, data.log_prob
+            )
+        join = lambda h, v: jnp.concatenate([h, v.astype(h.dtype)])  # noqa: E731
+        log_prob, carry = self.strategy.score_segment(
+            params.policy,
+            hp.explore,
+            carry0,
+            carry,
+            join(context.obs, obs),
+            join(context.action, data.action),
+            join(context.first, data.first),
+            join(jnp.full(context.first.shape, jnp.nan), data.log_prob),
+        )
+        return log_prob[-obs.shape[0] :], carry
 
     def _scaled_rewards(self, norm: RewardNorm, data, gamma: jax.Array) -> tuple[RewardNorm, jax.Array]:
         """The rewards GAE and the value targets see: as collected, or with

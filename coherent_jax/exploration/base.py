@@ -62,6 +62,11 @@ class OnPolicyStrategy(abc.ABC):
     """A stochastic policy head with its exploration process (A2C/PPO)."""
 
     name: str = "base"
+    #: Steps of each env's past that `log_prob` reads before a segment (coherent's episode
+    #: prefix). When it is H > 0 the trainer keeps each env's last H steps (raw observations,
+    #: actions, ``first`` flags) and hands `score_segment` and `batch_log_prob` windows of
+    #: H + T steps, of which only the last T are scored; 0: segments alone.
+    history_length: int = 0
 
     @classmethod
     @abc.abstractmethod

@@ -555,6 +555,16 @@ def _to_standard(belief: Belief, mu: chex.Array, w_std: chex.Array) -> tuple[che
     return (belief.mean - mu) / w_std, belief.cov / (w_std[:, :, None] * w_std[:, None, :])
 
 
+def episode_history_length(episode_length: int, unroll_length: int) -> int:
+    """Prefix steps a segment's window needs so that it reaches back to the segment's
+    episode start: at least ``episode_length - 1`` (a segment may start at the episode's
+    last step), rounded up to whole segments so that the window's blocks line up with
+    the segment's (``coherent.gradient=episode``)."""
+    if episode_length < 1 or unroll_length < 1:
+        raise ValueError(f"episode and unroll lengths must be >= 1, got {episode_length}, {unroll_length}")
+    return -(-(episode_length - 1) // unroll_length) * unroll_length
+
+
 class ChainStrategy(OnPolicyStrategy):
     """What the strategies on the beta-chain share: beta, the initial w_std, the action noise.
 
@@ -570,6 +580,12 @@ class ChainStrategy(OnPolicyStrategy):
         self.w_std_init = float(w_std_init)
         self.action_std = float(action_std)
         self.learn_action_std = bool(learn_action_std)
+
+    def _chain_first(self, first: chex.Array) -> chex.Array:
+        """Where episode starts restart the chain: every ``first``, or none with
+        ``episode_restart=False`` (the chain then runs across resets, as through the
+        thesis's buffer; only the strategy's own restarts start it afresh)."""
+        return first if getattr(self, "episode_restart", True) else jnp.zeros_like(first)
 
     @staticmethod
     def chain_settings(cfg) -> dict:
@@ -619,11 +635,23 @@ class CoherentExploration(ChainStrategy):
       parameters, and the loss's gradient is the thesis's estimator (4.14) of the
       process actually run. The chain's correlations span at most ``unroll_length``
       steps: ``unroll_length = episode_length`` keeps them over whole episodes.
+    * ``"episode"``: the chain runs on across segments within an episode, and the loss
+      re-infers each segment's episode prefix under the current parameters: the trainer
+      keeps each env's last `history_length` steps (at least ``episode_length - 1``)
+      and `log_prob` scores the window prefix + segment from the prior at its first
+      step, every episode start inside it resetting the belief (4.33). The segment's
+      log-probabilities are then the thesis's marginals (4.37)/(4.49) of the episode
+      filtered from its start, and their gradient the thesis's estimator (4.14) for
+      the chain actually run, at a cost that grows with the prefix.
     * ``"stored"``: the chain runs on across segments, and a segment that starts
       mid-episode starts from the belief stored when it was collected, a constant of
       the data mapped onto the current mu and w_std: the right values (the ratio is 1
       at the collection parameters) but not the thesis's gradient (see
       ``python -m coherent_jax.bench gradient``). Kept for the ablation.
+
+    ``episode_restart=False`` lets the chain run across episode starts; only the
+    segment starts of ``"exact"`` restart it then, which is Algorithm 5's buffer: w_0
+    drawn at t = 0, w_t ~ p(w_t | w_t-1) at every later step, across env resets.
     """
 
     name = "coherent"
@@ -640,17 +668,28 @@ class CoherentExploration(ChainStrategy):
         remat: bool = False,
         inference: str = "joint",
         gradient: str = "exact",
+        episode_restart: bool = True,
+        episode_length: int = 0,
+        unroll_length: int = 0,
     ):
         if inference not in ("joint", "filter"):
             raise ValueError(f"inference must be 'joint' or 'filter', got {inference!r}")
-        if gradient not in ("exact", "stored"):
-            raise ValueError(f"gradient must be 'exact' or 'stored', got {gradient!r}")
+        if gradient not in ("exact", "stored", "episode"):
+            raise ValueError(f"gradient must be 'exact', 'stored' or 'episode', got {gradient!r}")
+        if gradient == "episode" and (inference != "joint" or not episode_restart or unroll_length < 1):
+            raise ValueError("gradient='episode' needs inference='joint', episode_restart and unroll_length")
         super().__init__(action_size, beta, w_std_init, action_std, learn_action_std)
         self.feature_size = int(hidden[-1])
         self.trunk = MLP(tuple(hidden), activation)
         self.remat = bool(remat)
         self.inference = inference
         self.gradient = gradient
+        self.episode_restart = bool(episode_restart)
+        if gradient == "episode":
+            from coherent_jax.exploration.coherent_exact import block_size
+
+            self.history_length = episode_history_length(episode_length, unroll_length)
+            self.block = block_size(int(unroll_length))
 
     @classmethod
     def from_config(cls, cfg, action_size: int):
@@ -662,6 +701,9 @@ class CoherentExploration(ChainStrategy):
             remat=cfg.remat,
             inference=cfg.coherent_inference,
             gradient=cfg.coherent.gradient,
+            episode_restart=cfg.coherent.episode_restart,
+            episode_length=cfg.episode_length,
+            unroll_length=cfg.unroll_length,
         )
 
     # ---------------------------------------------------------------- params
@@ -693,11 +735,12 @@ class CoherentExploration(ChainStrategy):
     @property
     def _keeps_belief(self) -> bool:
         """Whether the carry holds a belief: not when every segment is scored at once from
-        the prior (``inference="joint"``, ``gradient="exact"``). The belief is then empty
+        the prior or the episode's start (``inference="joint"``, ``gradient="exact"`` or
+        ``"episode"``). The belief is then empty
         ([n, p, 0] and [n, p, 0, 0]) instead of p (q+1)^2 floats per env that the
         rollout's loop would carry and the loss would gather for nothing (at the
         defaults, 6.5 MB per rollout step with 64 envs)."""
-        return not (self.inference == "joint" and self.gradient == "exact")
+        return not (self.inference == "joint" and self.gradient in ("exact", "episode"))
 
     def _segment_belief(self, carry0: CoherentCarry, mu: chex.Array, w_std: chex.Array) -> Belief:
         """The belief a segment starts from: the stored one in weight coordinates, or the
@@ -713,7 +756,8 @@ class CoherentExploration(ChainStrategy):
             z=jnp.zeros((num_envs, p, n), jnp.float32),
             mean=jnp.zeros((num_envs, p, m), jnp.float32),
             cov=jnp.broadcast_to(jnp.eye(m, dtype=jnp.float32), (num_envs, p, m, m)),
-            restart=jnp.zeros((num_envs,), bool),
+            # The chain starts at the first step of training whatever ``first`` says there.
+            restart=jnp.ones((num_envs,), bool),
         )
 
     # ------------------------------------------------------------ collection
@@ -725,7 +769,7 @@ class CoherentExploration(ChainStrategy):
         num_envs = x.shape[0]
         k_w, k_a = jax.random.split(key)
         # The chain in standard coordinates; a fresh draw at an episode start or a restart.
-        first = jnp.logical_or(first, carry.restart)
+        first = jnp.logical_or(self._chain_first(first), carry.restart)
         z = chain_step(k_w, carry.z, first, beta)
         carry = carry._replace(restart=jnp.zeros_like(carry.restart))
         w = mu + w_std * z  # [n, p, q+1]
@@ -747,8 +791,9 @@ class CoherentExploration(ChainStrategy):
         return ActOutput(action, logp, carry._replace(z=z, mean=mean, cov=cov))
 
     def _segment_first(self, first: chex.Array, restart: chex.Array) -> chex.Array:
-        """Where the chain starts afresh in a segment: its episode starts, and its first
-        step if the chain restarted there."""
+        """Where the chain starts afresh in a segment: its episode starts (unless
+        ``episode_restart`` is off), and its first step if the chain restarted there."""
+        first = self._chain_first(first)
         return first.at[0].set(jnp.logical_or(first[0], restart))
 
     def _score(self, belief0, x, a, first, mu, w_std, action_std, beta):
@@ -767,6 +812,8 @@ class CoherentExploration(ChainStrategy):
     def score_segment(self, params, hparams, carry0, carry, obs, actions, first, log_prob):
         # With the exact gradient the next segment restarts the chain (Algorithm 5, steps 4-5).
         carry = carry._replace(restart=jnp.full_like(carry.restart, self.gradient == "exact"))
+        if self.gradient == "episode":  # windows of prefix + segment, scored as the loss scores them
+            return self.batch_log_prob(params, hparams, carry0, obs, actions, first).log_prob, carry
         if self.inference == "filter":
             return log_prob, carry  # scored step by step in `act`
         mu, w_std, action_std = self._head(params, hparams)
@@ -789,6 +836,8 @@ class CoherentExploration(ChainStrategy):
         chex.assert_rank([obs, actions, first], [2, 2, 1])
         mu, w_std, action_std = self._head(params, hparams)
         x = self.trunk.apply(params["trunk"], obs)
+        if self.gradient == "episode":
+            return self._window_log_prob(x, actions, first, mu, w_std, action_std, hparams["beta"])
         # The stored belief is a constant of the data (like a stored RNN state); its
         # mapping onto the current mu and w_std is not.
         # With gradient="exact" a segment's chain starts at its first step, so the
@@ -797,6 +846,21 @@ class CoherentExploration(ChainStrategy):
         first = self._segment_first(first, carry0.restart)
         belief0 = self._segment_belief(carry0, mu, w_std)
         logp, _, pred_var = self._score(belief0, x, actions, first, mu, w_std, action_std, hparams["beta"])
+        return SegmentLogProb(logp, predictive_entropy(pred_var))
+
+    def _window_log_prob(self, x, actions, first, mu, w_std, action_std, beta) -> SegmentLogProb:
+        """``gradient="episode"``: a window of `history_length` prefix steps and a segment,
+        scored from the prior at its first step as blocks of the joint form chained by
+        differentiable beliefs (`coherent_exact.chained_marginals`). The window always
+        reaches back to the segment's episode start, which resets the belief there (4.33),
+        so every earlier step only costs time; the trainer reads the last T steps."""
+        from coherent_jax.exploration.coherent_exact import chained_marginals
+
+        first = jnp.asarray(first, bool).at[0].set(True)
+        prior = prior_belief(mu, w_std)
+        logp, _, pred_var = chained_marginals(
+            prior, x, actions, first, mu, w_std, action_std, beta, self.block, from_prior=True
+        )
         return SegmentLogProb(logp, predictive_entropy(pred_var))
 
     def mean_action(self, params, obs):

@@ -1,0 +1,125 @@
+"""Shared float64 references of the coherent marginals and the helpers their tests use.
+
+The reference is the joint Gaussian of a whole episode's actions under the thesis's
+model (eqs. 4.1-4.5 and 4.29): one dense covariance per action dimension over every step
+since the episode start, its Cholesky factor in time order giving log p(a_t | a_<t,
+s_<=t) for every t. It shares no code with the library: no beliefs, no blocks, no
+filter, no custom derivatives. It describes the process whose chain restarts exactly
+where ``first`` is True (and at step 0).
+"""
+
+import contextlib
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+@contextlib.contextmanager
+def x64_enabled():
+    previous = jax.config.read("jax_enable_x64")
+    jax.config.update("jax_enable_x64", True)
+    try:
+        yield
+    finally:
+        jax.config.update("jax_enable_x64", previous)
+
+
+# ---------------------------------------------------------------- the reference
+
+
+def reference_log_marginals(x, a, first, mu, w_std, action_std, beta):
+    """log p(a_t | a_<t, s_<=t) for every step, from each episode's dense joint Gaussian.
+
+    Cov(a_s,i, a_t,i) = [same episode] (1-beta)^|s-t| xh_s' diag(w_std_i^2) xh_t
+                        + [s = t] action_std_i^2,   E[a_t,i] = mu_i . xh_t,
+    the first step always starting an episode. L L' = Cov in time order; with
+    r = L^-1 (a - E a): log p(a_t,i | a_<t,i) = -0.5 (log 2 pi + r_t^2) - log L_tt.
+    """
+    num_steps = x.shape[0]
+    xh = jnp.concatenate([x, jnp.ones((num_steps, 1), x.dtype)], axis=1)
+    episode = jnp.cumsum(jnp.asarray(first).at[0].set(True).astype(jnp.int32))
+    same = episode[:, None] == episode[None, :]
+    idx = jnp.arange(num_steps)
+    lag = jnp.abs(idx[:, None] - idx[None, :]).astype(x.dtype)
+    decay = jnp.where(same, (1.0 - beta) ** lag, 0.0)
+    total = jnp.zeros(num_steps, x.dtype)
+    for i in range(mu.shape[0]):
+        cov = decay * ((xh * w_std[i] ** 2) @ xh.T) + action_std[i] ** 2 * jnp.eye(num_steps)
+        chol = jnp.linalg.cholesky(cov)
+        r = jax.scipy.linalg.solve_triangular(chol, a[:, i] - xh @ mu[i], lower=True)
+        total = total - 0.5 * (_LOG_2PI + r**2) - jnp.log(jnp.diagonal(chol))
+    return total
+
+
+def trunk(theta, obs):
+    return jnp.tanh(obs @ theta["w"] + theta["b"])
+
+
+def sample_episode(rng, obs, theta, mu, w_std, action_std, beta, first):
+    """Actions drawn from the chain (4.1-4.5) and (4.29) in numpy."""
+    x = np.asarray(trunk(theta, obs))
+    num_steps, p = x.shape[0], mu.shape[0]
+    xh = np.concatenate([x, np.ones((num_steps, 1))], axis=1)
+    a = np.zeros((num_steps, p))
+    w = None
+    for t in range(num_steps):
+        eps = rng.normal(size=mu.shape)
+        if t == 0 or first[t]:
+            w = mu + w_std * eps
+        else:
+            w = (1 - beta) * w + beta * mu + math.sqrt(2 * beta - beta**2) * w_std * eps
+        a[t] = w @ xh[t] + action_std * rng.normal(size=p)
+    return a
+
+
+def problem(seed, num_steps, p=2, q=3, obs_size=4, resets=(), beta=0.05):
+    rng = np.random.default_rng(seed)
+    obs = np.cumsum(rng.normal(size=(num_steps, obs_size)), axis=0) * 0.3
+    params = {
+        "theta": {"w": rng.normal(size=(obs_size, q)) * 0.7, "b": rng.normal(size=q) * 0.1},
+        "mu": rng.normal(size=(p, q + 1)) * 0.5,
+        "log_w_std": np.log(rng.uniform(0.2, 0.6, (p, q + 1))),
+        "log_action_std": np.log(rng.uniform(0.1, 0.3, p)),
+    }
+    first = np.zeros(num_steps, bool)
+    first[0] = True
+    first[list(resets)] = True
+    a = sample_episode(
+        rng,
+        obs,
+        params["theta"],
+        params["mu"],
+        np.exp(params["log_w_std"]),
+        np.exp(params["log_action_std"]),
+        beta,
+        first,
+    )
+    params = jax.tree.map(jnp.asarray, params)
+    return params, jnp.asarray(obs), jnp.asarray(a), jnp.asarray(first)
+
+
+def heads(params):
+    return params["mu"], jnp.exp(params["log_w_std"]), jnp.exp(params["log_action_std"])
+
+
+def perturb(params, seed, scale=0.05):
+    leaves, tree = jax.tree.flatten(params)
+    keys = jax.random.split(jax.random.PRNGKey(seed), len(leaves))
+    return jax.tree.unflatten(
+        tree, [v + scale * jax.random.normal(k, v.shape, v.dtype) for v, k in zip(leaves, keys, strict=True)]
+    )
+
+
+def assert_trees_close(a, b, rtol, atol):
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        np.testing.assert_allclose(x, y, rtol=rtol, atol=atol)
+
+
+def cosine(a, b):
+    a = np.concatenate([np.ravel(v) for v in jax.tree.leaves(a)])
+    b = np.concatenate([np.ravel(v) for v in jax.tree.leaves(b)])
+    return float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
