@@ -23,6 +23,7 @@ from typing import Any
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from coherent_jax import limits
 from coherent_jax.envs.native import DEFAULT_THREADS, NATIVE_TASKS, PHYSICS, PhysicsError, resolve_physics
 from coherent_jax.envs.registry import TASKS
 
@@ -391,8 +392,9 @@ def validate(cfg: Config) -> Config:
     _check(cfg.activation in ACTIVATIONS, "activation", cfg.activation, ", ".join(ACTIVATIONS))
     for key in ("total_steps", "num_envs", "unroll_length", "episode_length", "num_epochs"):
         value = getattr(cfg, key)
-        _check(1 <= value < 2**31, key, value, "an integer >= 1")
-    _check(cfg.seed >= 0, "seed", cfg.seed, "an integer >= 0")
+        allowed = "an integer >= 1, or 0 for the task's own" if key == "episode_length" else "an integer >= 1"
+        _check(1 <= value < 2**31, key, value, allowed)
+    _check(0 <= cfg.seed <= limits.MAX_SEED, "seed", cfg.seed, limits.SEED_ALLOWED)
     _check(cfg.num_minibatches >= 1, "num_minibatches", cfg.num_minibatches, "an integer >= 1")
     _check(
         cfg.algo not in ON_POLICY or cfg.num_envs % cfg.num_minibatches == 0,
@@ -479,6 +481,9 @@ def validate(cfg: Config) -> Config:
     _check(cfg.eval_episodes >= 1, "eval_episodes", cfg.eval_episodes, "an integer >= 1")
     _check(cfg.checkpoint_every >= 0, "checkpoint_every", cfg.checkpoint_every, "an integer >= 0")
     _check(cfg.num_devices >= 0, "num_devices", cfg.num_devices, "an integer >= 0 (0 = all devices)")
+    overflow = limits.counter_problem(cfg)
+    if overflow is not None:
+        _check(False, *overflow)
     return cfg
 
 

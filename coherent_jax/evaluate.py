@@ -25,7 +25,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from coherent_jax import cli, video
+from coherent_jax import cli, limits, video
 from coherent_jax.config import ConfigError
 from coherent_jax.runs import CHECKPOINT, CheckpointError, decode_checkpoint, load_config
 
@@ -34,7 +34,9 @@ KEYS: dict[str, cli.Key] = {
         10, cli.int_at_least(1), "an integer >= 1", "deterministic episodes, run in parallel"
     ),
     "video": cli.Key(False, cli.boolean, "true or false", "render the first episode (MuJoCo tasks only)"),
-    "seed": cli.Key(0, cli.int_at_least(0), "an integer >= 0", "PRNG seed of the evaluation episodes"),
+    "seed": cli.Key(
+        0, cli.int_between(0, limits.MAX_SEED), limits.SEED_ALLOWED, "PRNG seed of the evaluation episodes"
+    ),
     "video_path": cli.Key(
         "",
         video.check_path,

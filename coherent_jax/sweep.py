@@ -45,7 +45,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from coherent_jax import cli, distributed
+from coherent_jax import cli, distributed, limits
 from coherent_jax.config import (
     SWEEPABLE,
     Config,
@@ -179,6 +179,12 @@ def parse_sweep(argv: Sequence[str]) -> SweepPlan:
     }
     if seed_items is None:
         seeds = [base.seed + i for i in range(num_seeds or 1)]
+        if seeds[-1] > limits.MAX_SEED:
+            raise ConfigError(
+                f"invalid value for 'seeds': {num_seeds} with seed={base.seed} (allowed: at most "
+                f"{limits.MAX_SEED - base.seed + 1}, so that seed + seeds - 1 <= {limits.MAX_SEED}: "
+                "the PRNG key is derived from the seed's 32 bits)"
+            )
     else:
         seeds = [parse_overrides([*scalars, f"seed={v}"]).seed for v in seed_items]
     return make_plan(base, typed, seeds)
