@@ -119,7 +119,10 @@ def load_config(run_dir: Path) -> Config:
 
 
 def package_versions() -> dict[str, str]:
-    """Python, platform and the versions of the packages a run's numbers depend on."""
+    """Python, platform and the versions of the packages a run's numbers depend on, and the
+    project's commit and the CPU (`coherent_jax.provenance`)."""
+    from coherent_jax.provenance import provenance
+
     versions = {"python": sys.version.split()[0], "platform": platform.platform()}
     for name in VERSIONED_PACKAGES:
         try:
@@ -132,6 +135,7 @@ def package_versions() -> dict[str, str]:
         versions["jax_backend"] = jax.default_backend()
     except Exception:  # noqa: BLE001 - best effort: versions.json must not stop a run
         pass
+    versions.update(provenance())
     return versions
 
 
@@ -405,18 +409,21 @@ def resume_point(run_dir: Path, cfg: Config, metrics: Path | None = None) -> Che
 
 
 def record_versions(run_dir: Path, resumed_at: int | None) -> None:
-    """Writes ``versions.json``; on resume, a ``versions-resumed-N.json`` beside it if they changed."""
+    """Writes ``versions.json``; on resume, a ``versions-resumed-N.json`` beside it if they changed
+    (the platform string aside; a field the stored file lacks, such as the provenance of a run
+    recorded before it was kept, is not a change)."""
     versions = package_versions()
     if resumed_at is None:
         atomic_write(run_dir / VERSIONS, json.dumps(versions, indent=2).encode())
         return
     stored = json.loads((run_dir / VERSIONS).read_text()) if (run_dir / VERSIONS).exists() else {}
-    if {k: v for k, v in versions.items() if k != "platform"} != {
-        k: v for k, v in stored.items() if k != "platform"
-    }:
+    # A versions.json written before the provenance fields existed does not count them as changed.
+    changed = [k for k, v in versions.items() if k != "platform" and stored.get(k, v) != v]
+    changed += [k for k in stored if k != "platform" and k not in versions]
+    if changed:
         name = f"versions-resumed-{resumed_at}.json"
         atomic_write(run_dir / name, json.dumps(versions, indent=2).encode())
-        print(f"{PREFIX} warning: package versions differ from the run's; see {name}", flush=True)
+        print(f"{PREFIX} warning: {', '.join(changed)} differ from the run's; see {name}", flush=True)
 
 
 def write_config(run_dir: Path, cfg: Config) -> None:
