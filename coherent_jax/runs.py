@@ -101,15 +101,20 @@ def load_config(run_dir: Path) -> Config:
             f"invalid run directory {str(run_dir)!r}: no {CONFIG} (allowed: a training run's directory)"
         )
     try:
-        stored = OmegaConf.load(path)
-        merged = OmegaConf.merge(OmegaConf.structured(Config()), stored)
+        stored = yaml.safe_load(path.read_text())
+        if not isinstance(stored, dict) or not stored:
+            shape = "empty" if not stored else f"a YAML {type(stored).__name__}, not a mapping"
+            raise ConfigError(f"invalid {path}: {shape} (allowed: a mapping of the run's config keys)")
+        merged = OmegaConf.merge(OmegaConf.structured(Config()), OmegaConf.create(stored))
         cfg = OmegaConf.to_object(merged)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""
         problem = getattr(exc, "problem", None) or "malformed"
         raise ConfigError(f"invalid {path}: not valid YAML{where} ({problem})") from None
-    except (OmegaConfBaseException, ValueError) as exc:
+    except ConfigError:
+        raise
+    except (OmegaConfBaseException, ValueError, TypeError, OSError) as exc:
         key = getattr(exc, "full_key", None) or "?"
         raise ConfigError(f"invalid {path}: key {key!r}: {str(exc).splitlines()[0]}") from None
     try:
