@@ -282,7 +282,10 @@ class Config:
     progress: bool = _field("output", True, "show a progress bar")
     # --- long runs: checkpoints, resume, TensorBoard
     checkpoint_every: int = _field(
-        "output", 10, "iterations between checkpoints (atomic; one also at the end and on SIGINT/SIGTERM)"
+        "output",
+        10,
+        "iterations between checkpoints (atomic; one also at the end and on SIGINT/SIGTERM); "
+        "0 = only at the end and on SIGINT/SIGTERM (a run killed otherwise resumes from the start)",
     )
     resume: str = _field(
         "output", "", "continue the run in this directory from its checkpoint, with its config"

@@ -390,15 +390,18 @@ def resume_point(run_dir: Path, cfg: Config, metrics: Path | None = None) -> Che
     """The checkpoint a resume starts from, or None to start the run over from iteration 0.
 
     A run stopped before its first checkpoint (killed during the compile, say) has
-    none; it starts over if it logged fewer rows than one checkpoint interval.
-    Otherwise a missing checkpoint is an error: it was lost, and starting over would
-    overwrite logged work. A budget below the checkpoint's iteration is refused.
-    `metrics` is the ``metrics.jsonl`` that tells how far it got (default: the run's own).
+    none; it starts over if it logged fewer rows than one checkpoint interval, and so
+    does a run started with ``checkpoint_every=0`` (checkpoints only at the end and on
+    SIGINT/SIGTERM) that was killed otherwise. Else a missing checkpoint is an error: it
+    was lost, and starting over would overwrite logged work. A budget below the
+    checkpoint's iteration is refused. `metrics` is the ``metrics.jsonl`` that tells how
+    far it got (default: the run's own).
     """
     path = run_dir / CHECKPOINT
     if not path.exists():
         logged = len(read_metrics(metrics or run_dir / METRICS))
-        if logged == 0 or (cfg.checkpoint_every > 0 and logged < cfg.checkpoint_every):
+        only_at_end = load_config(run_dir).checkpoint_every == 0  # as the run was started
+        if logged == 0 or only_at_end or (cfg.checkpoint_every > 0 and logged < cfg.checkpoint_every):
             return None
         raise CheckpointError(
             f"no checkpoint at {str(path)!r} although {logged} iterations were logged "
