@@ -62,11 +62,20 @@ def acquire(directory: Path, key: str) -> RunLock:
     """Locks `directory` (an existing one) for this process; raises `ConfigError` naming the holder.
 
     ``key`` is the setting the refusal names (``run_dir`` or ``resume``). A lock left by a
-    process that is gone is taken over.
+    process that is gone is taken over; a directory where the lock file cannot be made is
+    refused too.
     """
     path = Path(directory) / LOCK
     while True:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            from coherent_jax.config import ConfigError
+
+            raise ConfigError(
+                f"invalid value for {key!r}: {str(directory)!r} cannot be written ({exc.strerror}) "
+                "(allowed: a directory this process can write in)"
+            ) from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
