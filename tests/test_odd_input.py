@@ -230,7 +230,7 @@ def test_resume_given_twice_is_refused(tmp_path, capsys):
 
 
 # ------------------------------------------------------------------ 6. options the command would ignore
-@pytest.mark.parametrize("item", ["resume=/tmp", "run_dir=/tmp/x", "checkpoint_every=5", "total_steps=100"])
+@pytest.mark.parametrize("item", ["resume=runs/x", "run_dir=runs/x", "checkpoint_every=5", "total_steps=100"])
 @pytest.mark.parametrize("suite", ["throughput", "coherent", "sac"])
 def test_bench_resume_and_run_dir_are_refused(capsys, suite, item):
     refused(bench_main, [suite, item], capsys, f"invalid key {item.split('=')[0]!r}", "does not use it")
