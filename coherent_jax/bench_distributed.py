@@ -103,7 +103,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return cli.EXIT_BAD_INPUT
     settings, cfg = parsed.settings, parsed.config
-    train_args = [*DEFAULTS, *parsed.config_items]
+    # The user's items replace the defaults they name (the training command refuses a key twice).
+    given = {cli.split_item(item)[0] for item in parsed.config_items}
+    train_args = [*(d for d in DEFAULTS if cli.split_item(d)[0] not in given), *parsed.config_items]
     n, repeats = settings["processes"], settings["repeats"]
     load_before = os.getloadavg()
     rates: dict[str, list[float]] = {"one_process": [], "processes": []}

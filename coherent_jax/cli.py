@@ -211,6 +211,21 @@ def split_item(item: str) -> tuple[str, str]:
     return key.strip(), value.strip()
 
 
+def check_unique(items: Sequence[str]) -> None:
+    """Refuses a key given twice (``lr=0.1 lr=0.2``): which one was meant is not for us to guess.
+
+    Items that are not ``key=value`` (a run directory) are left to the caller.
+    """
+    seen: dict[str, str] = {}
+    for item in items:
+        if "=" not in item or not item.split("=", 1)[0].strip():
+            continue
+        key = item.split("=", 1)[0].strip()
+        if key in seen:
+            raise ConfigError(f"duplicated key {key!r}: {seen[key]} and {item} (allowed: each key once)")
+        seen[key] = item
+
+
 def parse_value(key: str, text: str, spec: Key) -> Any:
     """``spec.parse(text)``, a failure turned into the one-line `ConfigError` naming ``key``."""
     try:
@@ -239,6 +254,7 @@ def parse_command(
     config: bool = True,
     fixed: Mapping[str, str | None] | None = None,
     config_defaults: Sequence[str] = (),
+    ignored: Sequence[str] = (),
 ) -> Parsed:
     """Splits ``key=value`` items into the command's settings and a validated training config.
 
@@ -248,17 +264,25 @@ def parse_command(
     with None the command varies the key itself (a benchmark that runs every
     ``explore``) and the config keeps its default. ``config_defaults``: config items
     the command starts from, which the user's items override (``env=halfcheetah``).
-    ``command`` names the command in the refusal of a fixed key. Raises `ConfigError`
-    in one line for any bad item; nothing else happens, so callers parse first.
+    ``command`` names the command in the refusal of a fixed key. ``ignored``: config
+    keys the command never reads (a benchmark's ``run_dir``), refused rather than
+    silently dropped. A key given twice is refused. Raises `ConfigError` in one line for
+    any bad item; nothing else happens, so callers parse first.
     """
     fixed = dict(fixed or {})
-    valid_config = (config_keys() - set(fixed)) if config else set()
+    valid_config = (config_keys() - set(fixed) - set(ignored)) if config else set()
     settings = {k: spec.default for k, spec in keys.items()}
     config_items = []
+    check_unique(items)
     for item in items:
         key, text = split_item(item)
         if key in keys:
             settings[key] = parse_value(key, text, keys[key])
+        elif config and key in ignored:
+            raise ConfigError(
+                f"invalid key {key!r}: {command} does not use it "
+                f"(allowed: any key except {', '.join(sorted({*fixed, *ignored}))})"
+            )
         elif key in fixed:
             raise ConfigError(
                 f"invalid key {key!r}: {command} sets it itself "

@@ -23,6 +23,7 @@ from typing import Any
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from coherent_jax import limits
 from coherent_jax.envs.native import DEFAULT_THREADS, NATIVE_TASKS, PHYSICS, PhysicsError, resolve_physics
 from coherent_jax.envs.registry import TASKS
 from coherent_jax.presets import NO_PRESET, PRESETS, help_lines, layered_base
@@ -282,7 +283,10 @@ class Config:
     progress: bool = _field("output", True, "show a progress bar")
     # --- long runs: checkpoints, resume, TensorBoard
     checkpoint_every: int = _field(
-        "output", 10, "iterations between checkpoints (atomic; one also at the end and on SIGINT/SIGTERM)"
+        "output",
+        10,
+        "iterations between checkpoints (atomic; one also at the end and on SIGINT/SIGTERM); "
+        "0 = only at the end and on SIGINT/SIGTERM (a run killed otherwise resumes from the start)",
     )
     resume: str = _field(
         "output", "", "continue the run in this directory from its checkpoint, with its config"
@@ -392,8 +396,9 @@ def validate(cfg: Config) -> Config:
     _check(cfg.activation in ACTIVATIONS, "activation", cfg.activation, ", ".join(ACTIVATIONS))
     for key in ("total_steps", "num_envs", "unroll_length", "episode_length", "num_epochs"):
         value = getattr(cfg, key)
-        _check(1 <= value < 2**31, key, value, "an integer >= 1")
-    _check(cfg.seed >= 0, "seed", cfg.seed, "an integer >= 0")
+        allowed = "an integer >= 1, or 0 for the task's own" if key == "episode_length" else "an integer >= 1"
+        _check(1 <= value < 2**31, key, value, allowed)
+    _check(0 <= cfg.seed <= limits.MAX_SEED, "seed", cfg.seed, limits.SEED_ALLOWED)
     _check(cfg.preset in NO_PRESET or cfg.preset in PRESETS, "preset", cfg.preset, ", ".join(PRESETS))
     cfg = dataclasses.replace(cfg, preset="") if cfg.preset in NO_PRESET else cfg
     _check(cfg.num_minibatches >= 1, "num_minibatches", cfg.num_minibatches, "an integer >= 1")
@@ -485,6 +490,9 @@ def validate(cfg: Config) -> Config:
     _check(cfg.eval_episodes >= 1, "eval_episodes", cfg.eval_episodes, "an integer >= 1")
     _check(cfg.checkpoint_every >= 0, "checkpoint_every", cfg.checkpoint_every, "an integer >= 0")
     _check(cfg.num_devices >= 0, "num_devices", cfg.num_devices, "an integer >= 0 (0 = all devices)")
+    overflow = limits.counter_problem(cfg)
+    if overflow is not None:
+        _check(False, *overflow)
     return cfg
 
 

@@ -9,9 +9,10 @@ parallel, as training evaluates, and the mean and standard deviation of their re
 are printed. With ``video=true`` it also renders the first episode
 (`coherent_jax.video`; headless: ``MUJOCO_GL=egl`` by default, or ``osmesa``) to
 ``RUN_DIR/videos/eval-it<iteration>-s<seed>.mp4`` (``.gif`` without ffmpeg) unless
-``video_path`` is given; the physics states come from inside the jitted evaluation, so
-the video shows exactly the episodes whose returns are printed. `pointmass` has no
-MuJoCo model and refuses ``video=true``.
+``video_path`` is given (``video_path`` without ``video=true`` is refused); the physics
+states come from inside the jitted evaluation, so the video shows exactly the episodes
+whose returns are printed. `pointmass` has no MuJoCo model and refuses ``video=true``.
+A sweep's root directory is refused with the list of its points.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from coherent_jax import cli, video
+from coherent_jax import cli, limits, rundir, video
 from coherent_jax.config import ConfigError
 from coherent_jax.runs import CHECKPOINT, CheckpointError, decode_checkpoint, load_config
 
@@ -34,12 +35,15 @@ KEYS: dict[str, cli.Key] = {
         10, cli.int_at_least(1), "an integer >= 1", "deterministic episodes, run in parallel"
     ),
     "video": cli.Key(False, cli.boolean, "true or false", "render the first episode (MuJoCo tasks only)"),
-    "seed": cli.Key(0, cli.int_at_least(0), "an integer >= 0", "PRNG seed of the evaluation episodes"),
+    "seed": cli.Key(
+        0, cli.int_between(0, limits.MAX_SEED), limits.SEED_ALLOWED, "PRNG seed of the evaluation episodes"
+    ),
     "video_path": cli.Key(
         "",
         video.check_path,
         video.PATH_ALLOWED,
-        "where the video goes; default RUN_DIR/videos/eval-it<iteration>-s<seed>.mp4 (.gif without ffmpeg)",
+        "where the video goes, only with video=true; default "
+        "RUN_DIR/videos/eval-it<iteration>-s<seed>.mp4 (.gif without ffmpeg)",
     ),
     "width": cli.Key(320, cli.int_between(16, 640), "an integer in [16, 640]", "video width in pixels"),
     "height": cli.Key(240, cli.int_between(16, 480), "an integer in [16, 480]", "video height in pixels"),
@@ -75,6 +79,11 @@ def parse_eval_args(argv: Sequence[str]) -> tuple[Path, EvalConfig]:
         )
     items = [a for a, s in zip(argv, is_setting, strict=True) if s]
     settings = cli.parse_command(items, KEYS, command="evaluate", config=False).settings
+    if settings["video_path"] and not settings["video"]:
+        raise ConfigError(
+            f"invalid key 'video_path': {settings['video_path']!r} without video=true "
+            "(allowed: video_path only with video=true)"
+        )
     return Path(positional[0]), EvalConfig(**settings)
 
 
@@ -136,6 +145,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not run_dir.is_dir():
             raise ConfigError(
                 f"invalid run directory {str(run_dir)!r}: not a directory (allowed: a run directory)"
+            )
+        if rundir.is_sweep(run_dir):
+            points = ", ".join(str(p) for p in rundir.sweep_points(run_dir)) or "none yet"
+            raise ConfigError(
+                f"invalid run directory {str(run_dir)!r}: this is a sweep; "
+                f"evaluate one of its points: {points}"
             )
         cfg = load_config(run_dir)
         if (run_dir / CHECKPOINT).is_file() or not (run_dir / PARAMS).is_file():

@@ -101,15 +101,20 @@ def load_config(run_dir: Path) -> Config:
             f"invalid run directory {str(run_dir)!r}: no {CONFIG} (allowed: a training run's directory)"
         )
     try:
-        stored = OmegaConf.load(path)
-        merged = OmegaConf.merge(OmegaConf.structured(Config()), stored)
+        stored = yaml.safe_load(path.read_text())
+        if not isinstance(stored, dict) or not stored:
+            shape = "empty" if not stored else f"a YAML {type(stored).__name__}, not a mapping"
+            raise ConfigError(f"invalid {path}: {shape} (allowed: a mapping of the run's config keys)")
+        merged = OmegaConf.merge(OmegaConf.structured(Config()), OmegaConf.create(stored))
         cfg = OmegaConf.to_object(merged)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""
         problem = getattr(exc, "problem", None) or "malformed"
         raise ConfigError(f"invalid {path}: not valid YAML{where} ({problem})") from None
-    except (OmegaConfBaseException, ValueError) as exc:
+    except ConfigError:
+        raise
+    except (OmegaConfBaseException, ValueError, TypeError, OSError) as exc:
         key = getattr(exc, "full_key", None) or "?"
         raise ConfigError(f"invalid {path}: key {key!r}: {str(exc).splitlines()[0]}") from None
     try:
@@ -119,7 +124,10 @@ def load_config(run_dir: Path) -> Config:
 
 
 def package_versions() -> dict[str, str]:
-    """Python, platform and the versions of the packages a run's numbers depend on."""
+    """Python, platform and the versions of the packages a run's numbers depend on, and the
+    project's commit and the CPU (`coherent_jax.provenance`)."""
+    from coherent_jax.provenance import provenance
+
     versions = {"python": sys.version.split()[0], "platform": platform.platform()}
     for name in VERSIONED_PACKAGES:
         try:
@@ -132,6 +140,7 @@ def package_versions() -> dict[str, str]:
         versions["jax_backend"] = jax.default_backend()
     except Exception:  # noqa: BLE001 - best effort: versions.json must not stop a run
         pass
+    versions.update(provenance())
     return versions
 
 
@@ -381,15 +390,18 @@ def resume_point(run_dir: Path, cfg: Config, metrics: Path | None = None) -> Che
     """The checkpoint a resume starts from, or None to start the run over from iteration 0.
 
     A run stopped before its first checkpoint (killed during the compile, say) has
-    none; it starts over if it logged fewer rows than one checkpoint interval.
-    Otherwise a missing checkpoint is an error: it was lost, and starting over would
-    overwrite logged work. A budget below the checkpoint's iteration is refused.
-    `metrics` is the ``metrics.jsonl`` that tells how far it got (default: the run's own).
+    none; it starts over if it logged fewer rows than one checkpoint interval, and so
+    does a run started with ``checkpoint_every=0`` (checkpoints only at the end and on
+    SIGINT/SIGTERM) that was killed otherwise. Else a missing checkpoint is an error: it
+    was lost, and starting over would overwrite logged work. A budget below the
+    checkpoint's iteration is refused. `metrics` is the ``metrics.jsonl`` that tells how
+    far it got (default: the run's own).
     """
     path = run_dir / CHECKPOINT
     if not path.exists():
         logged = len(read_metrics(metrics or run_dir / METRICS))
-        if logged == 0 or (cfg.checkpoint_every > 0 and logged < cfg.checkpoint_every):
+        only_at_end = load_config(run_dir).checkpoint_every == 0  # as the run was started
+        if logged == 0 or only_at_end or (cfg.checkpoint_every > 0 and logged < cfg.checkpoint_every):
             return None
         raise CheckpointError(
             f"no checkpoint at {str(path)!r} although {logged} iterations were logged "
@@ -405,18 +417,21 @@ def resume_point(run_dir: Path, cfg: Config, metrics: Path | None = None) -> Che
 
 
 def record_versions(run_dir: Path, resumed_at: int | None) -> None:
-    """Writes ``versions.json``; on resume, a ``versions-resumed-N.json`` beside it if they changed."""
+    """Writes ``versions.json``; on resume, a ``versions-resumed-N.json`` beside it if they changed
+    (the platform string aside; a field the stored file lacks, such as the provenance of a run
+    recorded before it was kept, is not a change)."""
     versions = package_versions()
     if resumed_at is None:
         atomic_write(run_dir / VERSIONS, json.dumps(versions, indent=2).encode())
         return
     stored = json.loads((run_dir / VERSIONS).read_text()) if (run_dir / VERSIONS).exists() else {}
-    if {k: v for k, v in versions.items() if k != "platform"} != {
-        k: v for k, v in stored.items() if k != "platform"
-    }:
+    # A versions.json written before the provenance fields existed does not count them as changed.
+    changed = [k for k, v in versions.items() if k != "platform" and stored.get(k, v) != v]
+    changed += [k for k in stored if k != "platform" and k not in versions]
+    if changed:
         name = f"versions-resumed-{resumed_at}.json"
         atomic_write(run_dir / name, json.dumps(versions, indent=2).encode())
-        print(f"{PREFIX} warning: package versions differ from the run's; see {name}", flush=True)
+        print(f"{PREFIX} warning: {', '.join(changed)} differ from the run's; see {name}", flush=True)
 
 
 def write_config(run_dir: Path, cfg: Config) -> None:

@@ -14,7 +14,9 @@ The loop over iterations is `coherent_jax.loop`, the same as a single run's: the
 same evaluations, metrics rows, TensorBoard files, checkpoints (one for the whole
 grid), ``resume=SWEEP_DIR`` (also ``total_steps=N`` to extend), SIGINT/SIGTERM
 handling and divergence guard (a diverged point is named and marked, the others
-continue; exit status 3 at the end). Each point derives its keys exactly as a
+continue; exit status 3 at the end). A resume may restate the grid but not change it
+(`coherent_jax.sweep_resume`); the sweep's directory is locked while it runs, as a
+single run's is (`coherent_jax.runlock`). Each point derives its keys exactly as a
 single run does (`loop.run_keys`), so point i equals ``python -m
 coherent_jax.train`` with that point's settings. With several JAX devices the
 points are split over them (`parallel.point_shardings`).
@@ -32,20 +34,18 @@ before anything is written.
 
 from __future__ import annotations
 
-import csv
+import contextlib
 import dataclasses
-import io
 import itertools
 import json
 import signal
-import statistics
 import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from coherent_jax import cli, distributed
+from coherent_jax import cli, distributed, limits, rundir
 from coherent_jax.config import (
     SWEEPABLE,
     Config,
@@ -65,6 +65,7 @@ from coherent_jax.loop import (
     to_float,
     write_params,
 )
+from coherent_jax.memory import check_memory
 from coherent_jax.runs import (
     METRICS,
     Checkpoint,
@@ -72,15 +73,15 @@ from coherent_jax.runs import (
     atomic_write,
     prepare_output_dir,
     record_versions,
-    resume_config,
     resume_point,
     split_resume,
     write_config,
 )
+from coherent_jax.sweep_table import aggregate, fmt, format_table, to_csv
 
 # Keys that may take a list of values: the state's array hyperparameters, and seed.
 AXIS_KEYS = (*SWEEPABLE, "seed")
-GRID = "grid.json"
+GRID = rundir.GRID
 # The sweep's own keys (everything else is a training-config key or an axis).
 SWEEP_KEYS = {
     "seeds": cli.Key(
@@ -104,7 +105,7 @@ class Point:
 
     @property
     def name(self) -> str:
-        parts = [f"{k}={_fmt(v)}" for k, v in self.values.items()]
+        parts = [f"{k}={fmt(v)}" for k, v in self.values.items()]
         return "-".join([f"p{self.index:03d}", *parts, f"seed={self.seed}"])
 
 
@@ -116,10 +117,6 @@ class SweepPlan:
     axes: dict[str, list[Any]]
     seeds: list[int]
     points: list[Point]
-
-
-def _fmt(value: Any) -> str:
-    return f"{value:g}" if isinstance(value, float) else str(value)
 
 
 def _is_list(text: str) -> bool:
@@ -179,6 +176,12 @@ def parse_sweep(argv: Sequence[str]) -> SweepPlan:
     }
     if seed_items is None:
         seeds = [base.seed + i for i in range(num_seeds or 1)]
+        if seeds[-1] > limits.MAX_SEED:
+            raise ConfigError(
+                f"invalid value for 'seeds': {num_seeds} with seed={base.seed} (allowed: at most "
+                f"{limits.MAX_SEED - base.seed + 1}, so that seed + seeds - 1 <= {limits.MAX_SEED}: "
+                "the PRNG key is derived from the seed's 32 bits)"
+            )
     else:
         seeds = [parse_overrides([*scalars, f"seed={v}"]).seed for v in seed_items]
     return make_plan(base, typed, seeds)
@@ -362,47 +365,6 @@ def run_sweep(
     return result
 
 
-def aggregate(plan: SweepPlan, summaries: list[dict]) -> list[dict]:
-    """Mean and (population) std over seeds of the final eval return, per non-seed point."""
-    groups: dict[tuple, list[dict]] = {}
-    for s in summaries:
-        groups.setdefault(tuple(s[k] for k in plan.axes), []).append(s)
-    rows = []
-    for values, members in groups.items():
-        returns = [m["final_eval_return"] for m in members if m["final_eval_return"] is not None]
-        rows.append(
-            {
-                **dict(zip(plan.axes, values, strict=True)),
-                "seeds": len(members),
-                "final_eval_return_mean": statistics.fmean(returns) if returns else None,
-                "final_eval_return_std": statistics.pstdev(returns) if returns else None,
-                "non_finite": len(members) - len(returns),
-            }
-        )
-    return rows
-
-
-def to_csv(plan: SweepPlan, rows: list[dict]) -> str:
-    buf = io.StringIO()
-    columns = [*plan.axes, "seeds", "final_eval_return_mean", "final_eval_return_std", "non_finite"]
-    writer = csv.DictWriter(buf, fieldnames=columns, lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(rows)
-    return buf.getvalue()
-
-
-def format_table(plan: SweepPlan, rows: list[dict]) -> str:
-    header = (
-        "".join(f"{k:>12}" for k in plan.axes) + f"{'seeds':>7}  final eval return (mean ± std over seeds)"
-    )
-    lines = [header]
-    for r in rows:
-        mean, std = r["final_eval_return_mean"], r["final_eval_return_std"]
-        value = "non-finite" if mean is None else f"{mean:10.1f} ± {std:.1f}"
-        lines.append("".join(f"{_fmt(r[k]):>12}" for k in plan.axes) + f"{r['seeds']:>7}  {value}")
-    return "\n".join(lines)
-
-
 def sweep_help() -> str:
     return "\n".join(
         [
@@ -424,25 +386,31 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _main(argv: list[str], stop: StopRequest) -> int:
+    from coherent_jax import runlock, sweep_resume
     from coherent_jax.parallel import check_devices
 
     resume_dir, rest = split_resume(argv)
-    checkpoint = None
+    checkpoint, lock = None, None
     try:
+        cli.check_unique(argv)
         if resume_dir is not None:
-            cfg, out_dir = resume_config(resume_dir, rest)
-            plan = _stored_plan(cfg, out_dir)
+            cfg, out_dir, axes, seeds = sweep_resume.resume_plan(resume_dir, rest)
+            plan = make_plan(cfg, axes, seeds)
             if distributed.needs_supervisor(cfg.distributed):
                 return distributed.supervise("coherent_jax.sweep", argv)
             # Several hosts: every process reads the checkpoint, only process 0 writes.
             is_writer = check_devices(cfg, split_envs=False)
             check_point_split(cfg, plan)
+            check_memory(cfg, len(plan.points))
             checkpoint = resume_point(out_dir, cfg, out_dir / plan.points[0].name / METRICS)
-            if checkpoint is not None and checkpoint.iteration >= cfg.num_iterations:
-                if (out_dir / "sweep.json").exists():
+            if checkpoint is not None:
+                done = checkpoint.iteration >= cfg.num_iterations and (out_dir / "sweep.json").exists()
+                sweep_resume.check_rows(out_dir, [p.name for p in plan.points], checkpoint, done)
+                if done:
                     print(f"{PREFIX} {out_dir} is already complete ({checkpoint.iteration} iterations)")
                     return 0
             out_dir = out_dir if is_writer else None
+            lock = runlock.acquire(out_dir, "resume") if out_dir else None
         else:
             plan = parse_sweep(argv)
             cfg = plan.base
@@ -450,19 +418,28 @@ def _main(argv: list[str], stop: StopRequest) -> int:
                 return distributed.supervise("coherent_jax.sweep", argv)
             writer = check_devices(cfg, split_envs=False)
             check_point_split(cfg, plan)
+            check_memory(cfg, len(plan.points))
             out_dir = None
             if writer:
-                out_dir = prepare_output_dir(Path(cfg.run_dir) if cfg.run_dir else default_sweep_dir(cfg))
+                path = Path(cfg.run_dir) if cfg.run_dir else default_sweep_dir(cfg)
+                runlock.refuse_if_held(path, "run_dir")
+                out_dir = prepare_output_dir(path)
+                lock = runlock.acquire(out_dir, "run_dir")
     except (ConfigError, CheckpointError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    with lock or contextlib.nullcontext():
+        return _run(cfg, plan, out_dir, resume_dir, checkpoint, stop)
+
+
+def _run(cfg: Config, plan: SweepPlan, out_dir: Path | None, resume_dir, checkpoint, stop) -> int:
+    """Writes the sweep's config, grid and versions, runs it, and returns the exit status."""
     if out_dir is not None:
         cfg = dataclasses.replace(cfg, run_dir=str(out_dir))
         write_config(out_dir, cfg)
         if resume_dir is None:
-            atomic_write(
-                out_dir / GRID, json.dumps({"axes": plan.axes, "seeds": plan.seeds}, indent=2).encode()
-            )
+            grid = {"axes": plan.axes, "seeds": plan.seeds}
+            atomic_write(out_dir / GRID, json.dumps(grid, indent=2).encode())
         record_versions(out_dir, None if resume_dir is None else (checkpoint.iteration if checkpoint else 0))
         print(f"{PREFIX} sweep dir {out_dir}: {len(plan.points)} points", flush=True)
     if stop.signum is not None:
@@ -485,23 +462,6 @@ def check_point_split(cfg: Config, plan: SweepPlan) -> None:
 
     available = parallel.resolve_num_devices(cfg.num_devices)
     distributed.check_device_split(parallel.point_device_count(len(plan.points), available))
-
-
-def _stored_plan(cfg: Config, out_dir: Path) -> SweepPlan:
-    """The grid a sweep directory records (``grid.json``) over its stored config."""
-    path = out_dir / GRID
-    try:
-        grid = json.loads(path.read_text())
-        axes, seeds = dict(grid["axes"]), [int(s) for s in grid["seeds"]]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise ConfigError(
-            f"invalid value for 'resume': {str(out_dir)!r} has no readable {GRID} ({type(exc).__name__}) "
-            "(allowed: a sweep directory)"
-        ) from None
-    unknown = [k for k in axes if k not in SWEEPABLE]
-    if unknown:
-        raise ConfigError(f"invalid {path}: axis {unknown[0]!r} (allowed: {', '.join(SWEEPABLE)})")
-    return make_plan(cfg, axes, seeds)
 
 
 if __name__ == "__main__":

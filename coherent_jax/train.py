@@ -18,7 +18,12 @@ writes one directory:
 even by SIGKILL, from any working directory, after the directory was moved): the
 rows past the checkpoint are dropped and recomputed, so the metrics equal those of
 an uninterrupted run of the same seed; ``resume=RUN_DIR total_steps=N`` extends a
-finished run. A non-finite loss or parameter stops the run (exit status 3) naming
+finished run. While it trains, a run holds ``run.lock`` in its directory
+(`coherent_jax.runlock`): a second process starting or resuming there is refused. Before
+anything is written, a key given twice, a configuration whose arrays cannot fit in
+memory (`coherent_jax.memory`), a sweep's directory given to ``resume=`` and a run whose
+``metrics.jsonl`` lost rows before its checkpoint are refused like any bad input.
+A non-finite loss or parameter stops the run (exit status 3) naming
 the iteration and the quantity; the last good checkpoint stays. The loop itself is
 `coherent_jax.loop`, shared with sweeps. Exit statuses: 0 done, 2 bad input,
 3 diverged, 4 another process of a ``distributed=true`` run failed (resumable; see
@@ -37,7 +42,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from coherent_jax import distributed
+from coherent_jax import cli, distributed, rundir, runlock
 from coherent_jax.config import Config, ConfigError, help_text, parse_overrides
 from coherent_jax.loop import (
     PREFIX,
@@ -49,7 +54,9 @@ from coherent_jax.loop import (
     run_loop,
     to_float,
 )
+from coherent_jax.memory import check_memory
 from coherent_jax.runs import (
+    METRICS,
     Checkpoint,
     CheckpointError,
     atomic_write,
@@ -155,30 +162,47 @@ def _main(argv: list[str], stop: StopRequest) -> int:
     from coherent_jax.parallel import check_devices
 
     resume_dir, rest = split_resume(argv)
-    checkpoint = None
+    checkpoint, lock = None, None
     try:
+        cli.check_unique(argv)
         if resume_dir is not None:
+            rundir.refuse_sweep_for_train(Path(resume_dir))
             cfg, run_dir = resume_config(resume_dir, rest)
             if distributed.needs_supervisor(cfg.distributed):
                 return distributed.supervise("coherent_jax.train", argv)
             # Several hosts: every process reads the checkpoint, only process 0 writes.
             is_writer = check_devices(cfg)
+            check_memory(cfg)
             checkpoint = resume_point(run_dir, cfg)
-            if checkpoint is not None and checkpoint.iteration >= cfg.num_iterations:
-                if (run_dir / "summary.json").exists():
+            if checkpoint is not None:
+                finished = checkpoint.iteration >= cfg.num_iterations and (run_dir / "summary.json").exists()
+                rundir.check_metrics([run_dir / METRICS], checkpoint.iteration, finished)
+                if finished:
                     print(f"{PREFIX} {run_dir} is already complete ({checkpoint.iteration} iterations)")
                     return 0
             run_dir = run_dir if is_writer else None
+            lock = runlock.acquire(run_dir, "resume") if run_dir else None
         else:
             cfg = parse_overrides(argv)
             if distributed.needs_supervisor(cfg.distributed):
                 return distributed.supervise("coherent_jax.train", argv)
             is_writer = check_devices(cfg)  # several hosts: only process 0 writes
+            check_memory(cfg)
             path = Path(cfg.run_dir) if cfg.run_dir else default_run_dir(cfg)
-            run_dir = prepare_output_dir(path) if is_writer else None
+            run_dir = None
+            if is_writer:
+                runlock.refuse_if_held(path, "run_dir")
+                run_dir = prepare_output_dir(path)
+                lock = runlock.acquire(run_dir, "run_dir")
     except (ConfigError, CheckpointError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    with lock or contextlib.nullcontext():
+        return _run(cfg, run_dir, resume_dir, checkpoint, stop)
+
+
+def _run(cfg: Config, run_dir: Path | None, resume_dir: str | None, checkpoint, stop: StopRequest) -> int:
+    """Writes the run's config and versions, trains, and returns the exit status (the input checked)."""
     if run_dir:
         if resume_dir is None:
             write_config(run_dir, cfg)

@@ -256,6 +256,7 @@ def build(
                 f"{summary.get('sweep_env_steps_per_s', float('nan')):.0f} | {wall / 3600:.2f} h |"
             )
         lines.append("")
+        lines += provenance_lines([c for c in done if c.suite == suite], results)
         if suite == "sparse":
             lines += [
                 "Seeds whose exploration ever reached the sparse reward (a training episode",
@@ -313,6 +314,46 @@ def build(
     if missing:
         lines += ["## Cells not finished", ""] + [f"- {m}" for m in missing] + [""]
     return "\n".join(lines)
+
+
+def provenance_lines(cells: Sequence[reproduce.Cell], results: Path) -> list[str]:
+    """The commits and CPUs the cells' numbers came from, with how many cells each.
+
+    Read from each cell's ``sweep/versions.json`` and the ``versions-resumed-*.json`` a resume
+    on another commit or machine left beside it; a cell (or part of one) recorded before
+    these were kept counts as "not recorded", one run outside a git checkout as "no git
+    checkout". A cell computed in parts counts once under each.
+    """
+    commits: dict[str, int] = defaultdict(int)
+    cpus: dict[str, int] = defaultdict(int)
+    for cell in cells:
+        cell_commits, cell_cpus = set(), set()
+        for path in sorted((reproduce.cell_dir(cell, results) / "sweep").glob("versions*.json")):
+            try:
+                v = json.loads(path.read_text())
+            except (OSError, ValueError):
+                continue
+            commit, dirty = v.get("git_commit"), " with uncommitted changes" if v.get("git_dirty") else ""
+            isa = v.get("cpu_vector_isa") or "no AVX/SSE4.2"
+            cell_commits.add(
+                "not recorded"
+                if "git_commit" not in v
+                else f"`{commit[:12]}`{dirty}"
+                if commit
+                else "no git checkout"
+            )
+            cell_cpus.add(
+                f"{v['cpu_model'] or 'unknown CPU'} ({isa})" if "cpu_model" in v else "not recorded"
+            )
+        for label in cell_commits or {"not recorded"}:
+            commits[label] += 1
+        for label in cell_cpus or {"not recorded"}:
+            cpus[label] += 1
+
+    def counts(table: dict[str, int]) -> str:
+        return ", ".join(f"{k} ({n} cell{'s' if n > 1 else ''})" for k, n in sorted(table.items()))
+
+    return [f"Computed at commits: {counts(commits)}; on CPUs: {counts(cpus)}.", ""]
 
 
 def _reference_cells(suite: str, done: list[reproduce.Cell], results: Path) -> list[reproduce.Cell]:

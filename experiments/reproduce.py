@@ -528,6 +528,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     results = Path(args.results).resolve()
     try:
+        if results.exists() and not results.is_dir():
+            raise ReproduceError(
+                f"invalid value for '--results': {args.results!r} is not a directory "
+                "(allowed: a results directory, existing or to be made)"
+            )
         cells = select(args.suite, args.cells)
         for cell in cells:
             check_cell_dir(cell, results)

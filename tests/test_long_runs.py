@@ -155,7 +155,8 @@ def test_sigterm_stops_after_the_iteration_with_a_checkpoint(tmp_path):
     """SIGTERM: exit 128+15 after finishing the iteration, whose checkpoint is the last row's."""
     run = tmp_path / "run"
     metrics = run / "metrics.jsonl"
-    proc = spawn([*LONG, "checkpoint_every=1000", f"run_dir={run}"], tmp_path)
+    args = [*(a for a in LONG if not a.startswith("checkpoint_every=")), "checkpoint_every=1000"]
+    proc = spawn([*args, f"run_dir={run}"], tmp_path)
     wait_for_rows(proc, metrics, 5)
     proc.send_signal(signal.SIGTERM)
     out, err = proc.communicate(timeout=120)
@@ -164,7 +165,7 @@ def test_sigterm_stops_after_the_iteration_with_a_checkpoint(tmp_path):
     assert out.index("compiling ...") < out.index("compiled in")
     assert "Failed to import" not in out + err  # mujoco's message about its optional warp backend
     rows = read_metrics(metrics)
-    ckpt = decode_checkpoint(run / CHECKPOINT, parse_overrides([*LONG, "checkpoint_every=1000"]))
+    ckpt = decode_checkpoint(run / CHECKPOINT, parse_overrides(args))
     assert ckpt.iteration == rows[-1]["iteration"] == len(rows) < 150
     assert not (run / "summary.json").exists() and not (run / "params.msgpack").exists()
 

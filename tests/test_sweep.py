@@ -327,7 +327,9 @@ def test_diverged_point_is_named_and_the_others_continue(tmp_path, capsys):
     """lr=1e30 diverges at iteration 2; the sweep names that point, stops its rows, keeps the other
     point's metrics equal to its single run, and exits with status 3."""
     out = tmp_path / "sweep"
-    args = [*SMALL, "total_steps=80", "checkpoint_every=4"]
+    # The command line refuses a key given twice: SMALL's budget and interval are replaced.
+    args = [*(a for a in SMALL if a.split("=")[0] not in ("total_steps", "checkpoint_every"))]
+    args += ["total_steps=80", "checkpoint_every=4"]
     assert sweep.main([*args, "lr=[3e-4,1e30]", f"run_dir={out}"]) == 3
     captured = capsys.readouterr()
     bad = "p001-lr=1e+30-seed=0"

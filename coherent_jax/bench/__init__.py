@@ -18,3 +18,6 @@ and ``format_table(result)``.
 
 SUITES = ("throughput", "coherent", "sac", "physics", "standard", "gradient")
 DEFAULT_SUITE = "throughput"  # what ``python -m coherent_jax.bench`` runs with no suite named
+# Training keys no suite reads (a benchmark times iterations: it writes no run directory,
+# checkpoint or TensorBoard file, and runs no fixed budget): refused, not ignored.
+IGNORED = ("run_dir", "resume", "checkpoint_every", "tensorboard", "progress", "total_steps", "eval_every")

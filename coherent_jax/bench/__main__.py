@@ -8,7 +8,7 @@ from collections.abc import Sequence
 from types import ModuleType
 
 from coherent_jax import cli
-from coherent_jax.bench import DEFAULT_SUITE, SUITES
+from coherent_jax.bench import DEFAULT_SUITE, IGNORED, SUITES
 from coherent_jax.config import ConfigError
 
 
@@ -31,6 +31,9 @@ def help_text() -> str:
             lines.append(
                 "  and every training option of `python -m coherent_jax.train --help` except "
                 + ", ".join(fixed)
+                + " (set by the suite) and "
+                + ", ".join(IGNORED)
+                + " (no suite uses them)"
             )
     return "\n".join(lines)
 

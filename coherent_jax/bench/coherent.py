@@ -33,7 +33,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from coherent_jax import cli
-from coherent_jax.bench import measure
+from coherent_jax.bench import IGNORED, measure
 from coherent_jax.bench.dense import dense_log_marginals, sample_segments
 from coherent_jax.config import Config, to_dict, validate
 
@@ -72,7 +72,7 @@ def parse(items: Sequence[str]) -> cli.Parsed:
     The config is checked with both strategies the suite runs, so that a setting
     one of them refuses stops the suite before it compiles anything.
     """
-    parsed = cli.parse_command(items, KEYS, command="the coherent suite", fixed=FIXED)
+    parsed = cli.parse_command(items, KEYS, command="the coherent suite", fixed=FIXED, ignored=IGNORED)
     for explore in ("action", "coherent"):
         validate(dataclasses.replace(parsed.config, explore=explore))
     return parsed

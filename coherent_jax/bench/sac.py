@@ -29,7 +29,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from coherent_jax import cli
-from coherent_jax.bench import measure
+from coherent_jax.bench import IGNORED, measure
 from coherent_jax.config import Config, to_dict, validate
 
 KEYS: dict[str, cli.Key] = {
@@ -53,7 +53,7 @@ def parse(items: Sequence[str]) -> cli.Parsed:
     Coherent-SAC refuses stops the suite before it compiles anything.
     """
     parsed = cli.parse_command(
-        items, KEYS, command="the sac suite", fixed=FIXED, config_defaults=CONFIG_DEFAULTS
+        items, KEYS, command="the sac suite", fixed=FIXED, config_defaults=CONFIG_DEFAULTS, ignored=IGNORED
     )
     for explore in STRATEGIES:
         validate(dataclasses.replace(parsed.config, explore=explore))

@@ -17,7 +17,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from coherent_jax import cli
-from coherent_jax.bench import measure
+from coherent_jax.bench import IGNORED, measure
 from coherent_jax.config import Config, parse_overrides, to_dict
 
 # Rows besides the raw env; brax_ppo is Brax's own trainer.
@@ -53,7 +53,7 @@ def parse(items: Sequence[str]) -> cli.Parsed:
     Every row's config is built here too, so that a setting one row refuses (a
     ``coherent.*`` key SAC does not take) stops the suite before it compiles anything.
     """
-    parsed = cli.parse_command(items, KEYS, command="the throughput suite", fixed=FIXED)
+    parsed = cli.parse_command(items, KEYS, command="the throughput suite", fixed=FIXED, ignored=IGNORED)
     _throughput_configs(parsed.config, parsed.config_items, parsed.settings["rows"])
     return parsed
 

@@ -1,0 +1,92 @@
+"""What kind of directory a command was given, and whether its logged rows are whole.
+
+* A sweep's root holds ``grid.json`` beside its shared ``config.yaml``; each point is a
+  sub-directory with a single run's ``config.yaml`` and rows but no checkpoint (the
+  sweep keeps one for the whole grid). `refuse_sweep_for_train` and `sweep_points`
+  let ``train`` and ``evaluate`` say which command or directory to use instead of
+  failing later on a shape mismatch.
+* `metrics_problem` compares a ``metrics.jsonl`` with the checkpoint's iteration: a
+  file truncated or damaged (a line that is not a metrics row) would otherwise be
+  reported as complete, or have its lost rows silently skipped by a resume.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from coherent_jax.config import ConfigError
+
+GRID = "grid.json"  # a sweep's grid, in its root directory
+CONFIG = "config.yaml"
+
+
+def is_sweep(directory: Path) -> bool:
+    """Whether `directory` is a sweep's root (it holds ``grid.json``)."""
+    return (Path(directory) / GRID).is_file()
+
+
+def sweep_points(directory: Path) -> list[Path]:
+    """A sweep root's point directories (those holding a ``config.yaml``), sorted."""
+    return sorted(p for p in Path(directory).iterdir() if p.is_dir() and (p / CONFIG).is_file())
+
+
+def refuse_sweep_for_train(directory: Path) -> None:
+    """Raises `ConfigError` when ``train resume=`` is given a sweep's root or one of its points."""
+    directory = Path(directory)
+    if is_sweep(directory):
+        raise ConfigError(
+            f"{str(directory)} is a sweep; resume it with python -m coherent_jax.sweep resume={directory}"
+        )
+    parent = directory.absolute().parent
+    if is_sweep(parent) and (directory / CONFIG).is_file():
+        root = directory.parent
+        raise ConfigError(
+            f"{str(directory)} is a point of the sweep {str(root)}; resume the sweep with "
+            f"python -m coherent_jax.sweep resume={root}"
+        )
+
+
+def metrics_problem(path: Path, iteration: int, finished: bool) -> str | None:
+    """What is wrong with the rows of `path` for a checkpoint at `iteration`, or None.
+
+    Rows 1..``iteration`` must be there, readable and in order. A run killed while
+    writing leaves a partial line past them, which a resume drops; a finished run
+    (`finished`) has exactly its ``iteration`` rows and nothing else.
+    """
+    path = Path(path)
+    if iteration == 0:
+        return None
+    if not path.is_file():
+        return f"{path.name} is missing; the checkpoint is at iteration {iteration}"
+    lines = path.read_text(errors="replace").splitlines()
+    for number, line in enumerate(lines, start=1):
+        try:
+            row = json.loads(line)
+            at = row["iteration"] if isinstance(row, dict) else None
+        except (json.JSONDecodeError, KeyError):
+            at = None
+        if at != number:
+            if number > iteration and not finished:
+                return None  # past the checkpoint: recomputed on resume
+            what = "not a metrics row" if at is None else f"the row of iteration {at}"
+            return (
+                f"{path.name} is damaged: line {number} is {what}, after {number - 1} good rows; "
+                f"the checkpoint is at iteration {iteration}"
+            )
+        if number == iteration and not finished:
+            return None
+    if len(lines) != iteration:
+        return f"{path.name} is damaged: {len(lines)} rows, but the checkpoint is at iteration {iteration}"
+    return None
+
+
+def check_metrics(paths: list[Path], iteration: int, finished: bool) -> None:
+    """Raises `ConfigError` for the first of `paths` whose rows do not match `iteration`."""
+    for path in paths:
+        problem = metrics_problem(path, iteration, finished)
+        if problem is not None:
+            raise ConfigError(
+                f"invalid run directory {str(Path(path).parent)!r}: {problem} "
+                "(allowed: one row per iteration up to the checkpoint's)"
+            )
