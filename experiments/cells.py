@@ -17,6 +17,8 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
+from curves import point_dirs as _point_dirs  # beside this file (reproduce.py puts it on sys.path)
+
 SPEC_VERSION = 1  # bump when the meaning of a cell's overrides changes
 
 # Rough env steps/s of one point, used by --status when no cell of the same task and
@@ -130,13 +132,6 @@ def cell_state(cell: Cell, results: Path) -> str:
         except (ValueError, IndexError, OSError):
             pass
     return "stopped" if (d / "sweep").exists() else "missing"
-
-
-def _point_dirs(sweep_dir: Path) -> list[Path]:
-    """A sweep's point (run) directories, sorted: those holding a ``config.yaml``."""
-    if not sweep_dir.is_dir():
-        return []
-    return sorted(p for p in sweep_dir.iterdir() if (p / "config.yaml").exists())
 
 
 def progress(cell: Cell, results: Path) -> tuple[float, float | None]:

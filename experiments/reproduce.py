@@ -37,6 +37,7 @@ from pathlib import Path
 
 # experiments/ is a folder of scripts, not a package: its modules import each other by name.
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import curves  # noqa: E402, F401  (report.py reads the curves tables through it)
 from cells import (  # noqa: E402, F401  (re-exported: the state of a cell is read as reproduce.X)
     DEFAULT_RATE,
     SPEC_VERSION,
