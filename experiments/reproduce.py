@@ -5,9 +5,16 @@ sweep (``python -m coherent_jax.sweep ... seeds=N``). Every cell of a suite is r
 turn; a cell's results land in ``experiments/results/SUITE/CELL/``:
 
 * ``cell.json``: the cell's specification (overrides, seeds) and its fingerprint;
-* ``sweep/``: the sweep's directory (one run directory per seed with ``config.yaml``,
-  ``metrics.jsonl``, ``summary.json``, ``versions.json``; ``sweep.json`` once finished);
+* ``sweep/``: the sweep's directory (one run directory per point with ``config.yaml``,
+  ``metrics.jsonl``, ``summary.json``; ``versions.json``; ``sweep.json`` once finished);
 * ``run.log``: the sweep's output.
+
+When a cell finishes, the curves the report reads go to its suite's table
+``experiments/results/SUITE/curves.csv.gz`` (`curves.py`). Git keeps that table and
+the cell's small files (``--commit`` commits exactly these); the per-seed
+``metrics.jsonl``, ``run.log`` and TensorBoard files stay where the cell ran
+(``experiments/results/.gitignore``). A cell present only as the kept files, as in a
+clone, is done.
 
 Cells are resumable: a cell whose sweep finished is never recomputed, one that was
 stopped or killed continues from its checkpoint (``resume=``), and a results directory
@@ -37,7 +44,7 @@ from pathlib import Path
 
 # experiments/ is a folder of scripts, not a package: its modules import each other by name.
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import curves  # noqa: E402, F401  (report.py reads the curves tables through it)
+import curves  # noqa: E402
 from cells import (  # noqa: E402, F401  (re-exported: the state of a cell is read as reproduce.X)
     DEFAULT_RATE,
     SPEC_VERSION,
@@ -314,11 +321,14 @@ def run_cell(cell: Cell, results: Path, log=print) -> int:
 
 
 def commit_cell(cell: Cell, results: Path) -> None:
-    """Commits a finished cell's results (checkpoints are ignored by experiments/results/.gitignore)."""
-    d = cell_dir(cell, results)
-    subprocess.run(["git", "-C", str(ROOT), "add", "--", str(d)], check=True)
+    """Commits a finished cell's compact results: its suite's curves table, updated from the
+    cell's per-seed logs, and the cell's small files (`curves.committed_files`). The logs
+    themselves stay local (experiments/results/.gitignore)."""
+    table = curves.update_table(results, cell.suite, [cell.name])
+    files = [str(f) for f in curves.committed_files(cell_dir(cell, results), table)]
+    subprocess.run(["git", "-C", str(ROOT), "add", "--", *files], check=True)
     subprocess.run(
-        ["git", "-C", str(ROOT), "commit", "-q", "-m", f"results: {cell.suite} {cell.name}", "--", str(d)],
+        ["git", "-C", str(ROOT), "commit", "-q", "-m", f"results: {cell.suite} {cell.name}", "--", *files],
         check=False,
     )
 
@@ -332,7 +342,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--cells", nargs="*", default=[], help="only cells whose name matches (glob)")
     parser.add_argument("--results", default=str(RESULTS), help="results directory")
     parser.add_argument(
-        "--commit", action="store_true", help="git-commit each cell's results when it finishes"
+        "--commit",
+        action="store_true",
+        help="git-commit each cell's compact results (small files, suite's curves table) when it finishes",
     )
     args = parser.parse_args(argv)
     results = Path(args.results).resolve()
@@ -356,6 +368,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             failed.append(cell.name)
         elif args.commit:
             commit_cell(cell, results)
+        else:  # the suite's table all the same, for whoever commits the results later
+            curves.update_table(results, cell.suite, [cell.name])
     print(status(cells, results))
     if failed:
         print(f"[reproduce] failed: {', '.join(failed)} (see their run.log)", file=sys.stderr)

@@ -7,6 +7,7 @@ state is read from files laid out as a sweep writes them.
 import importlib.util
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -360,3 +361,71 @@ def test_curves_table_round_trips_what_the_report_reads(tmp_path):
     assert [row for c in cells for row in report.reach_rows(c, tmp_path)] == reach
     # A finished cell whose logs are gone keeps its rows when the table is rebuilt.
     assert curves.build(tmp_path, "sparse").read_bytes() == data
+
+
+def test_commit_adds_only_the_compact_files(tmp_path, monkeypatch):
+    cell = reproduce.select("thesis", ["hopper/ppo/action"])[0]
+    repo = tmp_path / "repo"
+    results = repo / "experiments" / "results"
+    d = _fake_finished_cell(cell, results)
+    listed = curves.committed_files(d, curves.table_path(results, "thesis"))
+    expected = [
+        "cell.json",
+        *(f"sweep/{f}" for f in ("config.yaml", "grid.json", "sweep.csv", "sweep.json", "versions.json")),
+        *(f"sweep/p00{i}-seed={i}/{f}" for i in range(2) for f in ("config.yaml", "summary.json")),
+    ]
+    assert [p.relative_to(d).as_posix() for p in listed] == expected  # the table does not exist yet
+    # experiments/results/.gitignore keeps exactly these (and the suite's table) out of the ignored.
+    shutil.copy(ROOT / "experiments" / "results" / ".gitignore", results / ".gitignore")
+    git = lambda *a: subprocess.run(["git", "-C", str(repo), *a], capture_output=True, text=True)  # noqa: E731
+    if git("init", "-q").returncode != 0:
+        pytest.skip("git is not available")
+    files = [p.relative_to(repo).as_posix() for p in d.rglob("*") if p.is_file()]
+    ignored = set(git("check-ignore", "--no-index", *files).stdout.split())
+    assert sorted(set(files) - ignored) == sorted(p.relative_to(repo).as_posix() for p in listed)
+    # --commit: the suite's table, updated from the cell's logs, and the cell's small files.
+    for key, value in {"NAME": "test", "EMAIL": "test@example.com"}.items():
+        monkeypatch.setenv(f"GIT_AUTHOR_{key}", value)
+        monkeypatch.setenv(f"GIT_COMMITTER_{key}", value)
+    monkeypatch.setattr(reproduce, "ROOT", repo)
+    reproduce.commit_cell(cell, results)
+    committed = git("show", "--name-only", "--format=%s", "HEAD").stdout.split("\n")
+    assert committed[0] == "results: thesis hopper/ppo/action"
+    prefix = "experiments/results/thesis/"
+    assert sorted(filter(None, committed[1:])) == sorted(
+        [prefix + "curves.csv.gz", *(f"{prefix}hopper/ppo/action/{f}" for f in expected)]
+    )
+    assert [r[:3] for r in curves.read_table(results / "thesis" / "curves.csv.gz")][:2] == [
+        ("hopper/ppo/action", "p000-seed=0", 8192),
+        ("hopper/ppo/action", "p000-seed=0", 12288),
+    ]
+
+
+def test_a_cell_present_only_as_compact_data_is_done(tmp_path):
+    """A clone holds a finished cell's committed files only: it is done, needs nothing, and
+    its measured rate still serves the estimates of the cells of its task and algorithm."""
+    report = _report()
+    done, missing = reproduce.select("thesis", ["hopper/a2c/action", "hopper/a2c/psne"])
+    d = _fake_finished_cell(done, tmp_path / "ran")
+    table = curves.update_table(tmp_path / "ran", "thesis", [done.name])
+    clone = tmp_path / "clone"
+    for f in curves.committed_files(d, table):
+        target = clone / f.relative_to(tmp_path / "ran")
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(f, target)
+    assert not list(clone.rglob("metrics.jsonl")) and not list(clone.rglob("run.log"))
+    assert reproduce.cell_state(done, clone) == "done"
+    assert reproduce.progress(done, clone) == (1.0, 1000.0)
+    assert reproduce.estimated_seconds(done, clone) == 0.0
+    assert [c.name for c, _ in reproduce._finished_cells(clone)] == [done.name]
+    assert reproduce.estimated_seconds(missing, clone) == pytest.approx(
+        missing.env_steps * reproduce.STRATEGY_COST["psne"] / 1000.0
+    )
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "experiments" / "reproduce.py"), "thesis", "--status", "--cells",
+         "hopper/a2c/action", "--results", str(clone)],
+        capture_output=True, text=True, timeout=60, env=child_env(),
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split()[:3] == ["hopper/a2c/action", "done", "100.0%"]
+    assert len(report.cell_runs(done, clone)) == 2
