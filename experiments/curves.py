@@ -150,17 +150,18 @@ def write_table(path: Path, rows: Iterable[Row]) -> bool:
 
 
 @contextlib.contextmanager
-def _locked(path: Path) -> Iterator[None]:
-    """Holds an exclusive lock beside `path` (cells of a suite finish in parallel processes)."""
+def _locked(directory: Path) -> Iterator[None]:
+    """Holds an exclusive lock on `directory` (cells of a suite finish in parallel processes;
+    locking the directory itself leaves no lock file behind)."""
     import fcntl
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path.with_name(path.name + ".lock"), "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(lock, fcntl.LOCK_UN)
+    directory.mkdir(parents=True, exist_ok=True)
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
 
 
 def update_table(results: Path, suite: str, cells: Iterable[str], prune: bool = False) -> Path:
@@ -168,7 +169,7 @@ def update_table(results: Path, suite: str, cells: Iterable[str], prune: bool = 
     cell without logs keeps its rows. With `prune`, cells not named lose theirs."""
     path = table_path(results, suite)
     names = sorted(set(cells))
-    with _locked(path):
+    with _locked(path.parent):
         new = {name: cell_rows(name, Path(results) / suite / name / "sweep") for name in names}
         fresh = {name for name, rows in new.items() if rows}
         keep = [r for r in read_table(path) if r[0] not in fresh and (not prune or r[0] in names)]
