@@ -60,6 +60,7 @@ class Cell:
 
     @property
     def fingerprint(self) -> str:
+        """The first 16 hex digits of the SHA-256 of `spec` (``cell.json`` stores it)."""
         return hashlib.sha256(json.dumps(self.spec(), sort_keys=True).encode()).hexdigest()[:16]
 
     def setting(self, key: str, default: str | None = None) -> str | None:
