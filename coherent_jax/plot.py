@@ -135,11 +135,17 @@ def _flatten(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 
 def load_run(path: Path, metric: str) -> Run:
     """The curve of `metric` in one run; refuses a run that never logged it."""
+    return run_from_rows(path, read_metrics(path / METRICS), metric)
+
+
+def run_from_rows(path: Path, rows: Sequence[dict[str, Any]], metric: str, source: str = METRICS) -> Run:
+    """The curve of `metric` in `rows`, the metrics rows of the run in `path` (whose
+    ``config.yaml`` gives its settings) read from `source`; refuses rows that never logged it."""
     cfg = load_config(path)
-    rows = [r for r in read_metrics(path / METRICS) if r.get(metric) is not None]
+    rows = [r for r in rows if r.get(metric) is not None]
     if not rows:
         raise ConfigError(
-            f"invalid run directory {str(path)!r}: no finite {metric!r} in {METRICS} "
+            f"invalid run directory {str(path)!r}: no finite {metric!r} in {source} "
             "(allowed: a run that logged it; metric=train/episode_return plots training returns)"
         )
     steps = np.array([r["env_steps"] for r in rows], dtype=np.int64)

@@ -48,6 +48,7 @@ _spec = importlib.util.spec_from_file_location("reproduce", ROOT / "experiments"
 reproduce = importlib.util.module_from_spec(_spec)
 sys.modules.setdefault("reproduce", reproduce)
 _spec.loader.exec_module(reproduce)
+import curves  # noqa: E402  (beside reproduce.py, which put experiments/ on sys.path)
 
 METRIC = "eval/episode_return"
 REPS = 2000
@@ -69,8 +70,7 @@ def reached_reward(run: plot.Run) -> float | None:
 
 def reach_rows(cell: reproduce.Cell, results: Path) -> list[str]:
     """Table rows: per strategy of a sparse cell, the seeds that ever reached the reward."""
-    sweep = reproduce.cell_dir(cell, results) / "sweep"
-    runs = [plot.load_run(p, REACH_METRIC) for p in reproduce._point_dirs(sweep)]
+    runs = curves.load_runs(results, cell.suite, cell.name, REACH_METRIC)
     rows = []
     for label in sorted({_label(cell, r) for r in runs}):
         firsts = [reached_reward(r) for r in runs if _label(cell, r) == label]
@@ -81,9 +81,9 @@ def reach_rows(cell: reproduce.Cell, results: Path) -> list[str]:
 
 
 def cell_runs(cell: reproduce.Cell, results: Path) -> list[plot.Run]:
-    """The seeds' runs of a finished cell (one per sweep point)."""
-    sweep = reproduce.cell_dir(cell, results) / "sweep"
-    return [plot.load_run(p, METRIC) for p in reproduce._point_dirs(sweep)]
+    """The seeds' runs of a finished cell (one per sweep point): from the points' logs where
+    they are present, else from the suite's curves table (`curves.py`)."""
+    return curves.load_runs(results, cell.suite, cell.name, METRIC)
 
 
 def auc(run: plot.Run) -> float:

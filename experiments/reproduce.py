@@ -5,9 +5,16 @@ sweep (``python -m coherent_jax.sweep ... seeds=N``). Every cell of a suite is r
 turn; a cell's results land in ``experiments/results/SUITE/CELL/``:
 
 * ``cell.json``: the cell's specification (overrides, seeds) and its fingerprint;
-* ``sweep/``: the sweep's directory (one run directory per seed with ``config.yaml``,
-  ``metrics.jsonl``, ``summary.json``, ``versions.json``; ``sweep.json`` once finished);
+* ``sweep/``: the sweep's directory (one run directory per point with ``config.yaml``,
+  ``metrics.jsonl``, ``summary.json``; ``versions.json``; ``sweep.json`` once finished);
 * ``run.log``: the sweep's output.
+
+When a cell finishes, the curves the report reads go to its suite's table
+``experiments/results/SUITE/curves.csv.gz`` (`curves.py`). Git keeps that table and
+the cell's small files (``--commit`` commits exactly these); the per-seed
+``metrics.jsonl``, ``run.log`` and TensorBoard files stay where the cell ran
+(``experiments/results/.gitignore``). A cell present only as the kept files, as in a
+clone, is done.
 
 Cells are resumable: a cell whose sweep finished is never recomputed, one that was
 stopped or killed continues from its checkpoint (``resume=``), and a results directory
@@ -26,22 +33,38 @@ Exit status: 0 when every selected cell is done, 1 when a cell's sweep failed,
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import fnmatch
-import hashlib
 import json
 import os
-import statistics
 import subprocess
 import sys
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+
+# experiments/ is a folder of scripts, not a package: its modules import each other by name.
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import curves  # noqa: E402
+from cells import (  # noqa: E402, F401  (re-exported: the state of a cell is read as reproduce.X)
+    DEFAULT_RATE,
+    SPEC_VERSION,
+    STRATEGY_COST,
+    TASK_RATE,
+    Cell,
+    ReproduceError,
+    _finished_cells,
+    _measured_rate,
+    _point_dirs,
+    cell_dir,
+    cell_state,
+    check_cell_dir,
+    estimated_seconds,
+    progress,
+    status,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "experiments" / "results"
-SPEC_VERSION = 1  # bump when the meaning of a cell's overrides changes
 
 # The thesis's comparisons (chapter 4; its chapter 5 is not in our copy): A2C and PPO
 # with each exploration strategy on the standard locomotion tasks.
@@ -100,64 +123,6 @@ ONPOLICY_TASK_SETTINGS: dict[str, tuple[str, ...]] = {
 # 1,935 and 1,580: the step size, not the method, had stalled them. Every A2C cell takes
 # it (as tests/test_pairs.py and tests/test_train.py do).
 A2C_SETTINGS = ("lr=0.003",)
-
-# Rough env steps/s of one point, used by --status when no cell of the same task and
-# algorithm has finished yet
-# (README, Figures: PPO 64 envs on native physics; coherent about 0.3-0.5x of it).
-# SAC's figure is at UTD 1 and scales with 1 / utd_ratio (measured above).
-DEFAULT_RATE = {"ppo": 6000.0, "a2c": 8000.0, "sac": 150.0}
-# Tasks whose own rate differs from the locomotion tasks' (PPO, action noise, measured).
-TASK_RATE = {
-    "dmc-cartpole_swingup_sparse": 22000.0,
-    "dmc-acrobot_swingup_sparse": 20000.0,
-    "dmc-ball_in_cup": 19000.0,  # native MuJoCo (physics=auto on a CPU); 11.9k on MJX
-    "dmc-finger_turn_hard": 25000.0,  # native; 17.3k on MJX
-}
-# A2C/PPO iteration time relative to action noise. SAC's strategies cost about the same
-# as its action noise (HalfCheetah, one seed: coherent 0.93x, psne 1.05x): its updates
-# dominate, and they do not depend on the strategy.
-STRATEGY_COST = {"coherent": 2.5, "noisynet": 1.5, "psne": 2.2, "gsde": 1.3, "pink": 1.1}
-
-
-@dataclasses.dataclass(frozen=True)
-class Cell:
-    """One (task, algorithm, strategy, settings) run for ``seeds`` seeds as one sweep."""
-
-    suite: str
-    name: str
-    overrides: tuple[str, ...]
-    seeds: int
-
-    def spec(self) -> dict[str, Any]:
-        return {
-            "version": SPEC_VERSION,
-            "suite": self.suite,
-            "name": self.name,
-            "overrides": list(self.overrides),
-            "seeds": self.seeds,
-        }
-
-    @property
-    def fingerprint(self) -> str:
-        return hashlib.sha256(json.dumps(self.spec(), sort_keys=True).encode()).hexdigest()[:16]
-
-    def setting(self, key: str, default: str | None = None) -> str | None:
-        for item in reversed(self.overrides):
-            k, _, v = item.partition("=")
-            if k == key:
-                return v
-        return default
-
-    @property
-    def env_steps(self) -> int:
-        """Env steps of the whole cell (every seed and every grid point)."""
-        points = self.seeds
-        for item in self.overrides:
-            _, _, v = item.partition("=")
-            if v.startswith("[") and not v.startswith("[["):
-                if item.split("=", 1)[0] not in ("policy_hidden", "value_hidden"):
-                    points *= len(v.strip("[]").split(","))
-        return int(self.setting("total_steps", "0")) * points
 
 
 def _cell(suite: str, task: str, algo: str, explore: str, *extra: str, seeds: int, tag: str = "") -> Cell:
@@ -300,14 +265,6 @@ SUITES = {
 }
 
 
-class ReproduceError(ValueError):
-    """Bad input: one line, exit status 2."""
-
-
-def cell_dir(cell: Cell, results: Path) -> Path:
-    return results / cell.suite / cell.name
-
-
 def select(suite: str, patterns: Sequence[str]) -> list[Cell]:
     if suite not in SUITES:
         raise ReproduceError(f"unknown suite {suite!r} (allowed: {', '.join(SUITES)})")
@@ -321,147 +278,6 @@ def select(suite: str, patterns: Sequence[str]) -> list[Cell]:
             f"unknown cell {unmatched[0]!r} in suite {suite!r} (allowed: {', '.join(c.name for c in cells)})"
         )
     return chosen
-
-
-def check_cell_dir(cell: Cell, results: Path) -> None:
-    """Refuses a results directory written for another specification of the cell."""
-    path = cell_dir(cell, results) / "cell.json"
-    if not path.exists():
-        return
-    try:
-        stored = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ReproduceError(f"unreadable cell record {str(path)!r}: {exc}") from None
-    if stored.get("fingerprint") != cell.fingerprint:
-        raise ReproduceError(
-            f"results directory {str(path.parent)!r} holds cell {cell.name!r} of another specification "
-            f"(stored {stored.get('spec')}, now {cell.spec()}); move it away to recompute the cell"
-        )
-
-
-# ------------------------------------------------------------------ state of a cell
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
-def cell_state(cell: Cell, results: Path) -> str:
-    """done | running | stopped | missing."""
-    d = cell_dir(cell, results)
-    if (d / "sweep" / "sweep.json").exists():
-        return "done"
-    lock = d / "running.pid"
-    if lock.exists():
-        try:
-            if _pid_alive(int(lock.read_text().split()[0])):
-                return "running"
-        except (ValueError, IndexError, OSError):
-            pass
-    return "stopped" if (d / "sweep").exists() else "missing"
-
-
-def _point_dirs(sweep_dir: Path) -> list[Path]:
-    if not sweep_dir.is_dir():
-        return []
-    return sorted(p for p in sweep_dir.iterdir() if (p / "config.yaml").exists())
-
-
-def progress(cell: Cell, results: Path) -> tuple[float, float | None]:
-    """(fraction of env steps done, measured env steps/s of the whole cell or None)."""
-    sweep = cell_dir(cell, results) / "sweep"
-    if (sweep / "sweep.json").exists():
-        return 1.0, _measured_rate(sweep)
-    done = 0
-    for point in _point_dirs(sweep):
-        rows = point / "metrics.jsonl"
-        if rows.exists():
-            lines = [json.loads(x) for x in rows.read_text().splitlines() if x.strip()]
-            done += max((r.get("env_steps", 0) for r in lines), default=0)
-    return (done / cell.env_steps if cell.env_steps else 0.0), None
-
-
-def _measured_rate(sweep: Path) -> float | None:
-    """Env steps/s of the whole cell (all points together), as its sweep recorded it."""
-    try:
-        return float(json.loads((sweep / "sweep.json").read_text())["sweep_env_steps_per_s"])
-    except (OSError, KeyError, TypeError, ValueError):
-        return None
-
-
-def _cost(cell: Cell) -> float:
-    """Iteration time relative to action noise (1 for SAC, whose updates dominate)."""
-    if cell.setting("algo", "ppo") == "sac":
-        return 1.0
-    return STRATEGY_COST.get(cell.setting("explore", "action") or "action", 1.0)
-
-
-def _kind(cell: Cell) -> tuple[str | None, ...]:
-    """What sets a cell's rate apart from its strategy: task, algorithm, SAC's UTD."""
-    return (cell.setting("env"), cell.setting("algo", "ppo"), cell.setting("utd_ratio"))
-
-
-def _finished_cells(results: Path) -> list[tuple[Cell, float]]:
-    """Every finished cell under ``results`` (any suite) with its measured rate."""
-    found = []
-    for spec_file in sorted(results.glob("*/**/cell.json")):
-        rate = _measured_rate(spec_file.parent / "sweep")
-        if rate is None:
-            continue
-        try:
-            spec = json.loads(spec_file.read_text())["spec"]
-            cell = Cell(spec["suite"], spec["name"], tuple(spec["overrides"]), int(spec["seeds"]))
-        except (OSError, KeyError, TypeError, ValueError):
-            continue
-        found.append((cell, rate))
-    return found
-
-
-def estimated_seconds(cell: Cell, results: Path) -> float:
-    """Compute the cell still needs.
-
-    From its own measured rate once it has one; else from the finished cells of the
-    same task and algorithm (any suite), each rescaled by STRATEGY_COST to this cell's
-    strategy (median over them); else from the defaults above. Vmapped points share
-    the cores, so a cell's total rate is about one point's, whatever its points.
-    """
-    fraction, rate = progress(cell, results)
-    if rate is None:
-        kin = [
-            r * _cost(other) / _cost(cell)
-            for other, r in _finished_cells(results)
-            if _kind(other) == _kind(cell)
-        ]
-        if kin:
-            rate = statistics.median(kin)
-        else:
-            algo = cell.setting("algo", "ppo")
-            base = TASK_RATE.get(cell.setting("env", ""), DEFAULT_RATE.get(algo, 5000.0))
-            if algo == "sac":
-                base /= float(cell.setting("utd_ratio", "1.0"))
-            rate = base / _cost(cell)
-    return (1.0 - fraction) * cell.env_steps / rate
-
-
-def status(cells: Iterable[Cell], results: Path) -> str:
-    lines, left = [], 0.0
-    for cell in cells:
-        state = cell_state(cell, results)
-        fraction, _ = progress(cell, results)
-        need = 0.0 if state == "done" else estimated_seconds(cell, results)
-        left += need
-        lines.append(
-            f"{cell.name:44s} {state:8s} {100 * fraction:5.1f}%  "
-            f"{cell.env_steps / 1e6:6.2f}M env steps  needs ~{need / 3600:6.2f} h"
-        )
-    lines.append(
-        f"total still needed: ~{left / 3600:.1f} h on this machine (estimates until a cell finishes)"
-    )
-    return "\n".join(lines)
 
 
 # ------------------------------------------------------------------ running a cell
@@ -505,11 +321,14 @@ def run_cell(cell: Cell, results: Path, log=print) -> int:
 
 
 def commit_cell(cell: Cell, results: Path) -> None:
-    """Commits a finished cell's results (checkpoints are ignored by experiments/results/.gitignore)."""
-    d = cell_dir(cell, results)
-    subprocess.run(["git", "-C", str(ROOT), "add", "--", str(d)], check=True)
+    """Commits a finished cell's compact results: its suite's curves table, updated from the
+    cell's per-seed logs, and the cell's small files (`curves.committed_files`). The logs
+    themselves stay local (experiments/results/.gitignore)."""
+    table = curves.update_table(results, cell.suite, [cell.name])
+    files = [str(f) for f in curves.committed_files(cell_dir(cell, results), table)]
+    subprocess.run(["git", "-C", str(ROOT), "add", "--", *files], check=True)
     subprocess.run(
-        ["git", "-C", str(ROOT), "commit", "-q", "-m", f"results: {cell.suite} {cell.name}", "--", str(d)],
+        ["git", "-C", str(ROOT), "commit", "-q", "-m", f"results: {cell.suite} {cell.name}", "--", *files],
         check=False,
     )
 
@@ -523,7 +342,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--cells", nargs="*", default=[], help="only cells whose name matches (glob)")
     parser.add_argument("--results", default=str(RESULTS), help="results directory")
     parser.add_argument(
-        "--commit", action="store_true", help="git-commit each cell's results when it finishes"
+        "--commit",
+        action="store_true",
+        help="git-commit each cell's compact results (small files, suite's curves table) when it finishes",
     )
     args = parser.parse_args(argv)
     results = Path(args.results).resolve()
@@ -552,6 +373,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             failed.append(cell.name)
         elif args.commit:
             commit_cell(cell, results)
+        else:  # the suite's table all the same, for whoever commits the results later
+            curves.update_table(results, cell.suite, [cell.name])
     print(status(cells, results))
     if failed:
         print(f"[reproduce] failed: {', '.join(failed)} (see their run.log)", file=sys.stderr)
