@@ -23,7 +23,7 @@ SPEC_VERSION = 1  # bump when the meaning of a cell's overrides changes
 
 # Rough env steps/s of one point, used by --status when no cell of the same task and
 # algorithm has finished yet
-# (README, Figures: PPO 64 envs on native physics; coherent about 0.3-0.5x of it).
+# (docs/benchmarks.md: PPO 64 envs on native physics; coherent about 0.3-0.5x of it).
 # SAC's figure is at UTD 1 and scales with 1 / utd_ratio (measured: reproduce.SAC_STEPS).
 DEFAULT_RATE = {"ppo": 6000.0, "a2c": 8000.0, "sac": 150.0}
 # Tasks whose own rate differs from the locomotion tasks' (PPO, action noise, measured).

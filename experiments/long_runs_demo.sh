@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The README's sample of `coherent_jax.plot`: PPO on pointmass with action noise and
+# The sample of `coherent_jax.plot` in docs/runs.md: PPO on pointmass with action noise and
 # with coherent exploration, SEEDS seeds each, then the learning-curve plot.
 # Usage: experiments/long_runs_demo.sh [STEPS=32768] [SEEDS=3] [OUT=runs/demo-pointmass]
 set -euo pipefail

@@ -18,7 +18,7 @@ from coherent_jax.envs.task import control
 
 gym = pytest.importorskip("gymnasium")
 
-# COHERENT_GYM_STEPS=1000 compares whole 1000-step episodes (the README's figures).
+# COHERENT_GYM_STEPS=1000 compares whole 1000-step episodes (the figures of docs/benchmarks.md).
 STEPS = int(os.environ.get("COHERENT_GYM_STEPS", "300"))
 # Observation slices holding the contact forces (cfrc_ext of every body but the world).
 CONTACT_SLICE = {"Ant-v5": slice(27, 105), "Humanoid-v5": slice(270, 348)}
@@ -147,8 +147,8 @@ def test_mjx_runs_the_same_task_as_native_mujoco(gym_id):
     """physics=mjx steps the task's own model (Gymnasium's solver, integrator, contacts) with
     the same formulas: from the same keys and actions its first observations equal native
     MuJoCo's (which equal Gymnasium's, above), and its first steps agree to float32 accuracy
-    (MJX is float32, native float64: they part slowly through contacts, as the README's
-    table of matching steps measures)."""
+    (MJX is float32, native float64: they part slowly through contacts, as the table of matching
+    steps in docs/benchmarks.md measures)."""
     if gym_id not in MJX_ALWAYS and not os.environ.get("COHERENT_ALL_PHYSICS"):
         pytest.skip("MJX compile is slow; set COHERENT_ALL_PHYSICS=1 to check every task")
     # The ant lands on its legs at its third step, where MJX's contacts part from MuJoCo C's.

@@ -1,7 +1,7 @@
 """Several processes through `jax.distributed` on one machine (loopback only, every wait bounded).
 
 Each process is a real ``python -m coherent_jax.train ... distributed=true`` with the
-README's environment variables, one CPU device each; the reference is one process
+environment variables of docs/runs.md, one CPU device each; the reference is one process
 with two host devices (``--xla_force_host_platform_device_count=2``): the same mesh
 of two devices, so the same program, and the two must agree metric for metric.
 """

@@ -273,7 +273,7 @@ def test_sac_learns_pointmass(explore):
     """Deterministic eval return far above the untrained policy's (about -100).
 
     SAC and Coherent-SAC (beta=0.01) both reach about -15 to -20 at this budget
-    (README, Figures); the threshold leaves room for seed noise.
+    (docs/development.md, Tests); the threshold leaves room for seed noise.
     """
     cfg = parse_overrides([*FAST, f"explore={explore}", "total_steps=10240", "utd_ratio=0.5", "eval_every=0"])
     history = []

@@ -11,7 +11,7 @@ costs next to Gaussian action noise:
    of each compiled iteration comes from XLA's ``memory_analysis()``, also for
    ``remat=true``.
 2. *The filter alone.* `coherent.log_marginals` (p independent (q+1)-dimensional
-   Kalman filters, DESIGN.md §2) against `dense.dense_log_marginals`, the thesis's
+   Kalman filters, docs/design.md §3) against `dense.dense_log_marginals`, the thesis's
    recursion (4.33)-(4.49) over the flattened p(q+1) weight vector, forward and
    forward+gradient, with a check that both give the same log-probabilities.
 3. *The loss's segment log-prob.* ``strategy.log_prob`` as the trainer's loss

@@ -1,7 +1,7 @@
 """Native MuJoCo physics, called from inside the jitted step.
 
 MJX runs MuJoCo's algorithms as XLA programs; on a CPU they are several times
-slower than MuJoCo's own C engine (``DESIGN.md`` §5). This module steps MuJoCo
+slower than MuJoCo's own C engine (``docs/benchmarks.md``). This module steps MuJoCo
 models with the C engine instead: all envs of a call at once, on a thread pool
 (``mujoco.batch.Batch``), reached from JAX through ``jax.pure_callback``, so the
 training iteration stays one jitted function. A task (`NativeTask`) names the MjData

@@ -9,7 +9,7 @@ DeepMind Control Suite, a test task.
   path for accelerators. Each has its own solver settings: the line search of
   MuJoCo's Newton solver dominates the cost of an MJX step on CPU, so tasks whose
   dynamics tolerate it run with fewer line-search iterations (what Brax itself does
-  for ant and humanoid). ``DESIGN.md`` §5 has the measurements behind these numbers.
+  for ant and humanoid). ``docs/benchmarks.md`` has the measurements behind this.
 * The DeepMind Control Suite (``dmc-cartpole_swingup_sparse``, ...), through MuJoCo
   Playground's MJX ports (``playground`` on PyPI, imported only when such a task is
   built): dm_control's tasks with rewards in [0, 1] per step, 1000-step episodes and
