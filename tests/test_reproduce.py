@@ -110,7 +110,7 @@ def test_ablations_vary_one_component_each():
 def test_smoke_has_one_cell_per_kind_of_cell():
     smoke = reproduce.smoke_cells()
     kinds = {reproduce.smoke_kind(c) for c in smoke}
-    suites = ("thesis", "ablations", "beyond", "sparse")
+    suites = ("thesis", "ablations", "beyond", "sparse", "protocol")
     full = [c for s in suites for c in reproduce.SUITES[s]()]
     # Pointmass in place of each task, tiny budgets: the smoke kind of a full cell keeps
     # its algorithm, strategy, override keys and grids.

@@ -5,9 +5,12 @@ the rollout of ``num_envs`` envs for ``unroll_length`` steps (`lax.scan`), GAE,
 and every epoch and minibatch of the update, so it jits into one XLA program and
 ``jax.vmap`` of it runs a sweep. Minibatches are sets of whole env segments in
 time order, never shuffled single steps: the coherent strategy's log-probability
-is a filter over the segment. A segment that starts mid-episode starts from the
-strategy carry stored when it was collected (like a recurrent policy's stored
-hidden state), treated as a constant by the loss.
+is a filter over the segment. What a segment's first step conditions on is the
+strategy's: the carry stored when it was collected (a constant of the data, like a
+recurrent policy's stored hidden state), nothing (coherent's exact mode restarts its
+chain there), or the env's steps before the segment, which the trainer keeps for a
+strategy with ``history_length > 0`` (`EpisodeHistory`: coherent's episode mode
+re-infers the episode prefix under the current parameters).
 
 The value function is trained in one of two ways. By default (``vf_iters=0``) one
 joint loss, policy + ``vf_coef`` x value, takes every step on one Adam at ``lr``. With
