@@ -287,9 +287,21 @@ def test_gradient_bench_passes_for_exact_forms_and_exposes_stored(tmp_path, caps
     small = ["q=8", "p=1", "obs_size=3", "segment=8", "w_std=0.3", "action_std=0.1", f"out={out}"]
     assert main(["gradient", "betas=[0,0.1]", "histories=[0,16]", *small]) == 0
     rows = json.loads(out.read_text())["rows"]
-    assert all(r["ok"] for r in rows if r["mode"] != "stored")
-    stored = {(r["beta"], r["history"]): r["cos"] for r in rows if r["mode"] == "stored"}
-    assert stored[(0.0, 0)] > 0.9999 and stored[(0.0, 16)] < 0.99
+    assert {r["mode"]: r["must_equal"] for r in rows} == {
+        "exact": "segment",
+        "episode": "episode",
+        "stored": None,
+    }
+    assert all(r["ok"] for r in rows) and len(rows) == 12
+    for r in rows:  # each mode's own reference, to float64 rounding, at moved parameters
+        if r["must_equal"]:
+            assert r[f"rel_err_{r['must_equal']}"] < 1e-8 and r[f"value_err_{r['must_equal']}"] < 1e-9, r
+    cos = {(r["mode"], r["beta"], r["history"]): r for r in rows}
+    # With a history the processes differ: exact is far from the whole episode's gradient,
+    # episode from the restarted chain's, and stored from both.
+    assert cos[("exact", 0.1, 16)]["cos_episode"] < 0.99
+    assert cos[("episode", 0.1, 16)]["cos_segment"] < 0.99
+    assert cos[("stored", 0.0, 16)]["cos_episode"] < 0.99 and cos[("stored", 0.0, 0)]["cos_episode"] > 0.9999
     out.unlink()
     capsys.readouterr()
     assert main(["gradient", "betas=[2]", f"out={out}"]) == 2

@@ -320,3 +320,21 @@ def test_separate_value_run_resumes_to_the_uninterrupted_run(tmp_path):
     policy, where = load_policy(split, 6, 2)
     assert where["iteration"] == 3
     assert np.all(np.isfinite(policy.mean_action(jnp.zeros((1, 6)))))
+
+
+def test_steps_after_an_early_stop_are_skipped_and_change_nothing(monkeypatch):
+    """With a KL target, once the policy steps have stopped no gradient is computed (the
+    cond's zero branch), and the run equals one that computes and discards them."""
+    overrides = ["target_kl=1e-6", "num_epochs=6", "explore=coherent"]
+    skipped = run_iterations(overrides)
+    from coherent_jax.agents.onpolicy import OnPolicyTrainer
+
+    monkeypatch.setattr(OnPolicyTrainer, "_grad_unless_stopped", lambda self, f, p, sub, stopped: f(p, sub))
+    computed = run_iterations(overrides)
+    applied = float(skipped[1]["train/updates_applied"])
+    assert 1 <= applied < 6 * 2  # stopped early (TINY has two minibatches per epoch)
+    assert applied == float(computed[1]["train/updates_applied"])
+    assert leaves_close(skipped[0].params, computed[0].params)
+    for key, value in skipped[1].items():
+        assert np.isfinite(value) == np.isfinite(computed[1][key]), key
+        assert np.allclose(value, computed[1][key], rtol=1e-5, atol=1e-6, equal_nan=True), key

@@ -35,6 +35,7 @@ from coherent_jax.envs.vec_env import EnvState, VecEnv
 from coherent_jax.exploration import make_strategy
 from coherent_jax.exploration.base import OnPolicyStrategy
 from coherent_jax.networks import RunningStats, ValueNetwork, normalize, scale_rewards, update_stats
+from coherent_jax.points import all_points
 from coherent_jax.rollout import EpisodeHistory, episode_metrics, evaluation_metrics, unroll
 
 
@@ -363,7 +364,7 @@ class OnPolicyTrainer:
             # Time-major fields split on their env axis (1), the carry on its own (0).
             sub = jax.tree.map(lambda x: x[:, env_idx], batch._replace(carry0=()))
             sub = sub._replace(carry0=jax.tree.map(lambda x: x[env_idx], batch.carry0))
-            (_, aux), grads = grad_fn(params, sub)
+            (_, aux), grads = self._grad_unless_stopped(grad_fn, params, sub, stopped)
             # Algorithm 2/5: stop the epochs once the approximate KL is too large.
             too_far = jnp.logical_and(hp.target_kl > 0, aux["approx_kl"] > 1.5 * hp.target_kl)
             stop = jnp.logical_or(stopped, too_far)
@@ -392,6 +393,18 @@ class OnPolicyTrainer:
         metrics["train/updates_applied"] = applied.sum()
         metrics["train/kl_first_minibatch"] = aux["approx_kl"][0, 0]
         return trainable, opt_state, metrics
+
+    def _grad_unless_stopped(self, grad_fn, params, sub, stopped: jax.Array):
+        """``grad_fn(params, sub)``, or zeros once the epochs have stopped early at every
+        point of a sweep (Spinning Up's PPO breaks out of its policy steps there; a stopped
+        step applies nothing and weighs nothing in the metrics). Only with a KL target set
+        in the config (static): without one no step ever stops."""
+        if not self.cfg.target_kl > 0:
+            return grad_fn(params, sub)
+        zeros = lambda _: jax.tree.map(  # noqa: E731
+            lambda v: jnp.zeros(v.shape, v.dtype), jax.eval_shape(grad_fn, params, sub)
+        )
+        return jax.lax.cond(all_points(stopped), zeros, lambda _: grad_fn(params, sub), None)
 
     def _value_steps(self, value_params, opt_state, hp: HParams, obs: jax.Array, targets: jax.Array):
         """``vf_iters`` Adam steps at ``vf_lr`` on the value loss of the whole batch (Algorithm 1, step 5).
