@@ -21,8 +21,9 @@ costs next to Gaussian action noise:
 Settings are ``key=value``: every training key except ``explore`` and ``remat``
 (the suite sets those), plus `KEYS`. The rows of the long chains are two runs of it:
 ``preset=thesis`` (4 envs x 1,000 steps, 80 policy steps) and
-``coherent.gradient=episode`` (the defaults, the episode prefix re-inferred in the loss). The results go to a JSON file (default
-``bench_results/coherent.json``), written atomically.
+``coherent.gradient=episode`` (the defaults, the episode prefix re-inferred in the loss).
+The results go to a JSON file (default ``bench_results/coherent.json``), written
+atomically.
 """
 
 from __future__ import annotations
