@@ -1,7 +1,9 @@
 """What several test modules share: the environment the tests' subprocesses start with,
 and the tables of the Brax tasks that two modules check."""
 
+import importlib.util
 import os
+import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -78,3 +80,14 @@ def native_and_mjx_rollouts(task: str, n: int, steps: int):
     mjx = run(jax.vmap(brax_env.reset), jax.vmap(brax_env.step), {"xla_backend_optimization_level": 0})
     nat = run(native.reset, native.step)
     return mjx, nat
+
+
+def load_experiment(name: str):
+    """experiments/NAME.py as a module, registered in sys.modules (its dataclasses need it,
+    and report.py imports reproduce by name)."""
+    root = Path(__file__).resolve().parents[1]
+    spec = importlib.util.spec_from_file_location(name, root / "experiments" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module

@@ -59,9 +59,9 @@ def trunk(theta, obs):
     return jnp.tanh(obs @ theta["w"] + theta["b"])
 
 
-def sample_episode(rng, obs, theta, mu, w_std, action_std, beta, first):
-    """Actions drawn from the chain (4.1-4.5) and (4.29) in numpy."""
-    x = np.asarray(trunk(theta, obs))
+def sample_actions(rng, x, mu, w_std, action_std, beta, first):
+    """Actions drawn from the chain (4.1-4.5) and (4.29) in numpy, given the features x [T, q]:
+    w drawn from the prior where ``first`` (and at step 0), else moved along the chain."""
     num_steps, p = x.shape[0], mu.shape[0]
     xh = np.concatenate([x, np.ones((num_steps, 1))], axis=1)
     a = np.zeros((num_steps, p))
@@ -74,6 +74,11 @@ def sample_episode(rng, obs, theta, mu, w_std, action_std, beta, first):
             w = (1 - beta) * w + beta * mu + math.sqrt(2 * beta - beta**2) * w_std * eps
         a[t] = w @ xh[t] + action_std * rng.normal(size=p)
     return a
+
+
+def sample_episode(rng, obs, theta, mu, w_std, action_std, beta, first):
+    """`sample_actions` through the small tanh trunk."""
+    return sample_actions(rng, np.asarray(trunk(theta, obs)), mu, w_std, action_std, beta, first)
 
 
 def problem(seed, num_steps, p=2, q=3, obs_size=4, resets=(), beta=0.05):

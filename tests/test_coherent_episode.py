@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from references import reference_log_marginals
+from references import reference_log_marginals, sample_actions
 
 from coherent_jax.agents import losses
 from coherent_jax.exploration.coherent import CoherentExploration, episode_history_length
@@ -65,16 +65,8 @@ def trajectory(strategy, params, beta, seed, lengths):
     first = np.zeros(num_steps, bool)
     first[np.cumsum([0, *lengths[:-1]])] = True
     x = np.asarray(strategy.trunk.apply(params["trunk"], jnp.asarray(obs)))
-    xh = np.concatenate([x, np.ones((num_steps, 1))], axis=1)
     mu, w_std, action_std = (np.asarray(v) for v in heads(params))
-    a, w = np.zeros((num_steps, P)), None
-    for t in range(num_steps):
-        eps = rng.normal(size=mu.shape)
-        if first[t]:
-            w = mu + w_std * eps
-        else:
-            w = (1 - beta) * w + beta * mu + np.sqrt(2 * beta - beta**2) * w_std * eps
-        a[t] = w @ xh[t] + action_std * rng.normal(size=P)
+    a = sample_actions(rng, x, mu, w_std, action_std, beta, first)
     return jnp.asarray(obs), jnp.asarray(a), jnp.asarray(first)
 
 

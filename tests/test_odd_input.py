@@ -6,7 +6,6 @@ and sweep directories are synthetic (a checkpoint that verifies but holds no res
 """
 
 import hashlib
-import importlib.util
 import json
 import os
 import subprocess
@@ -14,7 +13,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from helpers import child_env
+from helpers import child_env, load_experiment
 
 from coherent_jax import evaluate, runlock, sweep, train
 from coherent_jax.bench.__main__ import main as bench_main
@@ -36,15 +35,6 @@ TINY = [
     "total_steps=400",  # 50 iterations of 8 env steps
 ]
 ITERATIONS = 50
-
-
-def load_experiment(name: str):
-    """experiments/NAME.py as a module, registered (its dataclasses need it) as test_reproduce does."""
-    spec = importlib.util.spec_from_file_location(name, ROOT / "experiments" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module
 
 
 def snapshot(path: Path) -> dict[str, str]:

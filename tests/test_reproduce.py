@@ -4,7 +4,6 @@ These checks need no training: cells are read from the suite tables, and a cell'
 state is read from files laid out as a sweep writes them.
 """
 
-import importlib.util
 import json
 import os
 import shutil
@@ -14,26 +13,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import child_env
+from helpers import child_env, load_experiment
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _load(name: str):
-    """experiments/NAME.py as a module, registered so that report.py can import reproduce."""
-    spec = importlib.util.spec_from_file_location(name, ROOT / "experiments" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-reproduce = _load("reproduce")
+reproduce = load_experiment("reproduce")
 
 
 def _report():
     """experiments/report.py (it imports plotting and rliable on load, so only where needed)."""
-    return _load("report")
+    return load_experiment("report")
 
 
 def test_thesis_suite_covers_every_comparison():
