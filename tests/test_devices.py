@@ -51,7 +51,8 @@ for n in (1, 2):
         ),
         "params": [np.asarray(x).ravel().tolist() for x in jax.tree.leaves(state.params)],
     }
-out["bad_split"] = train.main([*TINY, "num_envs=5", "num_minibatches=1", f"run_dir={tmp / 'bad1'}"])
+split = [o for o in TINY if not o.startswith(("num_envs=", "num_minibatches="))]  # each key once
+out["bad_split"] = train.main([*split, "num_envs=5", "num_minibatches=1", f"run_dir={tmp / 'bad1'}"])
 out["too_many"] = train.main([*TINY, "num_devices=3", f"run_dir={tmp / 'bad2'}"])
 out["sweep"] = sweep.main([*TINY, "seeds=2", f"run_dir={tmp / 'sweep'}"])
 (tmp / "result.json").write_text(json.dumps(out))
