@@ -300,10 +300,17 @@ def smoke_cells() -> list[Cell]:
 
 def smoke_kind(cell: Cell) -> tuple[str, ...]:
     """What the smoke suite runs once: a cell's algorithm, strategy and the keys of the
-    overrides the smoke cells keep (a grid's marked ``[]``). The ablation's cells at beta
+    overrides the smoke cells keep (a grid's marked ``[]``, a ``coherent.`` option's with
+    its value). The ablation's cells at beta
     0, 0.1, 0.5 and 1 are one kind, the sparse suite's beta grid another."""
     kept = (o.partition("=") for o in cell.overrides if o.startswith(SMOKE_KEPT))
-    keys = sorted({k + ("[]" if v.startswith("[") else "") for k, _, v in kept})
+    # A coherent option's value is a different code path (gradient=episode is not =stored).
+    keys = sorted(
+        {
+            k + ("[]" if v.startswith("[") else f"={v}" if k.startswith("coherent.") else "")
+            for k, _, v in kept
+        }
+    )
     return (cell.setting("algo") or "", cell.setting("explore") or "", *keys)
 
 

@@ -254,3 +254,36 @@ def test_the_protocols_chain_is_drawn_only_at_buffer_starts():
     # The episode mode's chain runs on across the segment boundary.
     corr_episode = _lag_correlations(make("episode", beta, episode_length=48, unroll=8), beta)
     assert abs(corr_episode[7] - (1.0 - beta)) < 0.03 and abs(corr_episode[3]) < 0.03
+
+
+def test_the_trainer_keeps_the_history_and_its_first_ratio_is_one():
+    """coherent.gradient=episode through the trainer's own iteration: the history holds the
+    last H steps (padding flagged as episode starts until real steps fill it), the
+    behaviour log-probabilities are the loss's at the collection parameters (PPO's first
+    ratio is exactly 1), and the prefix changes what the loss scores (exact differs)."""
+    from coherent_jax.agents import make_trainer
+    from coherent_jax.config import parse_overrides
+
+    base = [
+        "env=pointmass", "num_envs=4", "unroll_length=8", "episode_length=20", "num_epochs=2",
+        "num_minibatches=2", "policy_hidden=[8]", "value_hidden=[8]", "eval_episodes=2", "explore=coherent",
+    ]  # fmt: skip
+    runs = {}
+    for gradient in ("episode", "exact"):
+        trainer = make_trainer(parse_overrides([*base, f"coherent.gradient={gradient}"]))
+        state = jax.jit(trainer.init)(jax.random.PRNGKey(0))
+        step = jax.jit(trainer.iteration)
+        kls, losses_ = [], []
+        for _ in range(4):
+            state, metrics = step(state)
+            kls.append(float(metrics["train/kl_first_minibatch"]))
+            losses_.append(float(metrics["train/policy_loss"]))
+        runs[gradient] = (trainer, state, kls, losses_)
+    trainer, state, kls, losses_ = runs["episode"]
+    assert trainer.strategy.history_length == 24 and runs["exact"][1].history == ()
+    assert state.history.obs.shape == (24, 4, trainer.env.observation_size)
+    assert kls == [0.0] * 4 and all(np.isfinite(losses_))
+    # After 4 x 8 steps the history is real data: its episode starts every 20 steps.
+    first = np.asarray(state.history.first)
+    assert first.sum(axis=0).tolist() == [1] * 4 and np.abs(np.asarray(state.history.obs)).sum() > 0
+    assert losses_[1:] != runs["exact"][3][1:]

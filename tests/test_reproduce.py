@@ -109,6 +109,7 @@ def test_smoke_has_one_cell_per_kind_of_cell():
     assert all(c.setting("env") == "pointmass" for c in smoke)
     names = {c.name for c in smoke}
     assert {"pointmass/ppo/coherent-beta0", "pointmass/ppo/coherent-beta", "pointmass/sac/psne"} <= names
+    assert {"pointmass/ppo/coherent-stored", "pointmass/ppo/coherent-episode"} <= names
     (grid,) = [c for c in smoke if c.name == "pointmass/ppo/coherent-beta"]
     assert grid.setting("beta").startswith("[")
 
