@@ -581,12 +581,6 @@ class ChainStrategy(OnPolicyStrategy):
         self.action_std = float(action_std)
         self.learn_action_std = bool(learn_action_std)
 
-    def _chain_first(self, first: chex.Array) -> chex.Array:
-        """Where episode starts restart the chain: every ``first``, or none with
-        ``episode_restart=False`` (the chain then runs across resets, as through the
-        thesis's buffer; only the strategy's own restarts start it afresh)."""
-        return first if getattr(self, "episode_restart", True) else jnp.zeros_like(first)
-
     @staticmethod
     def chain_settings(cfg) -> dict:
         """The constructor's chain arguments as ``cfg`` gives them."""
@@ -789,6 +783,12 @@ class CoherentExploration(ChainStrategy):
         (mean, cov), logp = jax.vmap(filt)(carry, x, action, first)
         chex.assert_shape(logp, (num_envs,))
         return ActOutput(action, logp, carry._replace(z=z, mean=mean, cov=cov))
+
+    def _chain_first(self, first: chex.Array) -> chex.Array:
+        """Where episode starts restart the chain: every ``first``, or none with
+        ``episode_restart=False`` (the chain then runs across resets, as through the
+        thesis's buffer; only the strategy's own restarts start it afresh)."""
+        return first if self.episode_restart else jnp.zeros_like(first)
 
     def _segment_first(self, first: chex.Array, restart: chex.Array) -> chex.Array:
         """Where the chain starts afresh in a segment: its episode starts (unless
