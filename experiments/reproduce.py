@@ -43,7 +43,9 @@ from collections.abc import Sequence
 from pathlib import Path
 
 # experiments/ is a folder of scripts, not a package: its modules import each other by name.
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+# The package they read is this checkout's, whatever else is installed (a worktree's
+# results are made and tabulated by its own code, as its cells' subprocesses are).
+sys.path[:0] = [str(Path(__file__).resolve().parent), str(Path(__file__).resolve().parents[1])]
 import curves  # noqa: E402
 from cells import (  # noqa: E402, F401  (re-exported: the state of a cell is read as reproduce.X)
     DEFAULT_RATE,

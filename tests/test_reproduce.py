@@ -420,3 +420,26 @@ def test_a_cell_present_only_as_compact_data_is_done(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.split()[:3] == ["hopper/a2c/action", "done", "100.0%"]
     assert len(report.cell_runs(done, clone)) == 2
+
+
+def test_the_scripts_read_this_checkouts_package(tmp_path):
+    """`reproduce.py` (and what it imports in-process: the curves table, the commit) reads
+    the package of its own checkout, not another one earlier on the path (a worktree's
+    results are made by its own code): a decoy ``coherent_jax`` on PYTHONPATH is not read."""
+    decoy = tmp_path / "coherent_jax"
+    decoy.mkdir()
+    (decoy / "__init__.py").write_text("raise ImportError('the decoy package was imported')\n")
+    code = (
+        "import runpy, sys; runpy.run_path(sys.argv[1], run_name='loaded'); "
+        "import coherent_jax.runs; print(coherent_jax.runs.__file__)"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code, str(ROOT / "experiments" / "reproduce.py")],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ, PYTHONPATH=str(tmp_path)),
+        cwd=tmp_path,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert Path(proc.stdout.strip()).resolve().is_relative_to(ROOT / "coherent_jax")
