@@ -230,7 +230,12 @@ class Config:
         "coherent: how w is integrated out: joint (Cholesky of each segment's joint "
         "Gaussian, fast up to a few hundred steps per segment) or filter (sequential scan)",
     )
-    remat: bool = _field("exploration", False, "coherent: rematerialise the filter scan in the backward pass")
+    remat: bool = _field(
+        "exploration",
+        False,
+        "coherent: rematerialise the filter scan or the chained blocks in the backward pass "
+        "(less memory, more time)",
+    )
     # --- off-policy (SAC, thesis Algorithm 3 and §4.3)
     buffer_size: int = _field(
         "sac", 1_000_000, "sac: replay capacity in transitions (a ring buffer in the state)"

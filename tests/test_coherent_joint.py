@@ -84,46 +84,48 @@ def test_joint_float32_consecutive_segments_match_float64(beta):
 
 
 @pytest.mark.parametrize("size", [1, 7, 16, 33])
-def test_cholesky_whiten_reverse_pass_equals_jaxs_own(x64, size):
-    """`linalg.cholesky_whiten`'s reverse pass (products with L^-1) against JAX's generic
-    Cholesky and triangular-solve rules, float64: cotangents on z alone (the loss) and on
-    L as well (the chained beliefs), for a non-symmetric perturbation of K (symmetrised
-    before the factorisation, as the joint form does), sizes on and off a power of two;
-    and `tril_inverse` is the inverse."""
-    from coherent_jax.exploration.linalg import cholesky_whiten, tril_inverse
+def test_whiten_reverse_pass_equals_jaxs_own(x64, size):
+    """`linalg.whiten` (products with L^-1, forward and reverse) against JAX's generic
+    Cholesky and triangular-solve rules, float64: cotangents on z alone (the loss), on z
+    and log L_tt (the marginals), and on Y = L^-1 C as well (the chained beliefs), for a
+    non-symmetric perturbation of K (symmetrised before the factorisation, as the joint
+    form does), sizes on and off a power of two; and `tril_inverse` is the inverse."""
+    from coherent_jax.exploration.linalg import tril_inverse, whiten
 
     rng = np.random.default_rng(size)
     root = rng.normal(size=(2, 3, size, size))
     cov = root @ root.transpose(0, 1, 3, 2) + 0.5 * np.eye(size) + 0.1 * rng.normal(size=(2, 3, size, size))
     resid = rng.normal(size=(2, 3, size))
-    g, weights = rng.normal(size=(2, 3, size)), rng.normal(size=(2, 3, size, size))
+    cross = rng.normal(size=(2, 3, size, 5))
+    g, weights = rng.normal(size=(2, 3, size)), rng.normal(size=(2, 3, size, 5))
 
-    def generic(k, r):
+    def generic(k, r, c):
         chol = jnp.linalg.cholesky(k)
         z = jax.scipy.linalg.solve_triangular(chol, r[..., None], lower=True)[..., 0]
-        return chol, z, jnp.log(jnp.diagonal(chol, axis1=-2, axis2=-1))
+        y = jax.scipy.linalg.solve_triangular(chol, c, lower=True)
+        return z, jnp.log(jnp.diagonal(chol, axis1=-2, axis2=-1)), y
 
-    # Which outputs the loss reads: z alone; z and log L_tt (the marginals); L as well
-    # (the chained beliefs); and log L_tt through L's own diagonal.
-    for reads in ("z", "z+logdiag", "z+logdiag+chol", "z+chol_diag"):
+    # Which outputs the loss reads: z alone; z and log L_tt (the marginals); Y as well
+    # (the chained beliefs), also quadratically as the belief's covariance does.
+    for reads in ("z", "z+logdiag", "z+logdiag+Y", "z+YY"):
 
-        def loss(factor, k, r, reads=reads):
-            chol, z, log_diag = factor(0.5 * (k + jnp.swapaxes(k, -1, -2)), r)
+        def loss(factor, k, r, c, reads=reads):
+            z, log_diag, y = factor(0.5 * (k + jnp.swapaxes(k, -1, -2)), r, c)
             out = jnp.sum(g * (-0.5 * z**2)) + jnp.sum(jnp.sin(z))
             if "logdiag" in reads:
                 out = out - jnp.sum(g * log_diag) + jnp.sum(jnp.exp(2.0 * log_diag))
-            if "chol_diag" in reads:
-                out = out - jnp.sum(g * jnp.log(jnp.diagonal(chol, axis1=-2, axis2=-1)))
-            if "+chol" in reads and "chol_diag" not in reads:
-                out = out + jnp.sum(weights * chol)
+            if "+Y" in reads:
+                out = out + jnp.sum(weights * y)
+            if "YY" in reads:
+                out = out + jnp.sum(jnp.einsum("...tk,...tl->...kl", y, y) ** 2) + jnp.sum(y * z[..., None])
             return out
 
-        want = jax.grad(lambda k, r: loss(generic, k, r), argnums=(0, 1))(cov, resid)
-        got = jax.grad(lambda k, r: loss(cholesky_whiten, k, r), argnums=(0, 1))(cov, resid)
+        want = jax.grad(lambda k, r, c: loss(generic, k, r, c), argnums=(0, 1, 2))(cov, resid, cross)
+        got = jax.grad(lambda k, r, c: loss(whiten, k, r, c), argnums=(0, 1, 2))(cov, resid, cross)
         for w, v in zip(want, got, strict=True):
             np.testing.assert_allclose(v, w, rtol=1e-10, atol=1e-12, err_msg=reads)
     sym = 0.5 * (cov + cov.transpose(0, 1, 3, 2))
-    for got, want in zip(cholesky_whiten(sym, resid), generic(sym, resid), strict=True):
+    for got, want in zip(whiten(sym, resid, cross), generic(sym, resid, cross), strict=True):
         np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14)
     chol = np.linalg.cholesky(sym)
     np.testing.assert_allclose(

@@ -37,7 +37,7 @@ import jax.numpy as jnp
 from coherent_jax.exploration.adaptive import SigmaRule, adapt_sigma, policy_distance
 from coherent_jax.exploration.base import ActOutput, OffPolicyBehaviour, OnPolicyStrategy, SegmentLogProb
 from coherent_jax.exploration.chain import chain_step, innovation_var
-from coherent_jax.exploration.linalg import cholesky_whiten, masked_gram
+from coherent_jax.exploration.linalg import masked_gram, whiten
 from coherent_jax.networks import MLP, augment, squash
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -489,10 +489,6 @@ def segment_marginals_joint(
         cov_a = cov_a + (c[:, None] * c[None, :])[None] * gram_p
         mean_a = mean_a + c[:, None] * (xh @ (m0 - mu).T)
     resid = (a - mean_a).T  # [p, T]
-    # The marginals read L through log L_tt only, which keeps the factor's reverse pass cheap.
-    chol, white, log_diag = cholesky_whiten(cov_a, resid)  # [p, T, T], [p, T], [p, T]
-    logp = jnp.sum(-0.5 * jnp.square(white) - log_diag - 0.5 * _LOG_2PI, axis=0)
-    pred_var = jnp.exp(2.0 * log_diag).T  # [T, p]
 
     # Belief over w_T (before a_T): condition the prior of w_T on the segment.
     last = episode == episode[-1]
@@ -505,7 +501,10 @@ def segment_marginals_joint(
         cross = cross + c_end * c[None, :, None] * (xp0 - xd)
         mean_end = mean_end + c_end * (m0 - mu)
         prior_cov_end = c_end**2 * p0 + (1.0 - c_end**2) * prior_cov_end
-    proj = jax.scipy.linalg.solve_triangular(chol, cross, lower=True)  # [p, T, n]
+    # z = L^-1 r and L^-1 Cov(a, w_T); the marginals read L through log L_tt only.
+    white, log_diag, proj = whiten(cov_a, resid, cross)  # [p, T], [p, T], [p, T, n]
+    logp = jnp.sum(-0.5 * jnp.square(white) - log_diag - 0.5 * _LOG_2PI, axis=0)
+    pred_var = jnp.exp(2.0 * log_diag).T  # [T, p]
     mean_end = mean_end + jnp.einsum("itk,it->ik", proj, white)
     cov_end = prior_cov_end - jnp.einsum("itk,itl->ikl", proj, proj)
     cov_end = 0.5 * (cov_end + jnp.swapaxes(cov_end, -1, -2))
@@ -806,7 +805,9 @@ class CoherentExploration(ChainStrategy):
         # terms are zero and need not be formed.
         from_prior = self.gradient == "exact"
         if x.shape[0] > MAX_BLOCK:
-            return chained_marginals(belief0, x, a, first, mu, w_std, action_std, beta, from_prior=from_prior)
+            return chained_marginals(
+                belief0, x, a, first, mu, w_std, action_std, beta, from_prior=from_prior, remat=self.remat
+            )
         return segment_marginals_joint(belief0, x, a, first, mu, w_std, action_std, beta, from_prior)
 
     def score_segment(self, params, hparams, carry0, carry, obs, actions, first, log_prob):
@@ -859,7 +860,17 @@ class CoherentExploration(ChainStrategy):
         first = jnp.asarray(first, bool).at[0].set(True)
         prior = prior_belief(mu, w_std)
         logp, _, pred_var = chained_marginals(
-            prior, x, actions, first, mu, w_std, action_std, beta, self.block, from_prior=True
+            prior,
+            x,
+            actions,
+            first,
+            mu,
+            w_std,
+            action_std,
+            beta,
+            self.block,
+            from_prior=True,
+            remat=self.remat,
         )
         return SegmentLogProb(logp, predictive_entropy(pred_var))
 

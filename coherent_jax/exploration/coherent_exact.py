@@ -54,6 +54,7 @@ def chained_marginals(
     beta: chex.Array,
     block: int | None = None,
     from_prior: bool = False,
+    remat: bool = False,
 ) -> tuple[chex.Array, Belief, chex.Array]:
     """`coherent.segment_marginals` over T steps, as blocks of the joint form chained by beliefs.
 
@@ -66,8 +67,10 @@ def chained_marginals(
     the log-probabilities is that of the sequential filter over the whole segment.
 
     Per action dimension and step this costs about 3 B (q+1) + B^2 / 3 + 2 (q+1)^2
-    multiply-adds against the filter's 3 (q+1)^2, with no sequential loop inside a block;
-    memory is O(T (B + q+1)) instead of the single joint form's O(T^2).
+    multiply-adds against the filter's 3 (q+1)^2, with no sequential loop inside a block.
+    The reverse pass keeps each block's intermediates, O(T (B + (q+1)^2 / B)) floats per
+    action dimension, instead of the single joint form's O(T^2); with ``remat`` it keeps
+    only the beliefs between blocks and recomputes each block (about a third more time).
 
     Args:
       belief0: alpha(w_0) of the segment, mean [p, q+1], cov [p, q+1, q+1]; used at
@@ -82,6 +85,7 @@ def chained_marginals(
       block: steps per block, a divisor of T; default `block_size(T)`.
       from_prior: the segment starts an episode (``belief0`` unused); the first block
         then skips the stored belief's terms (`segment_marginals_joint`).
+      remat: ``jax.checkpoint`` each block (static).
 
     Returns:
       (logp [T], the belief over w_T before a_T, the predictive variances s [T, p]).
@@ -109,9 +113,10 @@ def chained_marginals(
         )
         return belief, (logp, pred_var)
 
-    # The belief is the only state passed between blocks; the backward pass recomputes
-    # each block's [p, B, B] factor from it instead of keeping all of them.
-    final, (logp, pred_var) = jax.lax.scan(jax.checkpoint(body), belief1, (split(x), split(a), split(first)))
+    # The belief is the only state passed between blocks; with remat the backward pass
+    # recomputes each block's [p, B, B] factor from it instead of keeping all of them.
+    body = jax.checkpoint(body) if remat else body
+    final, (logp, pred_var) = jax.lax.scan(body, belief1, (split(x), split(a), split(first)))
     logp = jnp.concatenate([logp0, logp.reshape(-1)])
     return logp, final, jnp.concatenate([pred_var0, pred_var.reshape(-1, pred_var0.shape[-1])])
 

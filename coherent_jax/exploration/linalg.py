@@ -3,16 +3,15 @@
 The loss factors one T x T covariance per (segment, action dimension): about a hundred
 64 x 64 matrices per minibatch. LAPACK's factorisation of each is quick, but JAX's
 reverse pass through it (two triangular solves with T right-hand sides per matrix,
-called matrix by matrix) was most of the loss's gradient on CPU. Here the reverse pass
-is matrix products with L^-1, and L^-1 itself comes from products of blocks
-that double in size, vectorised across every matrix of the batch.
+called matrix by matrix) was most of the loss's gradient on CPU, and so were the forward
+solves. Here both passes are matrix products with L^-1, and L^-1 itself comes from
+products of blocks that double in size, vectorised across every matrix of the batch.
 """
 
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-from jax.scipy.linalg import solve_triangular
 
 # Below this block size the doubling's products are written as broadcasts and sums
 # (one fused loop over the whole batch) rather than as batched dots, which XLA's CPU
@@ -59,67 +58,79 @@ def _phi(x: jax.Array) -> jax.Array:
     return jnp.tril(x) - 0.5 * x * jnp.eye(x.shape[-1], dtype=x.dtype)
 
 
-def _factor(cov: jax.Array, resid: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+def _factor(cov: jax.Array, resid: jax.Array, cross: jax.Array):
     # LAPACK reads the lower triangle only; ``jnp.linalg.cholesky`` would first average K
     # with its transpose, a transposing copy that cost a tenth of the loss's gradient.
     chol = jax.lax.linalg.cholesky(cov, symmetrize_input=False)
-    white = solve_triangular(chol, resid[..., None], lower=True)[..., 0]
-    return chol, white, jnp.log(jnp.diagonal(chol, axis1=-2, axis2=-1))
+    # Products with M = L^-1 rather than triangular solves: XLA's CPU backend solves
+    # matrix by matrix, and the reverse pass needs M anyway.
+    inv = tril_inverse(chol)
+    white = jnp.einsum("...ts,...s->...t", inv, resid)
+    proj = inv @ cross
+    return inv, white, jnp.log(jnp.diagonal(chol, axis1=-2, axis2=-1)), proj
 
 
 @jax.custom_vjp
-def cholesky_whiten(cov: jax.Array, resid: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """(L, z, log diag L) with K = L L' (Cholesky, lower) and z = L^-1 r, batched over leading axes.
+def whiten(cov: jax.Array, resid: jax.Array, cross: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """(z, log diag L, Y) with K = L L' (Cholesky, lower), z = L^-1 r and Y = L^-1 C.
 
-    Values are LAPACK's (``jnp.linalg.cholesky`` and a triangular solve). The reverse
-    pass, for cotangents (Lbar, zbar, gbar) and M = L^-1: dz = -Phi(M dK M') z,
-    dL = L Phi(M dK M') and d log L_tt = Phi(M dK M')_tt, so
+    Batched over leading axes. The factor is LAPACK's; M = L^-1 comes from
+    `tril_inverse`, and z and Y are products with it. The reverse pass, for cotangents
+    (zbar, gbar, Ybar): with S = M dK M', dL = L Phi(S) gives dM = -Phi(S) M, so
+    dz = -Phi(S) z + M dr, dY = -Phi(S) Y + M dC and d log L_tt = S_tt / 2, hence
 
-        Kbar = sym(M' [Phi(L' Lbar) + diag(gbar) / 2 - Phi(zbar z')] M),   rbar = M' zbar,
+        Kbar = sym(M' [diag(gbar) / 2 - Phi(zbar z' + Ybar Y')] M),
+        rbar = M' zbar,   Cbar = M' Ybar,
 
     the gradient with respect to a symmetric K. Only K's lower triangle is read, so K
     must be symmetric by construction (as `masked_gram`'s is); it is not symmetrised
-    here. The marginals read L only through
-    log L_tt and z (the end-of-segment belief reads L itself); without Lbar the middle
-    factor times M takes no product at all: row i of Phi(zbar z') M is
-    zbar_i (sum_{j <= i} z_j M_j - z_i M_i / 2), a running sum over rows. Equal to JAX's
-    own reverse pass to float64 rounding (tests/test_coherent_joint.py).
+    here. Row i of Phi(zbar z') M is zbar_i (sum_{j <= i} z_j M_j - z_i M_i / 2), a
+    running sum over rows, so the marginals' terms take no matrix product at all.
+    Equal to JAX's own reverse pass of a Cholesky factor and triangular solves to float64
+    rounding (tests/test_coherent_joint.py).
 
     Args:
       cov: [..., T, T] symmetric positive definite.
       resid: [..., T].
+      cross: [..., T, k] further right-hand sides (k may be 0).
+
+    Returns:
+      (z [..., T], log diag L [..., T], Y [..., T, k]).
     """
-    return _factor(cov, resid)
+    _, white, log_diag, proj = _factor(cov, resid, cross)
+    return white, log_diag, proj
 
 
-def _whiten_fwd(cov, resid):
+def _whiten_fwd(cov, resid, cross):
     # With symbolic zeros the primals come wrapped (``CustomVJPPrimal``).
-    chol, white, log_diag = _factor(cov.value, resid.value)
-    return (chol, white, log_diag), (chol, white)
+    inv, white, log_diag, proj = _factor(cov.value, resid.value, cross.value)
+    return (white, log_diag, proj), (inv, white, proj)
 
 
 def _whiten_bwd(res, cotangents):
-    chol, white = res
-    chol_bar, white_bar, log_diag_bar = cotangents
+    inv, white, proj = res
+    white_bar, log_diag_bar, proj_bar = cotangents
     zero = jax.custom_derivatives.SymbolicZero
-    inv = tril_inverse(chol)
     if isinstance(white_bar, zero):
         white_bar = jnp.zeros_like(white)
-    # middle @ M, with middle = diag(gbar) / 2 - Phi(zbar z') (+ Phi(L' Lbar)).
+    # middle @ M, with middle = diag(gbar) / 2 - Phi(zbar z') - Phi(Ybar Y').
     # sum_{j <= i} z_j M_j; a prefix sum in log2(T) rounds (XLA's CPU cumsum is a T-wide window).
     running = jax.lax.associative_scan(jnp.add, white[..., :, None] * inv, axis=-2)
     middle_inv = -white_bar[..., :, None] * (running - 0.5 * white[..., :, None] * inv)
     if not isinstance(log_diag_bar, zero):
         middle_inv = middle_inv + 0.5 * log_diag_bar[..., :, None] * inv
-    if not isinstance(chol_bar, zero):  # the end-of-segment belief reads L
-        middle_inv = middle_inv + _phi(jnp.swapaxes(chol, -1, -2) @ chol_bar) @ inv
+    if isinstance(proj_bar, zero):
+        cross_bar = jnp.zeros_like(proj)
+    else:  # the end-of-segment belief reads Y
+        middle_inv = middle_inv - _phi(proj_bar @ jnp.swapaxes(proj, -1, -2)) @ inv
+        cross_bar = jnp.swapaxes(inv, -1, -2) @ proj_bar
     cov_bar = jnp.swapaxes(inv, -1, -2) @ middle_inv
     cov_bar = 0.5 * (cov_bar + jnp.swapaxes(cov_bar, -1, -2))
     resid_bar = jnp.einsum("...ts,...t->...s", inv, white_bar)
-    return cov_bar, resid_bar
+    return cov_bar, resid_bar, cross_bar
 
 
-cholesky_whiten.defvjp(_whiten_fwd, _whiten_bwd, symbolic_zeros=True)
+whiten.defvjp(_whiten_fwd, _whiten_bwd, symbolic_zeros=True)
 
 
 @jax.custom_vjp
