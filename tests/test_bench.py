@@ -22,6 +22,8 @@ TINY = [
     "filter_T=16",
     "filter_repeats=2",
     "seg_repeats=2",
+    "chains=[episode]",
+    "chain_iterations=1",
 ]
 
 
@@ -69,8 +71,36 @@ def test_coherent_suite_writes_every_figure(tmp_path):
     assert case["max_abs_logp_diff"] < 1e-3
     assert case["max_rel_grad_diff"] < 1e-3
 
+    (chain,) = data["chains"].values()
+    assert list(data["chains"]) == ["episode"] and chain["gradient"] == "episode"
+    assert (chain["num_envs"], chain["unroll_length"]) == (4, 8)
+    for name in ("action", "coherent"):
+        for key in ("iteration_s_median", "env_steps_per_s", "compile_s"):
+            assert _positive(chain[name][key]), (name, key)
+        cfg = data["settings"]["config"]
+        assert 1 <= chain[name]["policy_steps"] <= cfg["num_epochs"] * cfg["num_minibatches"]
+    assert _positive(chain["ratio_coherent_over_action"])
+
     table = coherent.format_table(data)
-    assert "coherent/action" in table and "dense" in table
+    assert "coherent/action" in table and "dense" in table and "4. long chains" in table
+
+
+def test_long_chain_rows_are_the_preset_and_the_episode_gradient():
+    """The ``thesis`` row is ``preset=thesis`` on the suite's task and seed (its buffer
+    scored from its start, the chain through env resets), the ``episode`` row the suite's
+    own settings with the episode gradient; an unknown row is refused."""
+    from coherent_jax.bench.chains import chain_config
+    from coherent_jax.config import parse_overrides
+
+    cfg = parse_overrides(["env=hopper", "seed=7", "num_envs=16"])
+    thesis = chain_config(cfg, "thesis")
+    assert (thesis.env, thesis.seed, thesis.num_envs, thesis.unroll_length) == ("hopper", 7, 4, 1000)
+    assert thesis.preset == "thesis" and thesis.coherent.gradient == "exact"
+    assert not thesis.coherent.episode_restart
+    episode = chain_config(cfg, "episode")
+    assert episode.coherent.gradient == "episode" and episode.num_envs == 16
+    with pytest.raises(ValueError, match="'stored'"):
+        chain_config(cfg, "stored")
 
 
 def test_dense_reference_checkpointed_equals_plain_and_block():
@@ -116,6 +146,7 @@ def run_cli(args, cwd):
         (["coherent", "foo=1"], "'foo'"),
         (["coherent", "iterations=0"], "'iterations'"),
         (["coherent", "filter_q=[8,x]"], "'filter_q'"),
+        (["coherent", "chains=[thesis,stored]"], "'chains'"),
         (["coherent", "env=cheetah"], "'env'"),
         (["coherent", "explore=action"], "'explore'"),
         (["coherent", "policy_hidden=[64,"], "'policy_hidden'"),

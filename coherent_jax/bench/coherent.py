@@ -18,10 +18,12 @@ costs next to Gaussian action noise:
    calls it (vmapped over a minibatch of env segments, with its gradient), for
    coherent and for action noise.
 
+4. *Long chains* (`coherent_jax.bench.chains`): the same interleaved pair at
+   ``preset=thesis`` (4 envs x 1,000-step buffers) and with ``coherent.gradient=episode``
+   (the episode prefix re-inferred in the loss); ``chains=none`` skips them.
+
 Settings are ``key=value``: every training key except ``explore`` and ``remat``
-(the suite sets those), plus `KEYS`. The rows of the long chains are two runs of it:
-``preset=thesis`` (4 envs x 1,000 steps, 80 policy steps) and
-``coherent.gradient=episode`` (the defaults, the episode prefix re-inferred in the loss).
+(the suite sets those), plus `KEYS`.
 The results go to a JSON file (default ``bench_results/coherent.json``), written
 atomically.
 """
@@ -37,6 +39,7 @@ from typing import Any
 
 from coherent_jax import cli
 from coherent_jax.bench import IGNORED, measure
+from coherent_jax.bench.chains import CHAINS, bench_chains, chain_config, format_chains
 from coherent_jax.bench.dense import dense_log_marginals, sample_segments
 from coherent_jax.config import Config, to_dict, validate
 
@@ -62,6 +65,13 @@ KEYS: dict[str, cli.Key] = {
         "a number > 0",
         "dense gradient: checkpoint the scan (then map over the batch) above this peak memory",
     ),
+    "chains": cli.Key(
+        list(CHAINS),
+        lambda text: [] if text.strip() in ("none", "[]") else cli.choice_list(CHAINS)(text),
+        "a non-empty list of " + ", ".join(CHAINS) + ", or none",
+        "long-chain rows (bench/chains.py): preset=thesis, and coherent.gradient=episode",
+    ),
+    "chain_iterations": cli.Key(3, _count, "an integer >= 1", "timed PPO iterations per long-chain row"),
     "seg_envs": cli.Key(8, _count, "an integer >= 1", "env segments in the log_prob minibatch"),
     "seg_repeats": cli.Key(10, _count, "an integer >= 1", "timed calls per log_prob measurement"),
 }
@@ -78,12 +88,16 @@ def parse(items: Sequence[str]) -> cli.Parsed:
     parsed = cli.parse_command(items, KEYS, command="the coherent suite", fixed=FIXED, ignored=IGNORED)
     for explore in ("action", "coherent"):
         validate(dataclasses.replace(parsed.config, explore=explore))
+    for chain in parsed.settings["chains"]:
+        chain_config(parsed.config, chain)
     return parsed
 
 
-def _bench_training(cfg: Config, iterations: int, log) -> tuple[dict, dict]:
-    """Compiles and times the PPO iteration for both strategies; returns (results, trainers)."""
+def _bench_training(cfg: Config, iterations: int, log, remat_row: bool = True) -> tuple[dict, dict]:
+    """Compiles and times the PPO iteration for both strategies (and compiles the filter
+    form with remat for its memory, with ``remat_row``); returns (results, trainers)."""
     import jax
+    import jax.numpy as jnp
 
     from coherent_jax import parallel
     from coherent_jax.agents.onpolicy import OnPolicyTrainer
@@ -95,13 +109,10 @@ def _bench_training(cfg: Config, iterations: int, log) -> tuple[dict, dict]:
     # evaluation runs here, so it also stands in for the evaluation env.
     env = VecEnv(cfg.env, cfg.num_envs, cfg.episode_length, cfg.physics, cfg.physics_threads)
     runs: dict[str, dict] = {}
-    for name, explore, remat in (
-        ("action", "action", False),
-        ("coherent", "coherent", False),
-        ("coherent_remat", "coherent", True),
-    ):
+    rows = [("action", "action", False), ("coherent", "coherent", False)]
+    for name, explore, remat in rows + ([("coherent_remat", "coherent", True)] if remat_row else []):
         # The remat row is the sequential-filter form of the loss with its scan
-        # rematerialised (remat only applies there), compiled for its memory.
+        # rematerialised, the smallest footprint the strategy has, compiled for its memory.
         inference = "filter" if remat else cfg.coherent_inference
         run_cfg = dataclasses.replace(cfg, explore=explore, remat=remat, coherent_inference=inference)
         if remat and cfg.coherent.gradient == "episode":  # the filter form has no episode mode
@@ -132,7 +143,13 @@ def _bench_training(cfg: Config, iterations: int, log) -> tuple[dict, dict]:
         run["state"], _ = jax.block_until_ready(run["step"](run["state"]))
         run["warmup_s"] = time.perf_counter() - t0
         run["times"] = []
-    measure.time_interleaved(runs, timed, iterations, log)
+
+    def on_metrics(name, metrics):
+        runs[name]["updates_applied"].append(float(jnp.mean(metrics["train/updates_applied"])))
+
+    for name in timed:
+        runs[name]["updates_applied"] = []
+    measure.time_interleaved(runs, timed, iterations, log, on_metrics)
 
     steps = cfg.num_envs * cfg.unroll_length
     results: dict[str, Any] = {}
@@ -146,6 +163,7 @@ def _bench_training(cfg: Config, iterations: int, log) -> tuple[dict, dict]:
                 iteration_s_median=median,
                 env_steps_per_s=steps / median,
                 env_steps_per_s_total=len(run["times"]) * steps / sum(run["times"]),
+                updates_applied=run["updates_applied"],
             )
         results[name] = entry
     results["env_steps_per_iteration"] = steps
@@ -153,8 +171,8 @@ def _bench_training(cfg: Config, iterations: int, log) -> tuple[dict, dict]:
     results["ratio_coherent_over_action"] = (
         results["coherent"]["env_steps_per_s"] / results["action"]["env_steps_per_s"]
     )
-    peaks = {n: measure.peak(results[n]["memory"]) for n in ("action", "coherent", "coherent_remat")}
-    if all(peaks.values()):
+    peaks = {n: measure.peak(results[n]["memory"]) for n in runs}
+    if remat_row and all(peaks.values()):
         results["memory_ratio_coherent_over_action"] = peaks["coherent"] / peaks["action"]
         results["memory_ratio_remat_over_coherent"] = peaks["coherent_remat"] / peaks["coherent"]
     trainers = {n: (runs[n]["trainer"], runs[n]["state"]) for n in timed}
@@ -381,6 +399,7 @@ def run(items: Sequence[str], log: Callable[[str], None] = measure.print_log) ->
     segment = _bench_segment_log_prob(cfg, bench, trainers, log)
     del trainers
     figures = {"training": training, "segment_log_prob": segment, "filter": _bench_filter(cfg, bench, log)}
+    figures["chains"] = bench_chains(cfg, bench["chains"], bench["chain_iterations"], _bench_training, log)
     settings = {"config": to_dict(cfg), **bench}
     return measure.finish("coherent", info, t_start, settings, figures, bench["out"], log)
 
@@ -451,4 +470,5 @@ def format_table(result: dict) -> str:
         f"  coherent/action: forward {seg['ratio_forward_coherent_over_action']:.1f}x, "
         f"fwd+grad {seg['ratio_grad_coherent_over_action']:.1f}x",
     ]
-    return "\n".join(lines)
+    chains = format_chains(result.get("chains", {}))
+    return "\n".join(lines + ([""] + chains if chains else []))

@@ -1,0 +1,85 @@
+"""The coherent suite's long-chain rows: what the chain costs where it runs long.
+
+Two settings, each timed as its own interleaved pair (action noise, coherent) of the
+real jitted PPO iteration, on the suite's task and seed:
+
+* ``thesis``: ``preset=thesis`` (4 envs x 1,000-step buffers scored from the buffer's
+  start, up to 80 full-batch policy steps with early stopping, 80 value steps; see
+  docs/presets.md). Both strategies stop their policy steps at the same KL target, so
+  the ratio includes how many steps each takes (reported as ``policy_steps``).
+* ``episode``: the suite's own settings with ``coherent.gradient=episode``: every
+  segment's loss re-infers its episode prefix (up to ``episode_length - 1`` steps) under
+  the current parameters.
+
+The ratio coherent / action of env steps per second is the figure each row reports.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import statistics
+from typing import Any
+
+from coherent_jax.config import Config, parse_overrides, validate
+
+#: the rows, in the order they run
+CHAINS = ("thesis", "episode")
+
+
+def chain_config(cfg: Config, chain: str) -> Config:
+    """The config of one long-chain row, built from the suite's ``cfg``."""
+    if chain == "thesis":
+        return parse_overrides([f"env={cfg.env}", f"seed={cfg.seed}", "algo=ppo", "preset=thesis"])
+    if chain == "episode":
+        out = dataclasses.replace(cfg, coherent=dataclasses.replace(cfg.coherent, gradient="episode"))
+        validate(dataclasses.replace(out, explore="coherent"))
+        return out
+    raise ValueError(f"unknown chain row {chain!r}; allowed: {', '.join(CHAINS)}")
+
+
+def bench_chains(cfg: Config, chains: list[str], iterations: int, bench_training, log) -> dict[str, Any]:
+    """Times each row with ``bench_training(cfg, iterations, log, remat_row=False)``
+    (`coherent._bench_training`); returns per row the config's shape, the two
+    strategies' median iteration seconds, env steps/s, policy steps applied, and the ratio."""
+    results: dict[str, Any] = {}
+    for chain in chains:
+        row_cfg = chain_config(cfg, chain)
+        log(f"[bench] long chain '{chain}': {row_cfg.num_envs} envs x {row_cfg.unroll_length} steps")
+        training, trainers = bench_training(row_cfg, iterations, log, remat_row=False)
+        row: dict[str, Any] = {
+            "num_envs": row_cfg.num_envs,
+            "unroll_length": row_cfg.unroll_length,
+            "gradient": "episode" if chain == "episode" else row_cfg.coherent.gradient,
+            "ratio_coherent_over_action": training["ratio_coherent_over_action"],
+        }
+        for name in ("action", "coherent"):
+            entry = training[name]
+            row[name] = {
+                "iteration_s_median": entry["iteration_s_median"],
+                "env_steps_per_s": entry["env_steps_per_s"],
+                "compile_s": entry["compile_s"],
+                "policy_steps": statistics.median(entry["updates_applied"]),
+            }
+        del trainers
+        results[chain] = row
+    return results
+
+
+def format_chains(chains: dict[str, Any]) -> list[str]:
+    """The table of `bench_chains`'s rows."""
+    if not chains:
+        return []
+    lines = [
+        "4. long chains: PPO iteration, action vs coherent (median, interleaved)",
+        f"  {'row':<9}{'shape':>13}{'gradient':>10}{'action s':>10}{'coherent s':>12}"
+        f"{'policy steps':>14}{'ratio':>8}",
+    ]
+    for chain, row in chains.items():
+        shape = f"{row['num_envs']}x{row['unroll_length']}"
+        steps = f"{row['action']['policy_steps']:.0f}/{row['coherent']['policy_steps']:.0f}"
+        lines.append(
+            f"  {chain:<9}{shape:>13}{row['gradient']:>10}{row['action']['iteration_s_median']:>10.3f}"
+            f"{row['coherent']['iteration_s_median']:>12.3f}{steps:>14}"
+            f"{row['ratio_coherent_over_action']:>7.2f}x"
+        )
+    return lines
