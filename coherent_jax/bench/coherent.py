@@ -10,7 +10,7 @@ costs next to Gaussian action noise:
    machine hits both, and the median iteration time gives env steps/s. Peak memory
    of each compiled iteration comes from XLA's ``memory_analysis()``, also for
    ``remat=true``.
-2. *The filter alone.* `coherent.log_marginals` (p independent (q+1)-dimensional
+2. *The filter alone.* `coherent_filter.log_marginals` (p independent (q+1)-dimensional
    Kalman filters, docs/design.md §3) against `dense.dense_log_marginals`, the thesis's
    recursion (4.33)-(4.49) over the flattened p(q+1) weight vector, forward and
    forward+gradient, with a check that both give the same log-probabilities.
@@ -185,7 +185,7 @@ def _bench_filter(cfg: Config, bench: dict, log) -> dict:
     import jax.numpy as jnp
     import numpy as np
 
-    from coherent_jax.exploration.coherent import log_marginals
+    from coherent_jax.exploration.coherent_filter import log_marginals
 
     p, num_steps, batch = bench["filter_p"], bench["filter_T"], bench["filter_batch"]
     in_axes = (0, 0, 0, None, None, None, None)
