@@ -112,7 +112,8 @@ def _bench_training(cfg: Config, iterations: int, log, remat_row: bool = True) -
     rows = [("action", "action", False), ("coherent", "coherent", False)]
     for name, explore, remat in rows + ([("coherent_remat", "coherent", True)] if remat_row else []):
         # The remat row is the sequential-filter form of the loss with its scan
-        # rematerialised, the smallest footprint the strategy has, compiled for its memory.
+        # rematerialised, whose memory grows linearly with the segment (the joint form's
+        # single block grows as T^2), compiled for its memory.
         inference = "filter" if remat else cfg.coherent_inference
         run_cfg = dataclasses.replace(cfg, explore=explore, remat=remat, coherent_inference=inference)
         if remat and cfg.coherent.gradient == "episode":  # the filter form has no episode mode
