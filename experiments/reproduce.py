@@ -45,7 +45,8 @@ from pathlib import Path
 # experiments/ is a folder of scripts, not a package: its modules import each other by name.
 # The package they read is this checkout's, whatever else is installed (a worktree's
 # results are made and tabulated by its own code, as its cells' subprocesses are).
-sys.path[:0] = [str(Path(__file__).resolve().parent), str(Path(__file__).resolve().parents[1])]
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT / "experiments"), str(ROOT)]
 import curves  # noqa: E402
 from cells import (  # noqa: E402, F401  (re-exported: the state of a cell is read as reproduce.X)
     DEFAULT_RATE,
@@ -65,7 +66,6 @@ from cells import (  # noqa: E402, F401  (re-exported: the state of a cell is re
     status,
 )
 
-ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "experiments" / "results"
 
 # The thesis's comparisons (chapter 4; its chapter 5 is not in our copy): A2C and PPO

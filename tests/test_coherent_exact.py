@@ -25,8 +25,9 @@ from references import (
     x64_enabled,
 )
 
-from coherent_jax.exploration import coherent as C
 from coherent_jax.exploration import coherent_exact as E
+from coherent_jax.exploration import coherent_filter as C
+from coherent_jax.exploration import coherent_joint as J
 
 # ---------------------------------------------------------------- tests
 
@@ -120,7 +121,7 @@ def test_stored_belief_gives_the_right_values_but_not_the_thesis_gradient(x64):
         mu, w_std, action_std = heads(params)
         belief = C.Belief(mu + w_std * z_mean, w_std[:, :, None] * z_cov * w_std[:, None, :])
         x = trunk(params["theta"], obs)
-        logp, _, _ = C.segment_marginals_joint(belief, x[h:], a[h:], first[h:], mu, w_std, action_std, beta)
+        logp, _, _ = J.segment_marginals_joint(belief, x[h:], a[h:], first[h:], mu, w_std, action_std, beta)
         return jnp.sum(adv * logp)
 
     value, grad = held(params)

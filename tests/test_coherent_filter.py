@@ -1,4 +1,4 @@
-"""Tests of the exact coherent filter (coherent_jax.exploration.coherent).
+"""Tests of the exact coherent filter (coherent_jax.exploration.coherent_filter).
 
 Every reference here is plain numpy float64 written from the thesis's equations
 (4.1-4.5, 4.29-4.49) and from the joint Gaussian of an episode's actions; none calls
@@ -16,13 +16,13 @@ import numpy as np
 import pytest
 from references import x64_enabled
 
-from coherent_jax.exploration import coherent
+from coherent_jax.exploration import coherent_filter
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
 # One compiled program per input shape and dtype; beta is a traced argument.
-_log_marginals = jax.jit(coherent.log_marginals)
-_log_marginals_from = jax.jit(coherent.log_marginals_from, static_argnames="remat")
+_log_marginals = jax.jit(coherent_filter.log_marginals)
+_log_marginals_from = jax.jit(coherent_filter.log_marginals_from, static_argnames="remat")
 
 
 # ---------------------------------------------------------------- numpy references
@@ -189,10 +189,10 @@ def test_first_step_always_starts_from_prior(x64):
     np.testing.assert_array_equal(call_log_marginals(problem, 0.2), with_flag)
 
     mu, w_std = jnp.asarray(problem["mu"]), jnp.asarray(problem["w_std"])
-    junk = coherent.Belief(mean=mu + 3.0, cov=jnp.ones((2, 4, 4)) * 7.0)
+    junk = coherent_filter.Belief(mean=mu + 3.0, cov=jnp.ones((2, 4, 4)) * 7.0)
     args = (problem["x"][0], problem["a"][0], True, mu, w_std, problem["action_std"], 0.2)
-    from_junk, logp_junk = coherent.filter_step(junk, *args)
-    from_prior, logp_prior = coherent.filter_step(coherent.prior_belief(mu, w_std), *args)
+    from_junk, logp_junk = coherent_filter.filter_step(junk, *args)
+    from_prior, logp_prior = coherent_filter.filter_step(coherent_filter.prior_belief(mu, w_std), *args)
     np.testing.assert_allclose(logp_junk, logp_prior, rtol=1e-14)
     np.testing.assert_allclose(from_junk.cov, from_prior.cov, rtol=1e-14)
     np.testing.assert_allclose(from_junk.mean, from_prior.mean, rtol=1e-14)
@@ -210,7 +210,7 @@ def test_gradients_match_finite_differences(x64, beta):
     names = ("x", "mu", "w_std", "action_std")
 
     def objective(x, mu, w_std, action_std):
-        logp = coherent.log_marginals(x, problem["a"], problem["first"], mu, w_std, action_std, beta)
+        logp = coherent_filter.log_marginals(x, problem["a"], problem["first"], mu, w_std, action_std, beta)
         return jnp.sum(weights * logp)
 
     grads = jax.grad(objective, argnums=(0, 1, 2, 3))(*(jnp.asarray(problem[n]) for n in names))
@@ -234,10 +234,10 @@ def test_remat_gives_same_values_and_gradients(x64):
     """remat=True only changes what the backward pass stores."""
     problem = make_problem(8, 10, 2, 3, 0.3, resets=(4,))
     mu, w_std = jnp.asarray(problem["mu"]), jnp.asarray(problem["w_std"])
-    belief0 = coherent.prior_belief(mu, w_std)
+    belief0 = coherent_filter.prior_belief(mu, w_std)
 
     def objective(mu, w_std, action_std, x, remat):
-        logp, final = coherent.log_marginals_from(
+        logp, final = coherent_filter.log_marginals_from(
             belief0, x, problem["a"], problem["first"], mu, w_std, action_std, 0.3, remat=remat
         )
         return jnp.sum(logp) + jnp.sum(final.cov) + jnp.sum(final.mean)
@@ -261,8 +261,8 @@ def test_float32_long_episodes_stay_finite():
     num_steps, p, q = 1000, 3, 64
 
     def objective(x, mu, w_std, action_std, a, first, beta):
-        belief0 = coherent.prior_belief(mu, w_std)
-        logp, final = coherent.log_marginals_from(
+        belief0 = coherent_filter.prior_belief(mu, w_std)
+        logp, final = coherent_filter.log_marginals_from(
             belief0, x, a, first, mu, w_std, action_std, beta, remat=True
         )
         return jnp.sum(logp), (logp, final)
@@ -324,7 +324,7 @@ def test_jit_and_vmap_match_python_loop():
 
     loop = np.stack(
         [
-            coherent.log_marginals(
+            coherent_filter.log_marginals(
                 f32(stacked["x"][b]),
                 f32(stacked["a"][b]),
                 f32(stacked["first"][b]),
@@ -336,7 +336,7 @@ def test_jit_and_vmap_match_python_loop():
             for b in range(batch)
         ]
     )
-    over_envs = jax.jit(jax.vmap(coherent.log_marginals, in_axes=(0, 0, 0, None, None, None, None)))
+    over_envs = jax.jit(jax.vmap(coherent_filter.log_marginals, in_axes=(0, 0, 0, None, None, None, None)))
     batched = over_envs(
         f32(stacked["x"]),
         f32(stacked["a"]),
@@ -350,11 +350,11 @@ def test_jit_and_vmap_match_python_loop():
     np.testing.assert_allclose(batched, loop, rtol=1e-5, atol=1e-5)
 
     betas = np.array([0.0, 0.4, 1.0], np.float32)
-    over_betas = jax.jit(jax.vmap(coherent.log_marginals, in_axes=(None,) * 6 + (0,)))
+    over_betas = jax.jit(jax.vmap(coherent_filter.log_marginals, in_axes=(None,) * 6 + (0,)))
     env0 = (f32(stacked["x"][0]), f32(stacked["a"][0]), f32(stacked["first"][0]))
     swept = over_betas(*env0, params["mu"], params["w_std"], params["action_std"], betas)
     for beta, row in zip(betas, swept, strict=True):
-        single = coherent.log_marginals(*env0, *params.values(), beta)
+        single = coherent_filter.log_marginals(*env0, *params.values(), beta)
         np.testing.assert_allclose(row, single, rtol=1e-5, atol=1e-5)
 
 
@@ -363,7 +363,7 @@ def test_dtype_follows_inputs(x64):
     problem = make_problem(9, 5, 2, 3, 0.5)
     for dtype in (jnp.float64, jnp.float32):
         cast = {k: jnp.asarray(v, dtype) for k, v in problem.items() if k != "first"}
-        belief0 = coherent.prior_belief(cast["mu"], cast["w_std"])
+        belief0 = coherent_filter.prior_belief(cast["mu"], cast["w_std"])
         logp, final = _log_marginals_from(
             belief0,
             cast["x"],
@@ -376,8 +376,8 @@ def test_dtype_follows_inputs(x64):
         )
         assert logp.dtype == dtype
         assert final.mean.dtype == dtype and final.cov.dtype == dtype
-        w = coherent.step_weights(jax.random.key(0), cast["mu"], False, cast["mu"], cast["w_std"], 0.5)
-        a = coherent.sample_action(jax.random.key(1), w, cast["x"][0], cast["action_std"])
+        w = coherent_filter.step_weights(jax.random.key(0), cast["mu"], False, cast["mu"], cast["w_std"], 0.5)
+        a = coherent_filter.sample_action(jax.random.key(1), w, cast["x"][0], cast["action_std"])
         assert w.dtype == dtype and a.dtype == dtype
 
 
@@ -400,7 +400,7 @@ def test_segment_split_identity(x64, split):
             *rest,
         )
 
-    head, belief = segment(coherent.prior_belief(mu, w_std), 0, split)
+    head, belief = segment(coherent_filter.prior_belief(mu, w_std), 0, split)
     tail, _ = segment(belief, split, 12)
     np.testing.assert_allclose(np.concatenate([head, tail]), whole, rtol=1e-12)
 
@@ -424,7 +424,7 @@ def test_chain_is_stationary_with_lag_one_correlation(beta):
     def chain(key):
         def body(w, step):
             step_key, first = step
-            w = coherent.step_weights(step_key, w, first, mu, w_std, beta)
+            w = coherent_filter.step_weights(step_key, w, first, mu, w_std, beta)
             return w, w
 
         steps = (jax.random.split(key, num_steps), jnp.arange(num_steps) == 0)
@@ -457,20 +457,20 @@ def test_chain_special_cases_are_exact():
     w_std = jnp.array([[0.3, 1.0, 0.6]], jnp.float32)
     w_prev = jnp.array([[1.5, 2.0, -3.0]], jnp.float32)
 
-    np.testing.assert_array_equal(coherent.sample_next_weights(key, w_prev, mu, w_std, 0.0), w_prev)
-    fresh = coherent.sample_initial_weights(key, mu, w_std)
-    np.testing.assert_array_equal(coherent.sample_next_weights(key, w_prev, mu, w_std, 1.0), fresh)
-    np.testing.assert_array_equal(coherent.step_weights(key, w_prev, True, mu, w_std, 0.3), fresh)
+    np.testing.assert_array_equal(coherent_filter.sample_next_weights(key, w_prev, mu, w_std, 0.0), w_prev)
+    fresh = coherent_filter.sample_initial_weights(key, mu, w_std)
+    np.testing.assert_array_equal(coherent_filter.sample_next_weights(key, w_prev, mu, w_std, 1.0), fresh)
+    np.testing.assert_array_equal(coherent_filter.step_weights(key, w_prev, True, mu, w_std, 0.3), fresh)
     np.testing.assert_array_equal(
-        coherent.step_weights(key, w_prev, False, mu, w_std, 0.3),
-        coherent.sample_next_weights(key, w_prev, mu, w_std, 0.3),
+        coherent_filter.step_weights(key, w_prev, False, mu, w_std, 0.3),
+        coherent_filter.sample_next_weights(key, w_prev, mu, w_std, 0.3),
     )
 
     x = jnp.array([0.2, -0.4], jnp.float32)
-    a = coherent.sample_action(key, w_prev, x, jnp.zeros(1, jnp.float32))
+    a = coherent_filter.sample_action(key, w_prev, x, jnp.zeros(1, jnp.float32))
     np.testing.assert_allclose(a, [1.5 * 0.2 - 2.0 * 0.4 - 3.0], rtol=1e-6)
     # Gradients through the sampler stay finite at the beta = 0 edge of the sqrt.
-    grad = jax.grad(lambda b: jnp.sum(coherent.sample_next_weights(key, w_prev, mu, w_std, b)))
+    grad = jax.grad(lambda b: jnp.sum(coherent_filter.sample_next_weights(key, w_prev, mu, w_std, b)))
     assert np.isfinite(grad(jnp.float32(0.0)))
 
 
@@ -482,7 +482,9 @@ def test_sample_action_moments():
     x = jnp.array([0.3, 0.9], jnp.float32)
     action_std = jnp.array([0.1, 0.5], jnp.float32)
     keys = jax.random.split(jax.random.key(4), n)
-    a = np.asarray(jax.vmap(coherent.sample_action, in_axes=(0, None, None, None))(keys, w, x, action_std))
+    a = np.asarray(
+        jax.vmap(coherent_filter.sample_action, in_axes=(0, None, None, None))(keys, w, x, action_std)
+    )
     mean = np.asarray(w) @ np.array([0.3, 0.9, 1.0])
     std = np.asarray(action_std, np.float64)
     assert np.all(np.abs(a.mean(0) - mean) < 5.0 * std / math.sqrt(n))

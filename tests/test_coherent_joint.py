@@ -10,7 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from coherent_jax.exploration import coherent as C
+from coherent_jax.exploration import coherent_filter as C
+from coherent_jax.exploration import coherent_joint as J
 
 
 def random_problem(rng, T, p, q, resets):
@@ -33,7 +34,7 @@ def test_joint_equals_filter_float64(x64, beta, resets):
     rng = np.random.default_rng(hash((beta, resets)) % 2**32)
     args = random_problem(rng, T=12, p=3, q=4, resets=resets)
     logp_f, belief_f, var_f = C.segment_marginals(*args, beta)
-    logp_j, belief_j, var_j = C.segment_marginals_joint(*args, beta)
+    logp_j, belief_j, var_j = J.segment_marginals_joint(*args, beta)
     assert logp_j.dtype == jnp.float64
     np.testing.assert_allclose(logp_j, logp_f, rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(var_j, var_f, rtol=1e-10)
@@ -53,7 +54,7 @@ def test_joint_gradients_equal_filter_gradients(x64, beta):
 
     args = (jnp.asarray(x), jnp.asarray(mu), jnp.asarray(w_std), jnp.asarray(action_std))
     g_f = jax.grad(lambda *v: loss(C.segment_marginals, *v), argnums=(0, 1, 2, 3))(*args)
-    g_j = jax.grad(lambda *v: loss(C.segment_marginals_joint, *v), argnums=(0, 1, 2, 3))(*args)
+    g_j = jax.grad(lambda *v: loss(J.segment_marginals_joint, *v), argnums=(0, 1, 2, 3))(*args)
     for gf, gj in zip(g_f, g_j, strict=True):
         np.testing.assert_allclose(gj, gf, rtol=1e-8, atol=1e-10)
 
@@ -74,7 +75,7 @@ def test_joint_float32_consecutive_segments_match_float64(beta):
     logps = []
     for k in range(4):
         sl = slice(k * T, (k + 1) * T)
-        logp, belief, _ = C.segment_marginals_joint(
+        logp, belief, _ = J.segment_marginals_joint(
             belief, x[sl], a[sl], first[sl], mu, w_std, action_std, beta
         )
         logps.append(logp)

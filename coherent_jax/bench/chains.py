@@ -49,7 +49,7 @@ def bench_chains(cfg: Config, chains: list[str], iterations: int, bench_training
         row: dict[str, Any] = {
             "num_envs": row_cfg.num_envs,
             "unroll_length": row_cfg.unroll_length,
-            "gradient": "episode" if chain == "episode" else row_cfg.coherent.gradient,
+            "gradient": row_cfg.coherent.gradient,
             "ratio_coherent_over_action": training["ratio_coherent_over_action"],
         }
         for name in ("action", "coherent"):

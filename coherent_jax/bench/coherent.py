@@ -10,7 +10,7 @@ costs next to Gaussian action noise:
    machine hits both, and the median iteration time gives env steps/s. Peak memory
    of each compiled iteration comes from XLA's ``memory_analysis()``, also for
    ``remat=true``.
-2. *The filter alone.* `coherent.log_marginals` (p independent (q+1)-dimensional
+2. *The filter alone.* `coherent_filter.log_marginals` (p independent (q+1)-dimensional
    Kalman filters, docs/design.md §3) against `dense.dense_log_marginals`, the thesis's
    recursion (4.33)-(4.49) over the flattened p(q+1) weight vector, forward and
    forward+gradient, with a check that both give the same log-probabilities.
@@ -112,7 +112,8 @@ def _bench_training(cfg: Config, iterations: int, log, remat_row: bool = True) -
     rows = [("action", "action", False), ("coherent", "coherent", False)]
     for name, explore, remat in rows + ([("coherent_remat", "coherent", True)] if remat_row else []):
         # The remat row is the sequential-filter form of the loss with its scan
-        # rematerialised, the smallest footprint the strategy has, compiled for its memory.
+        # rematerialised, whose memory grows linearly with the segment (the joint form's
+        # single block grows as T^2), compiled for its memory.
         inference = "filter" if remat else cfg.coherent_inference
         run_cfg = dataclasses.replace(cfg, explore=explore, remat=remat, coherent_inference=inference)
         if remat and cfg.coherent.gradient == "episode":  # the filter form has no episode mode
@@ -185,7 +186,7 @@ def _bench_filter(cfg: Config, bench: dict, log) -> dict:
     import jax.numpy as jnp
     import numpy as np
 
-    from coherent_jax.exploration.coherent import log_marginals
+    from coherent_jax.exploration.coherent_filter import log_marginals
 
     p, num_steps, batch = bench["filter_p"], bench["filter_T"], bench["filter_batch"]
     in_axes = (0, 0, 0, None, None, None, None)

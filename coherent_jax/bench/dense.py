@@ -29,7 +29,7 @@ def dense_log_marginals(x, a, first, mu, w_std, action_std, beta, checkpoint_chu
     flatters the dense side, except where its gradient must be checkpointed to fit
     in memory, which costs about one more forward pass (the bench records this).
 
-    Same contract as `coherent.log_marginals`: x [T, q], a [T, p], first [T], mu and
+    Same contract as `coherent_filter.log_marginals`: x [T, q], a [T, p], first [T], mu and
     w_std [p, q+1] (bias last), action_std [p]; t = 0 always starts from the prior.
     ``checkpoint_chunk > 0`` rematerialises the scan in chunks of that many steps
     (only the belief at each chunk start is kept for the backward pass), so the

@@ -125,6 +125,8 @@ def _run(settings: dict[str, Any], log: Callable[[str], None]) -> dict[str, Any]
 
     from coherent_jax.exploration import coherent as C
     from coherent_jax.exploration import coherent_exact as E
+    from coherent_jax.exploration import coherent_filter as F
+    from coherent_jax.exploration import coherent_joint as J
 
     dtype = jnp.float64 if settings["dtype"] == "float64" else jnp.float32
     p, q, seg = settings["p"], settings["q"], settings["segment"]
@@ -193,7 +195,7 @@ def _run(settings: dict[str, Any], log: Callable[[str], None]) -> dict[str, Any]
         mu, w_std, action_std = heads(params)
         x = trunk(params, obs[-seg:])
         first = jnp.zeros(seg, bool).at[0].set(True)
-        prior = C.prior_belief(mu, w_std)
+        prior = F.prior_belief(mu, w_std)
         logp, _, _ = E.chained_marginals(
             prior, x, a[-seg:], first, mu, w_std, action_std, beta, E.block_size(seg), from_prior=True
         )
@@ -204,7 +206,7 @@ def _run(settings: dict[str, Any], log: Callable[[str], None]) -> dict[str, Any]
         (``params0``), held in standardised coordinates and mapped onto ``params``."""
         mu0, w_std0, action_std0 = heads(params0)
         h = obs.shape[0] - seg
-        belief = C.prior_belief(mu0, w_std0)
+        belief = F.prior_belief(mu0, w_std0)
         if h:
             first = jnp.zeros(h, bool).at[0].set(True)
             x0 = trunk(params0, obs[:h])
@@ -214,9 +216,9 @@ def _run(settings: dict[str, Any], log: Callable[[str], None]) -> dict[str, Any]
         z_mean = jax.lax.stop_gradient((belief.mean - mu0) / w_std0)
         z_cov = jax.lax.stop_gradient(belief.cov / (w_std0[:, :, None] * w_std0[:, None, :]))
         mu, w_std, action_std = heads(params)
-        start = C.Belief(mu + w_std * z_mean, w_std[:, :, None] * z_cov * w_std[:, None, :])
+        start = F.Belief(mu + w_std * z_mean, w_std[:, :, None] * z_cov * w_std[:, None, :])
         first = jnp.zeros(seg, bool).at[0].set(h == 0)
-        logp, _, _ = C.segment_marginals_joint(
+        logp, _, _ = J.segment_marginals_joint(
             start, trunk(params, obs[h:]), a[h:], first, mu, w_std, action_std, beta
         )
         return logp

@@ -9,7 +9,7 @@ trunk features, mu and w_std all move the belief a later step conditions on.
 Two pure functions give the exact quantity at a cost linear in the episode length:
 
 * `chained_marginals` scores a long segment as a chain of blocks of the joint form
-  (`coherent.segment_marginals_joint`), each block starting from the belief the block
+  (`coherent_joint.segment_marginals_joint`), each block starting from the belief the block
   before it ends with, *not* stopped: the gradient flows through every belief back to
   the start of the chain. O(T (B (q+1) + (q+1)^2)) per action dimension for blocks of
   B steps, instead of the single joint form's O(T^2 (q+1) + T^3).
@@ -29,7 +29,8 @@ import chex
 import jax
 import jax.numpy as jnp
 
-from coherent_jax.exploration.coherent import Belief, prior_belief, segment_marginals_joint
+from coherent_jax.exploration.coherent_filter import Belief, prior_belief
+from coherent_jax.exploration.coherent_joint import segment_marginals_joint
 
 #: blocks of at most this many steps; 64 is where the joint form's T^2 and T^3 terms stay
 #: below its (q+1)^2 belief terms at q = 64 (see `chained_marginals`).
@@ -56,7 +57,7 @@ def chained_marginals(
     from_prior: bool = False,
     remat: bool = False,
 ) -> tuple[chex.Array, Belief, chex.Array]:
-    """`coherent.segment_marginals` over T steps, as blocks of the joint form chained by beliefs.
+    """`coherent_filter.segment_marginals` over T steps, as blocks of the joint form chained by beliefs.
 
     The segment is cut into T / B blocks of B steps. Block k is scored from its joint
     Gaussian (eqs. 4.37/4.49 through the Cholesky factor, as in
