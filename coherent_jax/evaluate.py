@@ -155,7 +155,7 @@ def gymnasium_returns(policy, env: str, episode_length: int, episodes: int, seed
     from coherent_jax.envs.task import control
 
     gym_id = gymnasium_id(env)
-    envs = [gymnasium.make(gym_id, max_episode_steps=episode_length) for _ in range(episodes)]
+    envs = [_make_quietly(gymnasium, gym_id, episode_length) for _ in range(episodes)]
     space = envs[0].action_space
     ctrl_range = np.stack([space.low, space.high], axis=-1)
     task = NATIVE_TASKS[gym_id]
@@ -174,6 +174,23 @@ def gymnasium_returns(policy, env: str, episode_length: int, episodes: int, seed
     for e in envs:
         e.close()
     return returns, lengths
+
+
+def _make_quietly(gymnasium, gym_id: str, episode_length: int):
+    """``gymnasium.make(gym_id, max_episode_steps=episode_length)`` without MuJoCo's compiler
+    warnings (settotalmass is deprecated in half_cheetah.xml and humanoid.xml), which it
+    prints and, with no handler set, appends to MUJOCO_LOG.TXT in the working directory."""
+    import mujoco
+
+    from coherent_jax.envs.registry import _quiet_stdio
+
+    previous = mujoco.get_mju_user_warning()
+    mujoco.set_mju_user_warning(lambda message: None)
+    try:
+        with _quiet_stdio(force=True):
+            return gymnasium.make(gym_id, max_episode_steps=episode_length)
+    finally:
+        mujoco.set_mju_user_warning(previous)
 
 
 def evaluate_run(run_dir: Path, opts: EvalConfig) -> dict[str, Any]:
