@@ -27,26 +27,8 @@ from coherent_jax import limits
 from coherent_jax.envs.native import DEFAULT_THREADS, NATIVE_TASKS, PHYSICS, PhysicsError, resolve_physics
 from coherent_jax.envs.registry import TASKS
 from coherent_jax.presets import NO_PRESET, PRESETS, help_lines, layered_base
+from coherent_jax.strategies import ALGOS, EXPLORES, ON_POLICY, REFUSED, SUPPORTED_ALGOS
 
-ALGOS = ("ppo", "a2c", "sac")
-ON_POLICY = ("ppo", "a2c")
-EXPLORES = ("action", "coherent", "noisynet", "psne", "gsde", "pink")
-# Which algorithms each strategy runs with; any other pair is refused at start-up,
-# with the reason in REFUSED.
-SUPPORTED_ALGOS: dict[str, tuple[str, ...]] = {
-    "action": ALGOS,
-    "coherent": ALGOS,
-    "noisynet": ON_POLICY,
-    "psne": ALGOS,
-    "gsde": ALGOS,
-    "pink": ALGOS,
-}
-# Why a (explore, algo) pair outside SUPPORTED_ALGOS is refused (one line each).
-REFUSED: dict[tuple[str, str], str] = {
-    ("noisynet", "sac"): (
-        "noisynet's learned noise scales need an on-policy algorithm's score-function gradient"
-    ),
-}
 COHERENT_INTEGRATION = ("analytic", "mc")
 COHERENT_LAYERS = ("last", "all")
 COHERENT_GRADIENT = ("exact", "stored", "episode")

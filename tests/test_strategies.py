@@ -452,3 +452,27 @@ def test_sac_psne_fixed_per_episode_and_sigma_rule():
     hp_small = {**hp, "sigma_delta": jnp.asarray(1e-9)}
     new_hp, _ = behaviour.adapt(jax.random.PRNGKey(3), actor, actor_params, hp_small, obs)
     assert float(new_hp["sigma"]) == pytest.approx(0.2)
+
+
+def test_strategy_table_names_importable_classes_and_every_refusal_has_a_reason():
+    """The one table of strategies: each class string resolves, every algorithm a strategy
+    lacks a class for is refused with a reason, and the config's choices are the table's."""
+    import importlib
+
+    from coherent_jax import config, strategies
+    from coherent_jax.exploration.base import OffPolicyBehaviour, OnPolicyStrategy
+
+    strategies.check_table()
+    for table, base in (
+        (strategies.ON_POLICY_CLASSES, OnPolicyStrategy),
+        (strategies.OFF_POLICY_CLASSES, OffPolicyBehaviour),
+    ):
+        for name, target in table.items():
+            module, cls = target.split(":")
+            found = getattr(importlib.import_module(f"coherent_jax.exploration.{module}"), cls)
+            assert issubclass(found, base), (name, target)
+    assert config.EXPLORES == tuple(s.name for s in strategies.STRATEGIES)
+    assert strategies.SUPPORTED_ALGOS["noisynet"] == ("ppo", "a2c")
+    assert "score-function" in strategies.REFUSED[("noisynet", "sac")]
+    with pytest.raises(config.ConfigError, match="score-function"):
+        parse_overrides(["env=pointmass", "algo=sac", "explore=noisynet"])
