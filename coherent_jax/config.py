@@ -24,8 +24,14 @@ from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from coherent_jax import limits
-from coherent_jax.envs.native import DEFAULT_THREADS, NATIVE_TASKS, PHYSICS, PhysicsError, resolve_physics
-from coherent_jax.envs.registry import TASKS
+from coherent_jax.envs.registry import (
+    DEFAULT_THREADS,
+    NATIVE_TASKS,
+    PHYSICS,
+    TASKS,
+    PhysicsError,
+    resolve_physics,
+)
 from coherent_jax.presets import NO_PRESET, PRESETS, help_lines, layered_base
 from coherent_jax.strategies import ALGOS, EXPLORES, ON_POLICY, REFUSED, SUPPORTED_ALGOS
 
