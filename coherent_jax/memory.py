@@ -67,7 +67,7 @@ def estimate(cfg: Any, obs: int, act: int, state: int, points: int = 1) -> Estim
     }
     replay = 0
     if cfg.algo == "sac":
-        replay = FLOAT * cfg.buffer_size * (2 * obs + act + 2)
+        replay = FLOAT * cfg.sac.buffer_size * (2 * obs + act + 2)
         parts["replay buffer"] = replay
     else:
         hidden = sum(cfg.policy_hidden) + sum(cfg.value_hidden)

@@ -48,7 +48,7 @@ def test_every_cell_is_a_valid_config_with_its_tasks_settings_for_every_strategy
         cfg = parse_sweep([*cell.overrides, f"seeds={cell.seeds}"]).base
         task_settings = reproduce.ONPOLICY_TASK_SETTINGS.get(cfg.env, ())
         if cfg.algo == "sac":
-            assert not cfg.normalize_rewards, cell.name
+            assert not cfg.ppo.normalize_rewards, cell.name
         else:
             assert all(item in cell.overrides for item in task_settings), cell.name
         if cfg.algo == "a2c":  # one gradient step per iteration: its own step size
@@ -222,15 +222,27 @@ def test_report_counts_a_seed_as_reaching_the_sparse_reward_at_its_first_positiv
 
 def test_report_pairs_each_claim_with_its_comparison():
     report = _report()
-    assert ("beta=0.01", "psne") in report._pairs("sparse", {"beta=0.01": 0, "beta=0": 0, "psne": 0})
+    assert ("coherent.beta=0.01", "psne") in report._pairs(
+        "sparse", {"coherent.beta=0.01": 0, "coherent.beta=0": 0, "psne": 0}
+    )
     assert ("coherent", "psne") in report._pairs("thesis", {"coherent": 0, "psne": 0})
     # The ablations' claims compare the coherent method with its variants: the thesis's three
     # components (the chain, analytic integration, last layer) and the exact gradient.
-    labels = ["beta=0.01", "beta=0", "beta=1", "coherent-mc", "coherent-mc-all", "coherent-stored", "action"]
+    labels = [
+        "coherent.beta=0.01",
+        "coherent.beta=0",
+        "coherent.beta=1",
+        "coherent-mc",
+        "coherent-mc-all",
+        "coherent-stored",
+        "action",
+    ]
     ablation = report._pairs("ablations", dict.fromkeys(labels, 0))
-    assert {("beta=0.01", "coherent-mc"), ("coherent-mc", "coherent-mc-all"), ("beta=0.01", "beta=1")} <= set(
-        ablation
-    )
+    assert {
+        ("coherent.beta=0.01", "coherent-mc"),
+        ("coherent-mc", "coherent-mc-all"),
+        ("coherent.beta=0.01", "coherent.beta=1"),
+    } <= set(ablation)
     assert all("action" not in pair for pair in ablation)
 
 
