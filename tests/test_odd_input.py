@@ -164,7 +164,7 @@ def test_everyday_configs_are_not_refused_for_memory():
     check_memory(parse_overrides([]), points=5, memory=gb24)
     check_memory(parse_overrides(["algo=sac", "sac.buffer_size=1000000"]), points=5, memory=gb24)
     check_memory(parse_overrides(["env=humanoid", "num_envs=1024"]), points=5, memory=gb24)
-    with pytest.raises(ConfigError, match="'buffer_size'.*5 sweep points"):
+    with pytest.raises(ConfigError, match="'sac.buffer_size'.*5 sweep points"):
         check_memory(parse_overrides(["algo=sac", "sac.buffer_size=200000000"]), points=5, memory=gb24)
 
 

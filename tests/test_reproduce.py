@@ -53,7 +53,7 @@ def test_every_cell_is_a_valid_config_with_its_tasks_settings_for_every_strategy
             assert all(item in cell.overrides for item in task_settings), cell.name
         if cfg.algo == "a2c":  # one gradient step per iteration: its own step size
             assert cfg.lr == 3e-3, cell.name
-    assert parse_overrides(["env=hopper", *reproduce.ONPOLICY_TASK_SETTINGS["hopper"]]).normalize_rewards
+    assert parse_overrides(["env=hopper", *reproduce.ONPOLICY_TASK_SETTINGS["hopper"]]).ppo.normalize_rewards
     assert "halfcheetah" not in reproduce.ONPOLICY_TASK_SETTINGS  # the ablations' and done cells' defaults
 
 
@@ -78,7 +78,7 @@ def test_ablations_vary_one_component_each():
 
     cells = {c.name: c for c in reproduce.ablation_cells()}
     # One cell of five seeds per beta; the default beta is the thesis suite's coherent cell.
-    assert reproduce.DEFAULT_BETA == Config().beta
+    assert reproduce.DEFAULT_BETA == Config().coherent.beta
     thesis = {c.name: c for c in reproduce.thesis_cells()}
     for algo in ("ppo", "a2c"):
         assert thesis[f"halfcheetah/{algo}/coherent"].setting("beta") is None
@@ -222,27 +222,15 @@ def test_report_counts_a_seed_as_reaching_the_sparse_reward_at_its_first_positiv
 
 def test_report_pairs_each_claim_with_its_comparison():
     report = _report()
-    assert ("coherent.beta=0.01", "psne") in report._pairs(
-        "sparse", {"coherent.beta=0.01": 0, "coherent.beta=0": 0, "psne": 0}
-    )
+    assert ("beta=0.01", "psne") in report._pairs("sparse", {"beta=0.01": 0, "beta=0": 0, "psne": 0})
     assert ("coherent", "psne") in report._pairs("thesis", {"coherent": 0, "psne": 0})
     # The ablations' claims compare the coherent method with its variants: the thesis's three
     # components (the chain, analytic integration, last layer) and the exact gradient.
-    labels = [
-        "coherent.beta=0.01",
-        "coherent.beta=0",
-        "coherent.beta=1",
-        "coherent-mc",
-        "coherent-mc-all",
-        "coherent-stored",
-        "action",
-    ]
+    labels = ["beta=0.01", "beta=0", "beta=1", "coherent-mc", "coherent-mc-all", "coherent-stored", "action"]
     ablation = report._pairs("ablations", dict.fromkeys(labels, 0))
-    assert {
-        ("coherent.beta=0.01", "coherent-mc"),
-        ("coherent-mc", "coherent-mc-all"),
-        ("coherent.beta=0.01", "coherent.beta=1"),
-    } <= set(ablation)
+    assert {("beta=0.01", "coherent-mc"), ("coherent-mc", "coherent-mc-all"), ("beta=0.01", "beta=1")} <= set(
+        ablation
+    )
     assert all("action" not in pair for pair in ablation)
 
 

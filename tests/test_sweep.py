@@ -91,25 +91,25 @@ def test_sweep_point_equals_single_run(tmp_path):
     for i, (ent_coef, lr) in enumerate([(0.0, 3e-4), (0.0, 1e-3), (0.5, 3e-4), (0.5, 1e-3)]):
         returns = np.array([summaries[names[2 * i + s]]["final_eval_return"] for s in (0, 1)], np.float64)
         row = result["rows"][i]
-        assert (row["ent_coef"], row["lr"]) == (ent_coef, pytest.approx(lr))
+        assert (row["ppo.ent_coef"], row["lr"]) == (ent_coef, pytest.approx(lr))
         assert row["seeds"] == 2
         assert row["final_eval_return_mean"] == pytest.approx(returns.mean(), rel=1e-9)
         assert row["final_eval_return_std"] == pytest.approx(returns.std(), rel=1e-9, abs=1e-12)
     csv_lines = (out / "sweep.csv").read_text().splitlines()
-    assert csv_lines[0].startswith("ent_coef,lr,seeds,final_eval_return_mean") and len(csv_lines) == 5
+    assert csv_lines[0].startswith("ppo.ent_coef,lr,seeds,final_eval_return_mean") and len(csv_lines) == 5
 
 
 BAD = [
     (["foo=[1,2]"], "'foo'"),
     (["num_envs=[4,8]"], "'num_envs'"),
     (["policy_hidden=[[8],[16]]"], "'policy_hidden'"),
-    (["coherent.beta=[]"], "'beta'"),
-    (["coherent.beta=[0.5,]"], "'beta'"),
-    (["explore=coherent", "coherent.beta=[0.5,2]"], "'beta'"),
+    (["coherent.beta=[]"], "'coherent.beta'"),
+    (["coherent.beta=[0.5,]"], "'coherent.beta'"),
+    (["explore=coherent", "coherent.beta=[0.5,2]"], "'coherent.beta'"),
     (["seeds=0"], "'seeds'"),
     (["seeds=2", "seed=[1,2]"], "'seeds'"),
     # Action noise has no beta: that axis would run identical points.
-    (["explore=action", "coherent.beta=[0.01,0.5]"], "'beta'"),
+    (["explore=action", "coherent.beta=[0.01,0.5]"], "'coherent.beta'"),
 ]
 
 
@@ -140,9 +140,9 @@ def test_cli_exit_status(tmp_path):
 
 def test_grid_is_the_product_with_seeds_innermost():
     plan = sweep.parse_sweep([*TINY, "seed=5", "seeds=3", "ppo.ent_coef=[0,0.01]", "gamma=[0.9,0.99]"])
-    assert plan.axes == {"ent_coef": [0.0, 0.01], "gamma": [0.9, 0.99]}
+    assert plan.axes == {"ppo.ent_coef": [0.0, 0.01], "gamma": [0.9, 0.99]}
     assert plan.seeds == [5, 6, 7]
-    got = [(p.values["ent_coef"], p.values["gamma"], p.seed) for p in plan.points]
+    got = [(p.values["ppo.ent_coef"], p.values["gamma"], p.seed) for p in plan.points]
     want = [(e, g, s) for e in (0.0, 0.01) for g in (0.9, 0.99) for s in (5, 6, 7)]
     assert got == want
     assert all(
@@ -173,18 +173,18 @@ def test_sweepable_keys_enter_only_through_state_hparams():
     on_policy = {
         "lr": 1e-3,
         "gamma": 0.9,
-        "gae_lambda": 0.8,
-        "clip_eps": 0.3,
-        "target_kl": 0.02,
-        "vf_coef": 0.7,
-        "ent_coef": 0.01,
-        "beta": 0.5,
+        "ppo.gae_lambda": 0.8,
+        "ppo.clip_eps": 0.3,
+        "ppo.target_kl": 0.02,
+        "ppo.vf_coef": 0.7,
+        "ppo.ent_coef": 0.01,
+        "coherent.beta": 0.5,
     }
     # Coherent-SAC reads these (and lr, gamma, beta) from its state's hparams.
-    sac = {"lr": 1e-3, "gamma": 0.9, "beta": 0.5, "tau": 0.01, "temperature": 0.1}
-    sac.update({"sigma_init": 0.2, "sigma_delta": 0.2, "sigma_alpha": 1.05})
+    sac = {"lr": 1e-3, "gamma": 0.9, "coherent.beta": 0.5, "sac.tau": 0.01, "sac.temperature": 0.1}
+    sac.update({"psne.sigma_init": 0.2, "psne.sigma_delta": 0.2, "psne.sigma_alpha": 1.05})
     # With its own optimiser (vf_iters > 0) the value function also reads vf_lr.
-    separate_value = {**on_policy, "vf_lr": 3e-4}
+    separate_value = {**on_policy, "ppo.vf_lr": 3e-4}
     assert set(separate_value) | set(sac) == set(SWEEPABLE)
     sac_base = [
         "algo=sac",
@@ -225,9 +225,10 @@ def test_sweepable_declarations_match_every_trainer():
     from coherent_jax.agents import make_trainer
     from coherent_jax.envs.vec_env import VecEnv
 
-    changed = {"lr": 1e-3, "gamma": 0.9, "gae_lambda": 0.8, "clip_eps": 0.3, "target_kl": 0.02}
-    changed.update({"vf_coef": 0.7, "ent_coef": 0.01, "beta": 0.5, "tau": 0.01, "temperature": 0.1})
-    changed.update({"sigma_init": 0.2, "sigma_delta": 0.2, "sigma_alpha": 1.05, "vf_lr": 3e-4})
+    changed = {"lr": 1e-3, "gamma": 0.9, "ppo.gae_lambda": 0.8, "ppo.clip_eps": 0.3, "ppo.target_kl": 0.02}
+    changed.update({"ppo.vf_coef": 0.7, "ppo.ent_coef": 0.01, "coherent.beta": 0.5, "sac.tau": 0.01})
+    changed.update({"sac.temperature": 0.1, "psne.sigma_init": 0.2, "psne.sigma_delta": 0.2})
+    changed.update({"psne.sigma_alpha": 1.05, "ppo.vf_lr": 3e-4})
     assert set(changed) == set(SWEEPABLE)
     env = VecEnv("pointmass", 4, 50)
     eval_env = VecEnv("pointmass", 2, 50)
@@ -241,9 +242,9 @@ def test_sweepable_declarations_match_every_trainer():
             for mode in ([], separate) if algo != "sac" else ([],):
                 args = [*TINY, f"algo={algo}", f"explore={explore}", *small, *mode]
                 base_hp = make_trainer(parse_overrides(args), env, eval_env).init_hparams()
-                changes = {k: v for k, v in changed.items() if k != "vf_lr" or mode}
+                changes = {k: v for k, v in changed.items() if k != "ppo.vf_lr" or mode}
                 if not mode:
-                    with pytest.raises(ConfigError, match="'vf_iters'"):
+                    with pytest.raises(ConfigError, match="'ppo.vf_iters'"):
                         parse_overrides([*args, "ppo.vf_lr=3e-4"])
                 cfg = parse_overrides([*args, *(f"{k}={v}" for k, v in changes.items())])
                 own = make_trainer(cfg, env, eval_env).init_hparams()
