@@ -5,9 +5,10 @@ allowed-values text, help) and names the training-config keys it sets itself;
 `parse_command` then splits the user's ``key=value`` items into
 
 * the command's own settings, each parsed by its `Key`;
-* training-config items (every `Config` key, the dotted ``coherent.*`` keys too),
-  handed to `config.parse_overrides` after the command's config defaults and before
-  the keys it fixes.
+* training-config items (every `Config` key, a group's dotted: ``ppo.clip_eps``; a flat
+  key of before, ``clip_eps``, is renamed with a note), handed to
+  `config.parse_overrides` after the command's config defaults and before the keys it
+  fixes.
 
 Every problem is one `ConfigError` line naming the bad item and what is allowed: a
 malformed item, an unknown key (with the list of valid ones), a key the command
@@ -28,7 +29,7 @@ from typing import Any, NamedTuple
 
 import yaml
 
-from coherent_jax.config import Config, ConfigError, parse_overrides
+from coherent_jax.config import FIELDS, Config, ConfigError, modern_items, parse_overrides
 
 EXIT_BAD_INPUT = 2  # exit status of every command on bad input
 
@@ -192,15 +193,8 @@ def _check_writable_folder(folder: Path) -> None:
 
 # ------------------------------------------------------------------ the parser
 def config_keys() -> set[str]:
-    """Every training-config key: `Config`'s fields, a group's sub-keys dotted (``coherent.beta``)."""
-    keys = set()
-    for f in dataclasses.fields(Config):
-        group = f.default_factory if f.default_factory is not dataclasses.MISSING else None
-        if group is not None and dataclasses.is_dataclass(group):
-            keys |= {f"{f.name}.{g.name}" for g in dataclasses.fields(group)}
-        else:
-            keys.add(f.name)
-    return keys
+    """Every training-config key: `Config`'s fields, a group's dotted (``coherent.beta``)."""
+    return set(FIELDS)
 
 
 def split_item(item: str) -> tuple[str, str]:
@@ -271,6 +265,8 @@ def parse_command(
     """
     fixed = dict(fixed or {})
     valid_config = (config_keys() - set(fixed) - set(ignored)) if config else set()
+    if config:  # the flat keys of before, renamed to their groups' (with a note)
+        items = [i if i.split("=", 1)[0].strip() in keys else modern_items([i])[0] for i in items]
     settings = {k: spec.default for k, spec in keys.items()}
     config_items = []
     check_unique(items)

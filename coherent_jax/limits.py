@@ -45,13 +45,13 @@ def counter_problem(cfg: Any) -> tuple[str, Any, str] | None:
             f"iterations of num_envs * unroll_length = {per_iteration} (here {total})",
         )
     if cfg.algo == "sac":
-        if cfg.warmup_steps > INT32_MAX:
-            return ("warmup_steps", cfg.warmup_steps, f"an integer in [0, {INT32_MAX}] (int32 counter)")
-        if cfg.buffer_size + per_iteration > INT32_MAX:
+        if cfg.sac.warmup_steps > INT32_MAX:
+            return ("warmup_steps", cfg.sac.warmup_steps, f"an integer in [0, {INT32_MAX}] (int32 counter)")
+        if cfg.sac.buffer_size + per_iteration > INT32_MAX:
             return (
                 "buffer_size",
-                cfg.buffer_size,
+                cfg.sac.buffer_size,
                 f"buffer_size + num_envs * unroll_length <= {INT32_MAX}, the replay ring's int32 "
-                f"write position (here {cfg.buffer_size} + {per_iteration})",
+                f"write position (here {cfg.sac.buffer_size} + {per_iteration})",
             )
     return None

@@ -24,9 +24,7 @@ states (``vmap(trainer.iteration)``). Either way it
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import io
 import json
 import math
 import signal
@@ -39,6 +37,7 @@ from typing import Any
 
 from coherent_jax.config import Config
 from coherent_jax.points import vmap_points
+from coherent_jax.quiet import quiet_imports  # noqa: F401  (re-exported: train and sweep call it)
 from coherent_jax.runs import (
     CHECKPOINT,
     METRICS,
@@ -55,12 +54,6 @@ from coherent_jax.runs import (
 
 class DivergenceError(RuntimeError):
     """A loss or a parameter became non-finite; the message names the iteration and the quantity."""
-
-
-def quiet_imports() -> None:
-    """Imports MJX once with its stdout muted: it prints lines when its optional `warp` backend is missing."""
-    with contextlib.redirect_stdout(io.StringIO()):
-        import mujoco.mjx  # noqa: F401
 
 
 def run_keys(seed: int):

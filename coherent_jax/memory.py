@@ -67,7 +67,7 @@ def estimate(cfg: Any, obs: int, act: int, state: int, points: int = 1) -> Estim
     }
     replay = 0
     if cfg.algo == "sac":
-        replay = FLOAT * cfg.buffer_size * (2 * obs + act + 2)
+        replay = FLOAT * cfg.sac.buffer_size * (2 * obs + act + 2)
         parts["replay buffer"] = replay
     else:
         hidden = sum(cfg.policy_hidden) + sum(cfg.value_hidden)
@@ -114,7 +114,7 @@ def check_memory(cfg: Any, points: int = 1, memory: int | None = None) -> None:
     replay buffer and its copies are), the estimate with its parts and the machine's memory.
     `memory` (bytes) replaces the machine's, for tests.
     """
-    from coherent_jax.config import ConfigError
+    from coherent_jax.config import ConfigError, get_value
 
     memory = memory if memory is not None else machine_memory()
     if memory is None:
@@ -125,11 +125,11 @@ def check_memory(cfg: Any, points: int = 1, memory: int | None = None) -> None:
     if est.total <= memory:
         return
     replay = 3 * est.parts.get("replay buffer", 0)  # the buffer and its checkpoint copies
-    key = "buffer_size" if 2 * replay > sum(est.parts.values()) else "num_envs"
+    key = "sac.buffer_size" if 2 * replay > sum(est.parts.values()) else "num_envs"
     parts = ", ".join(f"{k} {_gb(v)}" for k, v in est.parts.items())
     per = f" for {points} sweep points" if points > 1 else ""
     raise ConfigError(
-        f"invalid value for {key!r}: {getattr(cfg, key)} (allowed: a configuration whose data fits in "
+        f"invalid value for {key!r}: {get_value(cfg, key)} (allowed: a configuration whose data fits in "
         f"memory: this one needs about {_gb(est.total)}{per} ({parts}{' per point' if points > 1 else ''}), "
         f"this machine has {_gb(memory)})"
     )

@@ -27,7 +27,7 @@ import msgpack
 import numpy as np
 from flax import serialization, struct
 
-from coherent_jax.config import Config, ConfigError, to_dict, validate
+from coherent_jax.config import Config, ConfigError, from_stored, to_dict, validate
 from coherent_jax.networks import RunningStats, SquashedGaussianActor, normalize, squash
 
 FORMAT = "coherent_jax-policy-1"
@@ -151,7 +151,7 @@ class Policy:
     @classmethod
     def from_bytes(cls, blob: bytes) -> Policy:
         """The policy `to_bytes` wrote; raises `PolicyError` in one line."""
-        from omegaconf import OmegaConf
+        import yaml
 
         try:
             record = msgpack.unpackb(blob, raw=False)
@@ -160,9 +160,7 @@ class Policy:
             raise PolicyError(f"not a policy record ({len(blob)} bytes)") from None
         if fmt != FORMAT:
             raise PolicyError(f"policy format {fmt!r} (allowed: {FORMAT})")
-        cfg = OmegaConf.to_object(
-            OmegaConf.merge(OmegaConf.structured(Config()), OmegaConf.create(record["config"]))
-        )
+        cfg = from_stored(yaml.safe_load(record["config"]))  # a flat config of before too
         try:
             cfg = validate(cfg)
         except ConfigError as exc:

@@ -55,15 +55,8 @@ _THESIS_ON_POLICY: dict[str, Any] = {
     "num_envs": 4,  # 4 x 1000 = steps_per_epoch 4000 (ppo.py's __main__ runs --cpu 4 of 1000)
     "unroll_length": 1000,
     "gamma": 0.99,
-    "gae_lambda": 0.97,
     "lr": 3e-4,  # pi_lr
-    "vf_lr": 1e-3,
-    "vf_iters": 80,  # train_v_iters
-    "ent_coef": 0.0,
-    "max_grad_norm": 0.0,  # no gradient clipping
-    "normalize_advantages": True,  # over the whole buffer (PPOBuffer.get)
     "normalize_obs": False,
-    "normalize_rewards": False,
     "policy_hidden": [64, 64],
     "value_hidden": [64, 64],
     "activation": "tanh",
@@ -71,30 +64,45 @@ _THESIS_ON_POLICY: dict[str, Any] = {
     # The chain is drawn at the buffer's start and runs through it across resets.
     "coherent": {"episode_restart": False},
 }
+_THESIS_PPO_GROUP: dict[str, Any] = {
+    "gae_lambda": 0.97,
+    "vf_lr": 1e-3,
+    "vf_iters": 80,  # train_v_iters
+    "ent_coef": 0.0,
+    "max_grad_norm": 0.0,  # no gradient clipping
+    "normalize_advantages": True,  # over the whole buffer (PPOBuffer.get)
+    "normalize_rewards": False,
+}
 
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "thesis": {
         "ppo": {
             **_THESIS_ON_POLICY,
-            "clip_eps": 0.2,  # clip_ratio
-            "num_epochs": 80,  # train_pi_iters, full batch, early stopped
-            "num_minibatches": 1,
-            "target_kl": 0.01,
+            "ppo": {
+                **_THESIS_PPO_GROUP,
+                "clip_eps": 0.2,  # clip_ratio
+                "num_epochs": 80,  # train_pi_iters, full batch, early stopped
+                "num_minibatches": 1,
+                "target_kl": 0.01,
+            },
         },
-        "a2c": {**_THESIS_ON_POLICY, "num_epochs": 1, "num_minibatches": 1},  # VPG: one policy step
+        # VPG: one policy step
+        "a2c": {**_THESIS_ON_POLICY, "ppo": {**_THESIS_PPO_GROUP, "num_epochs": 1, "num_minibatches": 1}},
         "sac": {
             "num_envs": 1,
             "unroll_length": 50,  # update_every
-            "utd_ratio": 1.0,  # update_every updates every update_every steps
             "lr": 1e-3,
             "gamma": 0.99,
-            "tau": 0.005,  # polyak 0.995
-            "temperature": 0.2,  # alpha
-            "auto_temperature": False,
-            "batch_size": 100,
-            "buffer_size": 1_000_000,  # replay_size
-            "warmup_steps": 10_000,  # start_steps
-            "update_after": 1_000,
+            "sac": {
+                "utd_ratio": 1.0,  # update_every updates every update_every steps
+                "tau": 0.005,  # polyak 0.995
+                "temperature": 0.2,  # alpha
+                "auto_temperature": False,
+                "batch_size": 100,
+                "buffer_size": 1_000_000,  # replay_size
+                "warmup_steps": 10_000,  # start_steps
+                "update_after": 1_000,
+            },
             "policy_hidden": [256, 256],
             "value_hidden": [256, 256],
             "activation": "relu",
@@ -141,11 +149,12 @@ def layered_base(base: Any, algo: str | None, preset: str | None) -> Any:
 
 
 def _flat(values: dict[str, Any]) -> str:
-    """``key=value`` items of a layer, a group's fields dotted (``coherent.integration=mc``)."""
+    """``key=value`` items of a layer, a group's fields dotted (``ppo.clip_eps=0.2``)."""
     items: dict[str, Any] = {}
     for k, v in values.items():
         items.update({f"{k}.{g}": w for g, w in v.items()} if isinstance(v, dict) else {k: v})
-    return " ".join(f"{k}={v:.6g}" if isinstance(v, float) else f"{k}={v}" for k, v in items.items()).replace(
+    shown = {k: str(v).lower() if isinstance(v, bool) else v for k, v in items.items()}
+    return " ".join(f"{k}={v:.6g}" if isinstance(v, float) else f"{k}={v}" for k, v in shown.items()).replace(
         ", ", ","
     )
 

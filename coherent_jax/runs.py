@@ -33,7 +33,7 @@ from typing import Any
 
 import msgpack
 
-from coherent_jax.config import Config, ConfigError, to_dict, validate
+from coherent_jax.config import Config, ConfigError, flat_dict, from_stored, modern_key, to_dict, validate
 
 PREFIX = "[coherent_jax]"  # starts every line the command-line programs print
 CHECKPOINT = "checkpoint.msgpack"
@@ -66,8 +66,10 @@ def atomic_write(path: Path, data: bytes) -> None:
 
 
 def fingerprint_fields(cfg: Config, resumable: tuple[str, ...] = RESUMABLE_KEYS) -> dict[str, Any]:
-    """The config fields a checkpoint must agree with (all but `RESUMABLE_KEYS`)."""
-    return {k: v for k, v in to_dict(cfg).items() if k not in resumable}
+    """The config fields a checkpoint must agree with (all but `RESUMABLE_KEYS`), in the flat
+    layout of before the config's groups (`config.flat_dict`): a checkpoint written then
+    has the same fingerprint now."""
+    return {k: v for k, v in flat_dict(cfg).items() if k not in resumable}
 
 
 def config_fingerprint(cfg: Config, resumable: tuple[str, ...] = RESUMABLE_KEYS) -> str:
@@ -81,7 +83,7 @@ def config_difference(a: Config, b: Config) -> str | None:
     fa, fb = fingerprint_fields(a), fingerprint_fields(b)
     for key in fa:
         if fa[key] != fb.get(key):
-            return key
+            return modern_key(key, note=False)
     return None
 
 
@@ -92,7 +94,6 @@ def load_config(run_dir: Path) -> Config:
     key or a bad value (a NaN learning rate, say), naming the file and the key.
     """
     import yaml
-    from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
     path = Path(run_dir) / CONFIG
@@ -105,8 +106,7 @@ def load_config(run_dir: Path) -> Config:
         if not isinstance(stored, dict) or not stored:
             shape = "empty" if not stored else f"a YAML {type(stored).__name__}, not a mapping"
             raise ConfigError(f"invalid {path}: {shape} (allowed: a mapping of the run's config keys)")
-        merged = OmegaConf.merge(OmegaConf.structured(Config()), OmegaConf.create(stored))
-        cfg = OmegaConf.to_object(merged)
+        cfg = from_stored(stored)  # a flat config of before too
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""

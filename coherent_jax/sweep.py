@@ -47,13 +47,18 @@ from typing import Any
 
 from coherent_jax import cli, distributed, limits, rundir
 from coherent_jax.config import (
+    FIELDS,
     SWEEPABLE,
     Config,
     ConfigError,
+    get_value,
     help_text,
+    hparam_name,
+    modern_items,
     parse_overrides,
     sweepable,
     validate,
+    with_values,
 )
 from coherent_jax.loop import (
     PREFIX,
@@ -105,7 +110,8 @@ class Point:
 
     @property
     def name(self) -> str:
-        parts = [f"{k}={fmt(v)}" for k, v in self.values.items()]
+        # A group's key by its last part (``beta=0.1``): the names sweeps have always had.
+        parts = [f"{k.rsplit('.', 1)[-1]}={fmt(v)}" for k, v in self.values.items()]
         return "-".join([f"p{self.index:03d}", *parts, f"seed={self.seed}"])
 
 
@@ -139,10 +145,10 @@ def parse_sweep(argv: Sequence[str]) -> SweepPlan:
     the sweep's own keys (`SWEEP_KEYS`) and single training-config values, go through
     the command-line parser shared by every entry point (`coherent_jax.cli`).
     """
-    fields = {f.name: f for f in dataclasses.fields(Config)}
+    fields = FIELDS
     scalars: list[str] = []
     axes: dict[str, list[str]] = {}
-    for item in argv:
+    for item in modern_items(argv):
         key, text = cli.split_item(item)
         list_field = key in fields and "list" in str(fields[key].type)
         # policy_hidden=[64,64] is one value of a list setting; [[8],[16]] would be an axis of them.
@@ -172,7 +178,7 @@ def parse_sweep(argv: Sequence[str]) -> SweepPlan:
             )
     # Each value parsed as a single override would be (typed, and checked: e.g. beta=2).
     typed = {
-        k: [getattr(parse_overrides([*scalars, f"{k}={v}"]), k) for v in items] for k, items in axes.items()
+        k: [get_value(parse_overrides([*scalars, f"{k}={v}"]), k) for v in items] for k, items in axes.items()
     }
     if seed_items is None:
         seeds = [base.seed + i for i in range(num_seeds or 1)]
@@ -193,7 +199,7 @@ def make_plan(base: Config, axes: dict[str, list[Any]], seeds: list[int]) -> Swe
     for combo in itertools.product(*axes.values(), seeds):
         *values, seed = combo
         settings = dict(zip(axes, values, strict=True))
-        cfg = validate(dataclasses.replace(base, **settings, seed=seed))
+        cfg = validate(with_values(base, {**settings, "seed": seed}))
         points.append(Point(index=len(points), values=settings, seed=seed, cfg=cfg))
     return SweepPlan(base=base, axes={k: list(v) for k, v in axes.items()}, seeds=list(seeds), points=points)
 
@@ -213,7 +219,7 @@ def point_hparams(base_hparams: Any, point: Point) -> Any:
     import jax
     import jax.numpy as jnp
 
-    wanted = {sweepable(k).hparam or k: v for k, v in point.values.items()}
+    wanted = {hparam_name(k): v for k, v in point.values.items()}
     found = set()
 
     def put(path, leaf):

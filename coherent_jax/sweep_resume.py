@@ -16,7 +16,15 @@ from pathlib import Path
 from typing import Any
 
 from coherent_jax import cli, rundir
-from coherent_jax.config import SWEEPABLE, Config, ConfigError, parse_overrides
+from coherent_jax.config import (
+    SWEEPABLE,
+    Config,
+    ConfigError,
+    get_value,
+    modern_items,
+    modern_key,
+    parse_overrides,
+)
 from coherent_jax.runs import METRICS, Checkpoint, resume_config
 
 
@@ -25,7 +33,9 @@ def _read_grid(out_dir: Path) -> tuple[dict[str, list[Any]], list[int]]:
     path = Path(out_dir) / rundir.GRID
     try:
         grid = json.loads(path.read_text())
-        axes, seeds = dict(grid["axes"]), [int(s) for s in grid["seeds"]]
+        # A grid stored before the groups names an axis by its flat key (``beta``).
+        axes = {modern_key(k, note=False): v for k, v in dict(grid["axes"]).items()}
+        seeds = [int(s) for s in grid["seeds"]]
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise ConfigError(
             f"invalid value for 'resume': {str(out_dir)!r} has no readable {rundir.GRID} "
@@ -56,7 +66,7 @@ def _given(key: str, text: str, stored: Config) -> list[Any]:
     items = [s.strip() for s in text[1:-1].split(",")] if text.startswith("[") else [text]
     if not items or any(not s for s in items):
         raise ConfigError(f"invalid value for {key!r}: {text!r} (allowed: a non-empty list of values)")
-    return [getattr(parse_overrides([f"{key}={v}"], base=stored), key) for v in items]
+    return [get_value(parse_overrides([f"{key}={v}"], base=stored), key) for v in items]
 
 
 def resume_plan(resume_dir: str, rest: list[str]) -> tuple[Config, Path, dict[str, list[Any]], list[int]]:
@@ -69,6 +79,7 @@ def resume_plan(resume_dir: str, rest: list[str]) -> tuple[Config, Path, dict[st
         stored_axes = _read_grid(Path(resume_dir))[0] if resume_dir else {}
     except ConfigError:
         stored_axes = {}  # not a sweep: refused below, once the directory itself is checked
+    rest = [i if i.split("=", 1)[0].strip() == "seeds" else modern_items([i])[0] for i in rest]
     grid_items = [i for i in rest if _is_grid_item(*cli.split_item(i), stored_axes)]
     others = [i for i in rest if i not in grid_items]
     cfg, out_dir = resume_config(resume_dir, others)

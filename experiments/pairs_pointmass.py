@@ -31,7 +31,7 @@ BASE = [
     "episode_length=50",
     "num_envs=16",
     "unroll_length=32",
-    "num_minibatches=4",
+    "ppo.num_minibatches=4",
     "eval_episodes=64",
     "eval_every=0",
     "progress=false",
@@ -47,16 +47,16 @@ ALGO_EXTRA = {
         "unroll_length=16",
         "policy_hidden=[64,64]",
         "value_hidden=[64,64]",
-        "warmup_steps=1024",
-        "utd_ratio=0.5",
+        "sac.warmup_steps=1024",
+        "sac.utd_ratio=0.5",
         "total_steps=10240",
     ],
 }
-MC = ["beta=0.1", "action_std=0.3", "w_std_init=0.01"]
-MC_ALL = ["beta=0.1", "action_std=0.3", "w_std_init=0.03"]
+MC = ["coherent.beta=0.1", "coherent.action_std=0.3", "coherent.w_std_init=0.01"]
+MC_ALL = ["coherent.beta=0.1", "coherent.action_std=0.3", "coherent.w_std_init=0.03"]
 STRATEGIES = [
     ("action", ["explore=action"], []),
-    ("coherent", ["explore=coherent"], ["beta=0.1"]),
+    ("coherent", ["explore=coherent"], ["coherent.beta=0.1"]),
     ("coherent mc", ["explore=coherent", "coherent.integration=mc"], MC),
     ("coherent mc all", ["explore=coherent", "coherent.integration=mc", "coherent.layers=all"], MC_ALL),
     ("noisynet", ["explore=noisynet"], []),

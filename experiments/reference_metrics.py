@@ -21,7 +21,7 @@ POINTMASS = [
     "env=pointmass",
     "num_envs=8",
     "unroll_length=16",
-    "num_minibatches=2",
+    "ppo.num_minibatches=2",
     "eval_episodes=4",
     "episode_length=50",
     "eval_every=3",
@@ -39,14 +39,17 @@ JOBS = {
             "algo=sac",
             "explore=coherent",
             "total_steps=1024",
-            "warmup_steps=256",
-            "utd_ratio=0.25",
-            "batch_size=32",
+            "sac.warmup_steps=256",
+            "sac.utd_ratio=0.25",
+            "sac.batch_size=32",
             "policy_hidden=[32]",
             "value_hidden=[32]",
         ],
     ),
-    "sweep": ("sweep", [*POINTMASS, "total_steps=640", "explore=coherent", "beta=[0.01,0.5]", "seeds=2"]),
+    "sweep": (
+        "sweep",
+        [*POINTMASS, "total_steps=640", "explore=coherent", "coherent.beta=[0.01,0.5]", "seeds=2"],
+    ),
 }
 
 

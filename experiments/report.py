@@ -196,7 +196,7 @@ def _label(cell: reproduce.Cell, run: plot.Run, suite: str | None = None) -> str
     (the default beta, which every other ablation keeps)."""
     name = cell.name.split("/", 2)[2]
     if name.startswith("coherent-beta") or (suite == "ablations" and name == "coherent"):
-        return f"beta={float(run.settings['beta']):g}"
+        return f"beta={float(run.settings['coherent.beta']):g}"
     return name
 
 

@@ -66,6 +66,8 @@ from cells import (  # noqa: E402, F401  (re-exported: the state of a cell is re
     status,
 )
 
+from coherent_jax.config import modern_items  # noqa: E402
+
 RESULTS = ROOT / "experiments" / "results"
 
 # The thesis's comparisons (chapter 4; its chapter 5 is not in our copy): A2C and PPO
@@ -346,11 +348,13 @@ def sweep_command(cell: Cell, results: Path) -> list[str]:
     sweep = cell_dir(cell, results) / "sweep"
     if sweep.exists():
         return [sys.executable, "-m", "coherent_jax.sweep", f"resume={sweep}"]
+    # A cell's specification keeps the flat keys it was defined with (its fingerprint, and so
+    # its results, stay valid); the sweep is given their grouped names, with no note.
     return [
         sys.executable,
         "-m",
         "coherent_jax.sweep",
-        *cell.overrides,
+        *modern_items(cell.overrides, note=False),
         f"seeds={cell.seeds}",
         f"run_dir={sweep}",
     ]

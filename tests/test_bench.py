@@ -16,7 +16,7 @@ TINY = [
     "env=pointmass",
     "num_envs=4",
     "unroll_length=8",
-    "num_minibatches=2",
+    "ppo.num_minibatches=2",
     "iterations=1",
     "filter_q=[8]",
     "filter_T=16",
@@ -152,7 +152,7 @@ def run_cli(args, cwd):
         (["coherent", "env=cheetah"], "'env'"),
         (["coherent", "explore=action"], "'explore'"),
         (["coherent", "policy_hidden=[64,"], "'policy_hidden'"),
-        (["sac", "warmup_steps=5"], "'warmup_steps'"),
+        (["sac", "sac.warmup_steps=5"], "'warmup_steps'"),
         (["physics", "envs=[3]", "variants=[mjx_2dev]"], "'envs'"),
     ],
 )
@@ -183,7 +183,7 @@ def test_throughput_suite_writes_every_row(tmp_path):
     the full bench; their skip reasons are recorded.
     """
     out = tmp_path / "results" / "throughput.json"
-    args = ["env=pointmass", "num_envs=4", "unroll_length=8", "num_minibatches=2", "iterations=2"]
+    args = ["env=pointmass", "num_envs=4", "unroll_length=8", "ppo.num_minibatches=2", "iterations=2"]
     only_ppo = "rows=[ppo,coherent_ppo]"
     result = throughput.run([*args, only_ppo, f"out={out}"], log=lambda msg: None)
     assert json.loads(out.read_text()) == json.loads(json.dumps(result))
@@ -258,9 +258,9 @@ def test_training_keys_pass_through_including_dotted_ones():
     """Every training key reaches the config, the ``coherent.*`` group too; a bad one is refused."""
     from coherent_jax.config import ConfigError
 
-    items = ["beta=0.1", "coherent.integration=mc", "coherent.layers=all"]
+    items = ["coherent.beta=0.1", "coherent.integration=mc", "coherent.layers=all"]
     cfg = coherent.parse(items).config
-    assert (cfg.beta, cfg.coherent.integration, cfg.coherent.layers) == (0.1, "mc", "all")
+    assert (cfg.coherent.beta, cfg.coherent.integration, cfg.coherent.layers) == (0.1, "mc", "all")
     assert throughput.parse(["coherent.integration=mc"]).config.coherent.integration == "mc"
     with pytest.raises(ConfigError, match="'coherent.integration'"):
         coherent.parse(["coherent.integration=exact"])

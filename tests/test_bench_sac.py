@@ -35,8 +35,8 @@ def test_tiny_run_reports_both_strategies(tmp_path):
         "unroll_length=8",
         "policy_hidden=[16]",
         "value_hidden=[16]",
-        "batch_size=16",
-        "utd_ratio=0.25",
+        "sac.batch_size=16",
+        "sac.utd_ratio=0.25",
         "iterations=2",
         f"out={out}",
     ]

@@ -20,10 +20,10 @@ BAD = [
     (["env=cheetah"], "'env'"),
     (["algo=trpo"], "'algo'"),
     (["explore=boltzmann"], "'explore'"),
-    (["beta=1.5"], "'beta'"),
+    (["coherent.beta=1.5"], "'coherent.beta'"),
     (["gamma=-0.1"], "'gamma'"),
     (["normalize_obs=maybe"], "'normalize_obs'"),
-    (["num_minibatches=3"], "'num_minibatches'"),
+    (["ppo.num_minibatches=3"], "'ppo.num_minibatches'"),
     (["policy_hidden=[0,64]"], "'policy_hidden'"),
     # strategies, the coherent.* group and refused pairs
     (["explore=coherent", "coherent.integration=exact"], "'coherent.integration'"),
@@ -33,9 +33,9 @@ BAD = [
     (["algo=sac", "explore=noisynet"], "'algo'"),
     (["algo=sac", "explore=coherent", "coherent.integration=analytic"], "'coherent.integration'"),
     (["algo=sac", "explore=coherent", "coherent.integration=mc", "coherent.layers=all"], "'coherent.layers'"),
-    (["gsde_resample_every=0"], "'gsde_resample_every'"),
-    (["pink_exponent=-1"], "'pink_exponent'"),
-    (["noisynet_sigma0=0"], "'noisynet_sigma0'"),
+    (["gsde.resample_every=0"], "'gsde.resample_every'"),
+    (["pink.exponent=-1"], "'pink.exponent'"),
+    (["noisynet.sigma0=0"], "'noisynet.sigma0'"),
     (["lr"], "'lr'"),
     # YAML syntax errors in a value
     (["policy_hidden=[64,64"], "'policy_hidden'"),
@@ -61,7 +61,7 @@ def test_error_names_allowed_values():
     with pytest.raises(ConfigError, match="not valid YAML"):
         parse_overrides(["policy_hidden=[64,64"])
     with pytest.raises(ConfigError, match=r"\[0, 1\]"):
-        parse_overrides(["beta=1.5"])
+        parse_overrides(["coherent.beta=1.5"])
 
 
 def test_good_overrides_are_typed():
@@ -108,9 +108,16 @@ def test_cli_refuses_non_empty_run_dir(tmp_path):
 def test_cli_help_lists_every_option_with_default(tmp_path):
     proc = run_cli(["--help"], cwd=tmp_path)
     assert proc.returncode == 0
-    for name, value in vars(Config()).items():
+    from coherent_jax.config import FIELDS, get_value
+
+    for name in FIELDS:
+        value = get_value(Config(), name)
         shown = "[" + ",".join(map(str, value)) + "]" if isinstance(value, list) else str(value)
-        assert f"{name}={shown}" in proc.stdout
+        shown = str(value).lower() if isinstance(value, bool) else "null" if value is None else shown
+        assert f"  {name}={shown} " in proc.stdout, name
+    # What algo=sac changes is said beside each value it changes.
+    assert "num_envs=64" in proc.stdout and "[algo=sac: 8]" in proc.stdout
+    assert "coherent.integration=analytic" in proc.stdout and "[algo=sac: mc]" in proc.stdout
 
 
 def test_cli_refused_pair_names_the_reason(tmp_path):
@@ -147,17 +154,17 @@ def test_cli_refuses_an_unwritable_run_dir_before_any_work(tmp_path, where):
 
 
 def test_help_prints_options_grouped_and_every_field_declares_its_group():
-    import dataclasses
+    from coherent_jax.config import FIELDS, GROUPS, SECTIONS, SWEEPABLE, help_text
 
-    from coherent_jax.config import GROUPS, SWEEPABLE, help_text
-
-    assert all(f.metadata.get("group") in GROUPS for f in dataclasses.fields(Config))
+    assert all(f.metadata.get("group") in SECTIONS for k, f in FIELDS.items() if "." not in k)
+    assert GROUPS == ("ppo", "sac", "coherent", "noisynet", "psne", "gsde", "pink")
     text = help_text()
-    headers = [text.index(f"\n{g}:\n") for g in GROUPS]
+    titles = [*SECTIONS, *(f"{g}.*" for g in GROUPS)]
+    headers = [text.index(f"\n{t}") for t in titles]
     assert headers == sorted(headers)
-    # Each option sits under its own group's header.
-    for f in dataclasses.fields(Config):
-        pos = text.index(f"  {f.name}=")
-        group = max((h, g) for h, g in zip(headers, GROUPS, strict=True) if h < pos)[1]
-        assert group == f.metadata["group"], f.name
+    # Each option sits under its own section's or group's header.
+    for key, f in FIELDS.items():
+        pos = text.index(f"\n  {key}=")
+        title = max((h, t) for h, t in zip(headers, titles, strict=True) if h < pos)[1]
+        assert title == (f"{key.split('.')[0]}.*" if "." in key else f.metadata["group"]), key
     assert "sweepable" in text and all(k in text for k in SWEEPABLE)

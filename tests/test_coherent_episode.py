@@ -270,8 +270,9 @@ def test_the_trainer_keeps_the_history_and_its_first_ratio_is_one():
     from coherent_jax.config import parse_overrides
 
     base = [
-        "env=pointmass", "num_envs=4", "unroll_length=8", "episode_length=20", "num_epochs=2",
-        "num_minibatches=2", "policy_hidden=[8]", "value_hidden=[8]", "eval_episodes=2", "explore=coherent",
+        "env=pointmass", "num_envs=4", "unroll_length=8", "episode_length=20", "ppo.num_epochs=2",
+        "ppo.num_minibatches=2", "policy_hidden=[8]", "value_hidden=[8]", "eval_episodes=2",
+        "explore=coherent",
     ]  # fmt: skip
     runs = {}
     for gradient in ("episode", "exact"):

@@ -219,8 +219,8 @@ def test_exact_mode_behaviour_and_loss_follow_the_process_across_an_update():
 
     env = VecEnv("pointmass", num_envs=2, episode_length=30)
     cfg = parse_overrides(
-        ["env=pointmass", "num_envs=2", "num_minibatches=1", "unroll_length=72", "explore=coherent"]
-        + ["beta=0", "w_std_init=0.5", "policy_hidden=[8]"]
+        ["env=pointmass", "num_envs=2", "ppo.num_minibatches=1", "unroll_length=72", "explore=coherent"]
+        + ["coherent.beta=0", "coherent.w_std_init=0.5", "policy_hidden=[8]"]
     )
     assert cfg.coherent.gradient == "exact"
     trainer = OnPolicyTrainer(cfg, env=env, eval_env=env)
@@ -287,7 +287,7 @@ def test_gradient_bench_passes_for_exact_forms_and_exposes_stored(tmp_path, caps
     from coherent_jax.bench.__main__ import main
 
     out = tmp_path / "gradient.json"
-    small = ["q=8", "p=1", "obs_size=3", "segment=8", "w_std=0.3", "action_std=0.1", f"out={out}"]
+    small = ["q=8", "p=1", "obs_size=3", "segment=8", "w_std=0.3", "coherent.action_std=0.1", f"out={out}"]
     assert main(["gradient", "betas=[0,0.1]", "histories=[0,16]", *small]) == 0
     rows = json.loads(out.read_text())["rows"]
     assert {r["mode"]: r["must_equal"] for r in rows} == {

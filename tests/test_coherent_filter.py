@@ -167,7 +167,7 @@ def test_gradients_match_finite_differences(x64, beta):
 
 
 def test_remat_gives_same_values_and_gradients(x64):
-    """remat=True only changes what the backward pass stores."""
+    """coherent.remat=True only changes what the backward pass stores."""
     problem = make_problem(8, 10, 2, 3, 0.3, resets=(4,))
     mu, w_std = jnp.asarray(problem["mu"]), jnp.asarray(problem["w_std"])
     belief0 = coherent_filter.prior_belief(mu, w_std)
@@ -238,7 +238,7 @@ def test_float32_long_episodes_stay_finite():
                 dict(x=x, a=a, first=first, mu=mu, w_std=w_std, action_std=action_std), beta
             )
         error = np.abs(np.asarray(logp, np.float64) - exact)
-        print(f"beta={beta}: float32 logp error max {error.max():.2e}, mean {error.mean():.2e}")
+        print(f"coherent.beta={beta}: float32 logp error max {error.max():.2e}, mean {error.mean():.2e}")
         assert error.max() < 1e-2, beta
         cov = np.asarray(final.cov, np.float64)
         np.testing.assert_array_equal(cov, np.swapaxes(cov, -1, -2))

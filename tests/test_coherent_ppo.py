@@ -11,7 +11,7 @@ from coherent_jax.envs import VecEnv
 from coherent_jax.exploration.coherent import CoherentCarry
 from coherent_jax.rollout import unroll
 
-TINY = ["env=pointmass", "num_envs=4", "num_minibatches=2", "eval_episodes=2"]
+TINY = ["env=pointmass", "num_envs=4", "ppo.num_minibatches=2", "eval_episodes=2"]
 
 
 @pytest.fixture(scope="module")
@@ -38,8 +38,13 @@ def test_behaviour_log_prob_equals_segment_recompute(short_episode_env, explore,
     """
     cfg = parse_overrides(
         TINY
-        + [f"explore={explore}", f"beta={beta}", f"learn_action_std={learn_std}", "w_std_init=0.5"]
-        + [f"coherent_inference={inference}"]
+        + [
+            f"explore={explore}",
+            f"coherent.beta={beta}",
+            f"coherent.learn_action_std={learn_std}",
+            "coherent.w_std_init=0.5",
+        ]
+        + [f"coherent.inference={inference}"]
     )
     trainer = OnPolicyTrainer(cfg, env=short_episode_env, eval_env=short_episode_env)
     state = trainer.init(jax.random.PRNGKey(0))
@@ -73,7 +78,7 @@ def test_behaviour_log_prob_equals_segment_recompute(short_episode_env, explore,
 
 def test_coherent_first_minibatch_ratio_is_one():
     """Inside the jitted iteration, the first minibatch's KL is 0: old and new log-probs agree."""
-    cfg = parse_overrides(TINY + ["explore=coherent", "unroll_length=16", "beta=0.2"])
+    cfg = parse_overrides(TINY + ["explore=coherent", "unroll_length=16", "coherent.beta=0.2"])
     trainer = OnPolicyTrainer(cfg)
     state = trainer.init(jax.random.PRNGKey(0))
     iteration = jax.jit(trainer.iteration)
@@ -91,10 +96,10 @@ def test_coherent_first_minibatch_ratio_is_one():
 @pytest.mark.slow
 def test_target_kl_stops_epochs_early():
     """Algorithm 2/5 step 17: with a tiny KL target the update stops; with none it runs all."""
-    base = TINY + ["explore=coherent", "unroll_length=16", "num_epochs=4", "lr=3e-3"]
+    base = TINY + ["explore=coherent", "unroll_length=16", "ppo.num_epochs=4", "lr=3e-3"]
     applied = {}
     for target in (0.0, 1e-6):
-        trainer = OnPolicyTrainer(parse_overrides(base + [f"target_kl={target}"]))
+        trainer = OnPolicyTrainer(parse_overrides(base + [f"ppo.target_kl={target}"]))
         state = trainer.init(jax.random.PRNGKey(0))
         _, metrics = jax.jit(trainer.iteration)(state)
         applied[target] = float(metrics["train/updates_applied"])

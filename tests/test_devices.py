@@ -24,7 +24,7 @@ from coherent_jax.agents import make_trainer
 from coherent_jax.config import parse_overrides
 
 tmp = Path(sys.argv[1])
-TINY = ["env=pointmass", "num_envs=8", "unroll_length=8", "num_minibatches=2", "eval_episodes=2",
+TINY = ["env=pointmass", "num_envs=8", "unroll_length=8", "ppo.num_minibatches=2", "eval_episodes=2",
         "episode_length=50", "eval_every=0", "progress=false", "total_steps=128"]
 cfg = parse_overrides(TINY)
 out = {"device_count": jax.device_count()}
@@ -51,8 +51,8 @@ for n in (1, 2):
         ),
         "params": [np.asarray(x).ravel().tolist() for x in jax.tree.leaves(state.params)],
     }
-split = [o for o in TINY if not o.startswith(("num_envs=", "num_minibatches="))]  # each key once
-out["bad_split"] = train.main([*split, "num_envs=5", "num_minibatches=1", f"run_dir={tmp / 'bad1'}"])
+split = [o for o in TINY if not o.startswith(("num_envs=", "ppo.num_minibatches="))]  # each key once
+out["bad_split"] = train.main([*split, "num_envs=5", "ppo.num_minibatches=1", f"run_dir={tmp / 'bad1'}"])
 out["too_many"] = train.main([*TINY, "num_devices=3", f"run_dir={tmp / 'bad2'}"])
 out["sweep"] = sweep.main([*TINY, "seeds=2", f"run_dir={tmp / 'sweep'}"])
 (tmp / "result.json").write_text(json.dumps(out))

@@ -172,3 +172,12 @@ def test_termination_is_not_truncation():
     # Each reset starts a fresh episode from a random initial state.
     ends = np.nonzero(np.asarray(out.terminated)[:, 0])[0]
     assert len(ends) >= 2
+
+
+def test_registry_names_the_engines_native_tasks():
+    """The JAX-free registry's native flag (what the config checks) and the native engine's
+    tasks (their formulas) name the same tasks."""
+    from coherent_jax.envs import native, registry
+
+    assert set(registry.NATIVE_TASKS) == set(native.NATIVE_TASKS)
+    assert len(registry.NATIVE_TASKS) == len(native.NATIVE_TASKS)

@@ -86,7 +86,7 @@ def run_cli(args, cwd):
     )
 
 
-POINTMASS = ["env=pointmass", "num_envs=2", "num_minibatches=1", "episode_length=20", "progress=false"]
+POINTMASS = ["env=pointmass", "num_envs=2", "ppo.num_minibatches=1", "episode_length=20", "progress=false"]
 
 
 def test_evaluate_prints_mean_and_std_of_returns(tmp_path, capsys):
@@ -108,7 +108,13 @@ def test_video_of_inverted_pendulum_has_moving_frames(tmp_path):
 
     run = make_zero_run(
         tmp_path / "run",
-        ["env=inverted_pendulum", "num_envs=1", "num_minibatches=1", "episode_length=30", "progress=false"],
+        [
+            "env=inverted_pendulum",
+            "num_envs=1",
+            "ppo.num_minibatches=1",
+            "episode_length=30",
+            "progress=false",
+        ],
     )
     video = tmp_path / "out.gif"
     proc = run_cli(
@@ -294,7 +300,7 @@ def write_run(path: Path, cfg, trainer, state, checkpoint=True, params=True) -> 
     "overrides",
     [
         ["algo=ppo", "explore=coherent"],
-        ["algo=sac", "explore=psne", "buffer_size=64", "policy_hidden=[16,16]", "value_hidden=[16,16]"],
+        ["algo=sac", "explore=psne", "sac.buffer_size=64", "policy_hidden=[16,16]", "value_hidden=[16,16]"],
     ],
     ids=["ppo-coherent", "sac-psne"],
 )
@@ -357,7 +363,7 @@ def test_a_sweep_point_directory_is_evaluated_from_its_parameters(tmp_path, caps
 
     from coherent_jax.agents import make_trainer
 
-    cfg = parse_overrides([*POINTMASS, "explore=coherent", "beta=0.1", "eval_episodes=3"])
+    cfg = parse_overrides([*POINTMASS, "explore=coherent", "coherent.beta=0.1", "eval_episodes=3"])
     trainer = make_trainer(cfg)
     state = random_state(trainer)
     expected = jax.device_get(jax.jit(trainer.evaluate)(state, jax.random.PRNGKey(4)))

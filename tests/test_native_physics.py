@@ -11,7 +11,8 @@ from helpers import BRAX_SIZES, MJX_SIDE_BY_SIDE, native_and_mjx_rollouts
 from coherent_jax.agents.onpolicy import OnPolicyTrainer
 from coherent_jax.config import ConfigError, parse_overrides
 from coherent_jax.envs import VecEnv, env_sizes, make_brax_env
-from coherent_jax.envs.native import NATIVE_TASKS, NativeState, PhysicsError, resolve_physics
+from coherent_jax.envs.native import NATIVE_TASKS, NativeState
+from coherent_jax.envs.registry import PhysicsError, resolve_physics
 
 # MJX programs take 10-60 s each to compile here: the suite checks two tasks;
 # COHERENT_ALL_PHYSICS=1 checks every native Brax task the same way.
@@ -106,8 +107,8 @@ def test_training_iteration_with_native_physics_runs_under_jit_and_is_reproducib
             "physics=native",
             "num_envs=4",
             "unroll_length=8",
-            "num_minibatches=2",
-            "num_epochs=1",
+            "ppo.num_minibatches=2",
+            "ppo.num_epochs=1",
             "eval_episodes=2",
             "episode_length=20",
             "policy_hidden=[8]",

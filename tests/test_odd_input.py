@@ -25,7 +25,7 @@ TINY = [
     "env=pointmass",
     "algo=a2c",
     "num_envs=2",
-    "num_minibatches=1",
+    "ppo.num_minibatches=1",
     "unroll_length=4",
     "eval_episodes=2",
     "episode_length=20",
@@ -85,7 +85,7 @@ def fake_run(path: Path, iteration: int, finished: bool = False, extra=()) -> Pa
 
 def fake_sweep(path: Path, finished: bool = True) -> Path:
     """A finished sweep of ent_coef=[0,0.5] x seeds=2, as sweep leaves it (synthetic state)."""
-    plan = sweep.parse_sweep([*TINY, "ent_coef=[0,0.5]", "seeds=2"])
+    plan = sweep.parse_sweep([*TINY, "ppo.ent_coef=[0,0.5]", "seeds=2"])
     path.mkdir()
     write_config(path, plan.base)
     (path / "grid.json").write_text(json.dumps({"axes": plan.axes, "seeds": plan.seeds}))
@@ -162,10 +162,10 @@ def test_everyday_configs_are_not_refused_for_memory():
     gb24 = 24 * 2**30
     check_memory(parse_overrides([]), memory=gb24)
     check_memory(parse_overrides([]), points=5, memory=gb24)
-    check_memory(parse_overrides(["algo=sac", "buffer_size=1000000"]), points=5, memory=gb24)
+    check_memory(parse_overrides(["algo=sac", "sac.buffer_size=1000000"]), points=5, memory=gb24)
     check_memory(parse_overrides(["env=humanoid", "num_envs=1024"]), points=5, memory=gb24)
-    with pytest.raises(ConfigError, match="'buffer_size'.*5 sweep points"):
-        check_memory(parse_overrides(["algo=sac", "buffer_size=200000000"]), points=5, memory=gb24)
+    with pytest.raises(ConfigError, match="'sac.buffer_size'.*5 sweep points"):
+        check_memory(parse_overrides(["algo=sac", "sac.buffer_size=200000000"]), points=5, memory=gb24)
 
 
 # ------------------------------------------------------------------ 4. a stored config that is not one
@@ -192,7 +192,7 @@ def test_resume_of_an_empty_config_is_refused_with_or_without_checkpoint(tmp_pat
     [
         (train.main, ["lr=0.1", "lr=0.2", "run_dir={tmp}/run"]),
         (sweep.main, ["lr=0.1", "lr=0.2", "run_dir={tmp}/run"]),
-        (sweep.main, ["ent_coef=[0,0.1]", "ent_coef=[0.5]", "run_dir={tmp}/run"]),
+        (sweep.main, ["ppo.ent_coef=[0,0.1]", "ppo.ent_coef=[0.5]", "run_dir={tmp}/run"]),
         (bench_main, ["throughput", "lr=0.1", "lr=0.2", "out={tmp}/out.json"]),
         (bench_main, ["physics", "envs=[16]", "envs=[64]", "out={tmp}/out.json"]),
     ],
@@ -354,10 +354,22 @@ def test_stale_lock_of_a_dead_process_is_taken_over(tmp_path):
 # ------------------------------------------------------------------ 10. messages that said the wrong thing
 def test_sweep_resume_with_the_same_grid_is_accepted_and_a_changed_one_refused(tmp_path, capsys):
     out = fake_sweep(tmp_path / "sweep")
-    for same in ([], ["ent_coef=[0,0.5]"], ["seeds=2"], ["ent_coef=[0,0.5]", "seeds=2"], ["seed=[0,1]"]):
+    for same in (
+        [],
+        ["ppo.ent_coef=[0,0.5]"],
+        ["seeds=2"],
+        ["ppo.ent_coef=[0,0.5]", "seeds=2"],
+        ["seed=[0,1]"],
+    ):
         assert sweep.main([f"resume={out}", *same]) == 0, same
         assert "already complete" in capsys.readouterr().out
-    for changed in (["ent_coef=[0,0.4]"], ["seeds=3"], ["ent_coef=0.5"], ["lr=[0.1,0.2]"], ["seed=[0,2]"]):
+    for changed in (
+        ["ppo.ent_coef=[0,0.4]"],
+        ["seeds=3"],
+        ["ppo.ent_coef=0.5"],
+        ["lr=[0.1,0.2]"],
+        ["seed=[0,2]"],
+    ):
         msg = refused(
             sweep.main,
             [f"resume={out}", *changed],
@@ -365,7 +377,7 @@ def test_sweep_resume_with_the_same_grid_is_accepted_and_a_changed_one_refused(t
             "a sweep's grid cannot change on resume: ",
             where=tmp_path,
         )
-        assert changed[0] in msg and "ent_coef=[0,0.5] seed=[0,1]" in msg
+        assert changed[0] in msg and "ppo.ent_coef=[0,0.5] seed=[0,1]" in msg
 
 
 def test_train_resume_of_a_sweep_dir_is_refused_naming_the_sweep_command(tmp_path, capsys):

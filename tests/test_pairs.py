@@ -22,7 +22,7 @@ BASE = [
     "episode_length=50",
     "num_envs=16",
     "unroll_length=32",
-    "num_minibatches=4",
+    "ppo.num_minibatches=4",
     "eval_episodes=2",
     "progress=false",
 ]
@@ -33,14 +33,14 @@ MARGIN = 5.0
 # defaults (action_std = w_std_init = 0.1) these ablations did not learn within
 # this budget, and layers=last not even at w_std_init = 0.03 (seed 0: -52 -> -53);
 # with the weight noise well below the action noise they do (seeds 0 and 1).
-MC_ALL = ["beta=0.1", "action_std=0.3", "w_std_init=0.03"]
-MC = ["beta=0.1", "action_std=0.3", "w_std_init=0.01"]
+MC_ALL = ["coherent.beta=0.1", "coherent.action_std=0.3", "coherent.w_std_init=0.03"]
+MC = ["coherent.beta=0.1", "coherent.action_std=0.3", "coherent.w_std_init=0.01"]
 # (algo, explore overrides, extra settings for this pair)
 PAIRS = [
     ("ppo", ["explore=action"], []),
     ("a2c", ["explore=action"], []),
-    ("ppo", ["explore=coherent"], ["beta=0.1"]),
-    ("a2c", ["explore=coherent"], ["beta=0.1"]),
+    ("ppo", ["explore=coherent"], ["coherent.beta=0.1"]),
+    ("a2c", ["explore=coherent"], ["coherent.beta=0.1"]),
     ("ppo", ["explore=coherent", "coherent.integration=mc"], MC),
     ("a2c", ["explore=coherent", "coherent.integration=mc"], MC),
     ("ppo", ["explore=coherent", "coherent.integration=mc", "coherent.layers=all"], MC_ALL),
@@ -116,8 +116,8 @@ SAC_BASE = [
     "episode_length=100",
     "policy_hidden=[64,64]",
     "value_hidden=[64,64]",
-    "warmup_steps=1024",
-    "utd_ratio=0.5",
+    "sac.warmup_steps=1024",
+    "sac.utd_ratio=0.5",
     "eval_episodes=16",
     "progress=false",
 ]

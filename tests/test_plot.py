@@ -88,7 +88,7 @@ def test_normalisation_is_min_max_per_task(tmp_path):
 def test_settings_that_change_only_with_the_task_split_no_group(tmp_path):
     """Per-task settings (reward scaling on hopper alone) are not in the labels, so the
     aggregate pairs each strategy across tasks; a setting that varies on one task is."""
-    scaled = ["normalize_rewards=true"]
+    scaled = ["ppo.normalize_rewards=true"]
     runs = [
         load_run(write_run(tmp_path, env, ex, 0, off, extra, name=name), "eval/episode_return")
         for env, ex, off, extra, name in [
@@ -169,16 +169,20 @@ def test_runs_differing_in_more_than_the_seed_are_not_averaged(tmp_path, capsys)
     runs = tmp_path / "runs"
     for beta, off in (("0.01", 0.0), ("0.1", 100.0)):
         for seed in (0, 1):
-            write_run(runs, "hopper", "coherent", seed, off, [f"beta={beta}"], name=f"b{beta}-s{seed}")
+            write_run(
+                runs, "hopper", "coherent", seed, off, [f"coherent.beta={beta}"], name=f"b{beta}-s{seed}"
+            )
     loaded = [load_run(p, "eval/episode_return") for p in sorted(runs.iterdir())]
     grouped = group_curves(loaded)["hopper"]
-    assert sorted(grouped) == ["beta=0.01", "beta=0.1"]
-    assert grouped["beta=0.1"].values[:, -1].tolist() == [140.0, 141.0]
+    assert sorted(grouped) == ["coherent.beta=0.01", "coherent.beta=0.1"]
+    assert grouped["coherent.beta=0.1"].values[:, -1].tolist() == [140.0, 141.0]
     # run_dir, progress and the seed do not split a group.
-    write_run(runs, "hopper", "coherent", 2, 0.0, ["beta=0.01", "progress=false", "run_dir=x"], name="b-s2")
+    write_run(
+        runs, "hopper", "coherent", 2, 0.0, ["coherent.beta=0.01", "progress=false", "run_dir=x"], name="b-s2"
+    )
     assert main([str(runs), f"out={tmp_path / 'plots'}", "reps=200"]) == 0
     text = capsys.readouterr().out
-    assert "beta=0.01" in text and "n=3" in text and "beta=0.1" in text and "n=2" in text
+    assert "coherent.beta=0.01" in text and "n=3" in text and "coherent.beta=0.1" in text and "n=2" in text
 
 
 def test_seeds_logged_at_different_steps(tmp_path, capsys):
@@ -206,7 +210,9 @@ def test_seeds_logged_at_different_steps(tmp_path, capsys):
 def test_sweep_point_directories_with_equals_in_their_names(tmp_path, capsys):
     sweep = tmp_path / "sweep-hopper"
     for i, seed in enumerate((0, 1)):
-        write_run(sweep, "hopper", "coherent", seed, 0.0, ["beta=0.1"], name=f"p00{i}-beta=0.1-seed={seed}")
+        write_run(
+            sweep, "hopper", "coherent", seed, 0.0, ["coherent.beta=0.1"], name=f"p00{i}-beta=0.1-seed={seed}"
+        )
     (sweep / "sweep.csv").write_text("beta,mean\n")
     point = sweep / "p000-beta=0.1-seed=0"
     assert main([str(sweep), f"out={tmp_path / 'a'}", "reps=200"]) == 0

@@ -33,15 +33,15 @@ _ON_POLICY = {
     "unroll_length": 1000,
     "episode_length": 1000,
     "gamma": 0.99,
-    "gae_lambda": 0.97,
+    "ppo.gae_lambda": 0.97,
     "lr": 3e-4,
-    "vf_lr": 1e-3,
-    "vf_iters": 80,
-    "ent_coef": 0.0,
-    "max_grad_norm": 0.0,
-    "normalize_advantages": True,
+    "ppo.vf_lr": 1e-3,
+    "ppo.vf_iters": 80,
+    "ppo.ent_coef": 0.0,
+    "ppo.max_grad_norm": 0.0,
+    "ppo.normalize_advantages": True,
     "normalize_obs": False,
-    "normalize_rewards": False,
+    "ppo.normalize_rewards": False,
     "policy_hidden": [64, 64],
     "value_hidden": [64, 64],
     "activation": "tanh",
@@ -49,22 +49,28 @@ _ON_POLICY = {
     "coherent.episode_restart": False,
 }
 THESIS = {
-    "ppo": {**_ON_POLICY, "clip_eps": 0.2, "num_epochs": 80, "num_minibatches": 1, "target_kl": 0.01},
-    "a2c": {**_ON_POLICY, "num_epochs": 1, "num_minibatches": 1},
+    "ppo": {
+        **_ON_POLICY,
+        "ppo.clip_eps": 0.2,
+        "ppo.num_epochs": 80,
+        "ppo.num_minibatches": 1,
+        "ppo.target_kl": 0.01,
+    },
+    "a2c": {**_ON_POLICY, "ppo.num_epochs": 1, "ppo.num_minibatches": 1},
     "sac": {
         "num_envs": 1,
         "unroll_length": 50,
         "episode_length": 1000,
-        "utd_ratio": 1.0,
+        "sac.utd_ratio": 1.0,
         "lr": 1e-3,
         "gamma": 0.99,
-        "tau": 0.005,
-        "temperature": 0.2,
-        "auto_temperature": False,
-        "batch_size": 100,
-        "buffer_size": 1_000_000,
-        "warmup_steps": 10_000,
-        "update_after": 1_000,
+        "sac.tau": 0.005,
+        "sac.temperature": 0.2,
+        "sac.auto_temperature": False,
+        "sac.batch_size": 100,
+        "sac.buffer_size": 1_000_000,
+        "sac.warmup_steps": 10_000,
+        "sac.update_after": 1_000,
         "policy_hidden": [256, 256],
         "value_hidden": [256, 256],
         "activation": "relu",
@@ -78,8 +84,8 @@ TINY = [
     "num_envs=4",
     "unroll_length=8",
     "episode_length=20",
-    "num_minibatches=2",
-    "num_epochs=2",
+    "ppo.num_minibatches=2",
+    "ppo.num_epochs=2",
     "policy_hidden=[8]",
     "value_hidden=[8]",
     "eval_episodes=2",
@@ -137,10 +143,17 @@ def test_user_overrides_beat_the_preset_and_the_preset_beats_algo_defaults():
     for order in (["preset=thesis", *items], [*items, "preset=thesis"]):
         cfg = parse_overrides(order)
         assert (cfg.lr, cfg.num_envs, cfg.coherent.episode_restart) == (3e-3, 2, False)
-        assert (cfg.batch_size, cfg.update_after) == (100, 1000)  # the preset's
+        assert (cfg.sac.batch_size, cfg.sac.update_after) == (100, 1000)  # the preset's
         assert (cfg.total_steps, cfg.checkpoint_every) == (300_000, 200)  # algo=sac's, under the preset
-    cfg = parse_overrides(["preset=thesis", "vf_iters=10", "num_epochs=5", "coherent.episode_restart=true"])
-    assert (cfg.vf_iters, cfg.num_epochs, cfg.coherent.episode_restart, cfg.vf_lr) == (10, 5, True, 1e-3)
+    cfg = parse_overrides(
+        ["preset=thesis", "ppo.vf_iters=10", "ppo.num_epochs=5", "coherent.episode_restart=true"]
+    )
+    assert (cfg.ppo.vf_iters, cfg.ppo.num_epochs, cfg.coherent.episode_restart, cfg.ppo.vf_lr) == (
+        10,
+        5,
+        True,
+        1e-3,
+    )
 
 
 def test_preset_round_trips_through_config_yaml_and_resume(tmp_path):
@@ -181,21 +194,25 @@ def test_help_lists_the_preset_per_algo():
         line = next(ln for ln in text.splitlines() if ln.startswith(f"  with algo={algo}:"))
         for key in ("num_envs", "unroll_length", "lr"):
             assert f"{key}={shown(THESIS[algo][key])}" in line, (algo, key)
-    assert "vf_iters=80" in text and "update_after=1000" in text and "coherent.episode_restart=False" in text
+    assert (
+        "ppo.vf_iters=80" in text
+        and "sac.update_after=1000" in text
+        and "coherent.episode_restart=false" in text
+    )
 
 
 def test_separate_value_keys_are_checked_together_and_vf_lr_is_sweepable():
-    assert "vf_lr" in SWEEPABLE
-    plan = parse_sweep(["env=pointmass", "preset=thesis", "vf_lr=[0.001,0.0003]"])
-    assert [(p.cfg.vf_lr, p.cfg.vf_iters) for p in plan.points] == [(1e-3, 80), (3e-4, 80)]
-    with pytest.raises(ConfigError, match="'vf_iters'"):  # the joint loss has no vf_lr to vary
-        parse_sweep(["env=pointmass", "vf_lr=[0.001,0.0003]"])
-    with pytest.raises(ConfigError, match="'vf_iters'.*vf_lr=0.001"):
-        parse_overrides(["vf_lr=1e-3"])
-    with pytest.raises(ConfigError, match="'vf_iters'.*vf_lr=0"):
-        parse_overrides(["vf_iters=4"])
-    with pytest.raises(ConfigError, match="'max_grad_norm'"):
-        parse_overrides(["max_grad_norm=-1"])
+    assert "ppo.vf_lr" in SWEEPABLE
+    plan = parse_sweep(["env=pointmass", "preset=thesis", "ppo.vf_lr=[0.001,0.0003]"])
+    assert [(p.cfg.ppo.vf_lr, p.cfg.ppo.vf_iters) for p in plan.points] == [(1e-3, 80), (3e-4, 80)]
+    with pytest.raises(ConfigError, match="'ppo.vf_iters'"):  # the joint loss has no vf_lr to vary
+        parse_sweep(["env=pointmass", "ppo.vf_lr=[0.001,0.0003]"])
+    with pytest.raises(ConfigError, match="'ppo.vf_iters'.*vf_lr=0.001"):
+        parse_overrides(["ppo.vf_lr=1e-3"])
+    with pytest.raises(ConfigError, match="'ppo.vf_iters'.*vf_lr=0"):
+        parse_overrides(["ppo.vf_iters=4"])
+    with pytest.raises(ConfigError, match="'ppo.max_grad_norm'"):
+        parse_overrides(["ppo.max_grad_norm=-1"])
 
 
 def run_iterations(overrides, iterations=2):
@@ -233,16 +250,16 @@ def test_separate_value_keeps_the_value_loss_out_of_the_policy_step():
     """With its own optimiser, vf_coef does not reach the policy (clipping on, so a shared
     global norm would couple them); with the joint loss it does."""
     vf_coefs = [{"vf_coef": 0.5}, {"vf_coef": 50.0}]
-    (a, _), (b, _) = run_variants(["vf_lr=1e-3", "vf_iters=3", "max_grad_norm=0.05"], vf_coefs)
+    (a, _), (b, _) = run_variants(["ppo.vf_lr=1e-3", "ppo.vf_iters=3", "ppo.max_grad_norm=0.05"], vf_coefs)
     assert leaves_equal(a.params.policy, b.params.policy)
     assert leaves_equal(a.params.value, b.params.value)
-    (c, _), (d, _) = run_variants(["max_grad_norm=0.05"], vf_coefs)
+    (c, _), (d, _) = run_variants(["ppo.max_grad_norm=0.05"], vf_coefs)
     assert not leaves_equal(c.params.policy, d.params.policy)
 
 
 @pytest.mark.slow
 def test_value_takes_vf_iters_adam_steps_on_its_own_optimizer():
-    state, metrics = run_iterations(["vf_lr=1e-3", "vf_iters=3"], iterations=2)
+    state, metrics = run_iterations(["ppo.vf_lr=1e-3", "ppo.vf_iters=3"], iterations=2)
     # Adam's step counters: 3 value steps per iteration, the policy's applied steps apart.
     assert int(state.opt_state.value[-1].count) == 2 * 3  # (clip, Adam)
     assert int(state.opt_state.policy[-1].count) == 2 * 4  # num_epochs x num_minibatches
@@ -250,7 +267,9 @@ def test_value_takes_vf_iters_adam_steps_on_its_own_optimizer():
     assert float(state.hparams.vf_lr) == pytest.approx(1e-3)
 
     # The value steps against Adam at vf_lr written out (optax.adam, eps as the trainer's).
-    trainer = make_trainer(parse_overrides([*TINY, "vf_lr=1e-2", "vf_iters=3", "max_grad_norm=0"]))
+    trainer = make_trainer(
+        parse_overrides([*TINY, "ppo.vf_lr=1e-2", "ppo.vf_iters=3", "ppo.max_grad_norm=0"])
+    )
     init = trainer.init(jax.random.PRNGKey(1))
     obs = jax.random.normal(jax.random.PRNGKey(2), (8, 4, 6))
     targets = jax.random.normal(jax.random.PRNGKey(3), (8, 4))
@@ -276,9 +295,9 @@ def test_value_takes_vf_iters_adam_steps_on_its_own_optimizer():
 
 @pytest.mark.slow
 def test_max_grad_norm_zero_means_no_clipping():
-    free, metrics = run_iterations(["max_grad_norm=0"])
-    huge, _ = run_iterations(["max_grad_norm=1e30"])  # a clip that never binds
-    tight, _ = run_iterations(["max_grad_norm=1e-3"])
+    free, metrics = run_iterations(["ppo.max_grad_norm=0"])
+    huge, _ = run_iterations(["ppo.max_grad_norm=1e30"])  # a clip that never binds
+    tight, _ = run_iterations(["ppo.max_grad_norm=1e-3"])
     assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(free.params))
     assert leaves_close(free.params, huge.params)
     assert not leaves_close(free.params, tight.params)
@@ -288,8 +307,15 @@ def test_max_grad_norm_zero_means_no_clipping():
 def test_sac_updates_start_at_update_after_during_the_random_actions():
     trainer = make_trainer(
         parse_overrides(
-            [*TINY, "algo=sac", "num_envs=1", "warmup_steps=40", "update_after=16", "batch_size=8"]
-            + ["buffer_size=64", "utd_ratio=0.5"]
+            [
+                *TINY,
+                "algo=sac",
+                "num_envs=1",
+                "sac.warmup_steps=40",
+                "sac.update_after=16",
+                "sac.batch_size=8",
+            ]
+            + ["sac.buffer_size=64", "sac.utd_ratio=0.5"]
         )
     )
     state = jax.jit(trainer.init)(jax.random.PRNGKey(0))
@@ -307,8 +333,15 @@ def test_sac_updates_start_at_update_after_during_the_random_actions():
 def test_separate_value_run_resumes_to_the_uninterrupted_run(tmp_path):
     """The value's optimiser state is in the checkpoint: a run stopped and resumed equals
     one run straight through, and its policy loads from the checkpoint."""
-    tiny = [o for o in TINY if not o.startswith("num_epochs=")]  # each key once
-    args = [*tiny, "preset=thesis", "num_epochs=3", "vf_iters=4", "checkpoint_every=1", "eval_every=2"]
+    tiny = [o for o in TINY if not o.startswith("ppo.num_epochs=")]  # each key once
+    args = [
+        *tiny,
+        "preset=thesis",
+        "ppo.num_epochs=3",
+        "ppo.vf_iters=4",
+        "checkpoint_every=1",
+        "eval_every=2",
+    ]
     straight, split = tmp_path / "straight", tmp_path / "split"
     assert main([*args, "total_steps=96", f"run_dir={straight}"]) == 0
     assert main([*args, "total_steps=64", f"run_dir={split}"]) == 0
@@ -331,7 +364,7 @@ def test_separate_value_run_resumes_to_the_uninterrupted_run(tmp_path):
 def test_steps_after_an_early_stop_are_skipped_and_change_nothing(monkeypatch):
     """With a KL target, once the policy steps have stopped no gradient is computed (the
     cond's zero branch), and the run equals one that computes and discards them."""
-    overrides = ["target_kl=1e-6", "num_epochs=6", "explore=coherent"]
+    overrides = ["ppo.target_kl=1e-6", "ppo.num_epochs=6", "explore=coherent"]
     skipped = run_iterations(overrides)
     from coherent_jax.agents.onpolicy import OnPolicyTrainer
 

@@ -48,12 +48,12 @@ def test_every_cell_is_a_valid_config_with_its_tasks_settings_for_every_strategy
         cfg = parse_sweep([*cell.overrides, f"seeds={cell.seeds}"]).base
         task_settings = reproduce.ONPOLICY_TASK_SETTINGS.get(cfg.env, ())
         if cfg.algo == "sac":
-            assert not cfg.normalize_rewards, cell.name
+            assert not cfg.ppo.normalize_rewards, cell.name
         else:
             assert all(item in cell.overrides for item in task_settings), cell.name
         if cfg.algo == "a2c":  # one gradient step per iteration: its own step size
             assert cfg.lr == 3e-3, cell.name
-    assert parse_overrides(["env=hopper", *reproduce.ONPOLICY_TASK_SETTINGS["hopper"]]).normalize_rewards
+    assert parse_overrides(["env=hopper", *reproduce.ONPOLICY_TASK_SETTINGS["hopper"]]).ppo.normalize_rewards
     assert "halfcheetah" not in reproduce.ONPOLICY_TASK_SETTINGS  # the ablations' and done cells' defaults
 
 
@@ -78,7 +78,7 @@ def test_ablations_vary_one_component_each():
 
     cells = {c.name: c for c in reproduce.ablation_cells()}
     # One cell of five seeds per beta; the default beta is the thesis suite's coherent cell.
-    assert reproduce.DEFAULT_BETA == Config().beta
+    assert reproduce.DEFAULT_BETA == Config().coherent.beta
     thesis = {c.name: c for c in reproduce.thesis_cells()}
     for algo in ("ppo", "a2c"):
         assert thesis[f"halfcheetah/{algo}/coherent"].setting("beta") is None

@@ -70,10 +70,10 @@ def _train(normalize: bool, scales, iterations: int = 3):
             "env=pointmass",
             "num_envs=8",
             "unroll_length=16",
-            "num_minibatches=2",
-            "num_epochs=2",
+            "ppo.num_minibatches=2",
+            "ppo.num_epochs=2",
             "episode_length=20",
-            f"normalize_rewards={str(normalize).lower()}",
+            f"ppo.normalize_rewards={str(normalize).lower()}",
         ]
     )
 

@@ -22,7 +22,7 @@ FAST = [
     "episode_length=100",
     "policy_hidden=[64,64]",
     "value_hidden=[64,64]",
-    "warmup_steps=1024",
+    "sac.warmup_steps=1024",
     "eval_episodes=16",
     "progress=false",
 ]
@@ -138,7 +138,7 @@ def test_sigma_rule_moves_the_right_way_on_both_sides_of_delta(distance, expecte
 
 
 def _coherent_setup(sigma, beta=0.3):
-    cfg = parse_overrides([*FAST, "explore=coherent", f"beta={beta}", f"sigma_init={sigma}"])
+    cfg = parse_overrides([*FAST, "explore=coherent", f"coherent.beta={beta}", f"psne.sigma_init={sigma}"])
     behaviour = make_behaviour(cfg, action_size=2)
     actor = SquashedGaussianActor(2, [16, 16], "relu")
     params = actor.init(jax.random.PRNGKey(0), 6)
@@ -196,10 +196,10 @@ def test_coherent_sac_head_follows_the_beta_chain():
 def test_auto_temperature_moves_alpha_towards_the_entropy_target():
     """Entropy below the target raises alpha; above it lowers alpha. The target is a
     hyperparameter of the state (one compiled update serves both), set by the config."""
-    cfg = parse_overrides([*FAST, "auto_temperature=true", "batch_size=32"])
+    cfg = parse_overrides([*FAST, "sac.auto_temperature=true", "sac.batch_size=32"])
     trainer = SACTrainer(cfg)
     for target in (50.0, -50.0):
-        hp = SACTrainer(parse_overrides([*FAST, f"target_entropy={target}"])).init_hparams()
+        hp = SACTrainer(parse_overrides([*FAST, f"sac.target_entropy={target}"])).init_hparams()
         assert float(hp.target_entropy) == target
     init, update = jax.jit(trainer.init), jax.jit(trainer.update)
     alphas = {}
@@ -228,7 +228,7 @@ def test_auto_temperature_moves_alpha_towards_the_entropy_target():
 
 # --------------------------------------------------------------------- training
 def test_warmup_collects_uniform_actions_without_updates():
-    cfg = parse_overrides([*FAST, "warmup_steps=256", "utd_ratio=0.25"])
+    cfg = parse_overrides([*FAST, "sac.warmup_steps=256", "sac.utd_ratio=0.25"])
     trainer = SACTrainer(cfg)
     state = jax.jit(trainer.init)(jax.random.PRNGKey(0))
     step = jax.jit(trainer.iteration)
@@ -249,7 +249,7 @@ def test_warmup_collects_uniform_actions_without_updates():
 
 @pytest.mark.slow
 def test_sac_same_seed_same_run():
-    cfg = parse_overrides([*FAST, "warmup_steps=128", "utd_ratio=0.125", "explore=coherent"])
+    cfg = parse_overrides([*FAST, "sac.warmup_steps=128", "sac.utd_ratio=0.125", "explore=coherent"])
     trainer = SACTrainer(cfg)
     step, init = jax.jit(trainer.iteration), jax.jit(trainer.init)
 
@@ -277,7 +277,9 @@ def test_sac_learns_pointmass(explore):
     SAC and Coherent-SAC (beta=0.01) both reach about -15 to -20 at this budget
     (docs/development.md, Tests); the threshold leaves room for seed noise.
     """
-    cfg = parse_overrides([*FAST, f"explore={explore}", "total_steps=10240", "utd_ratio=0.5", "eval_every=0"])
+    cfg = parse_overrides(
+        [*FAST, f"explore={explore}", "total_steps=10240", "sac.utd_ratio=0.5", "eval_every=0"]
+    )
     history = []
     summary = train(cfg, None, progress_fn=lambda i, m: history.append(m))
     assert all(np.isfinite(m["train/critic_loss"]) for m in history if m["train/updates_applied"] > 0)

@@ -93,9 +93,9 @@ def test_coherent_noise_autocorrelation_is_one_minus_beta(integration):
     strategy, _ = build(
         "explore=coherent",
         f"coherent.integration={integration}",
-        f"beta={beta}",
-        f"action_std={action_std}",
-        "w_std_init=0.3",
+        f"coherent.beta={beta}",
+        f"coherent.action_std={action_std}",
+        "coherent.w_std_init=0.3",
     )
     noise, _, _, params, obs = run_fixed_state(strategy, 256, 200)
     x = np.asarray(strategy.trunk.apply(params["trunk"], obs[:1]), np.float64)[0]
@@ -112,7 +112,9 @@ def test_coherent_all_layers_chain_statistics_and_resets():
     """layers=all: every weight's z chain is N(0, 1) with lag-1 autocorrelation 1 - beta;
     a new episode draws z afresh (independent of the last step)."""
     beta = 0.3
-    strategy, _ = build("explore=coherent", "coherent.integration=mc", "coherent.layers=all", f"beta={beta}")
+    strategy, _ = build(
+        "explore=coherent", "coherent.integration=mc", "coherent.layers=all", f"coherent.beta={beta}"
+    )
     noise, extras, _, _, _ = run_fixed_state(strategy, 64, 120, first_every=40)
     z = np.concatenate([np.asarray(v).reshape(120, 64, -1) for v in jax.tree.leaves(extras)], axis=-1)
     assert z.var() == pytest.approx(1.0, rel=0.03)
@@ -144,7 +146,7 @@ def test_coloured_noise_matches_its_spectrum():
 def test_pink_behaviour_noise(exponent, low, high):
     """Behaviour noise has the policy's std, white at exponent 0, clearly positive at 1,
     and each episode draws a new sequence (uncorrelated across the reset)."""
-    strategy, _ = build("explore=pink", f"pink_exponent={exponent}", "init_std=0.4", "episode_length=50")
+    strategy, _ = build("explore=pink", f"pink.exponent={exponent}", "init_std=0.4", "episode_length=50")
     noise, _, carries, _, _ = run_fixed_state(strategy, 256, 100, first_every=50)
     assert noise.std() == pytest.approx(0.4, rel=0.05)
     assert low < lag1(noise[:50]) < high
@@ -162,7 +164,7 @@ def test_gsde_noise_resamples_every_n_and_has_its_variance():
     """The noise matrix is held for n steps (noise constant at a fixed state), redrawn at
     multiples of n and at episode starts; its variance is sum_i x_i^2 sigma_ij^2 (float64)."""
     every = 5
-    strategy, _ = build("explore=gsde", f"gsde_resample_every={every}", "init_std=0.5")
+    strategy, _ = build("explore=gsde", f"gsde.resample_every={every}", "init_std=0.5")
     noise, _, _, params, obs = run_fixed_state(strategy, 2048, 23, first_every=13)
     change = np.abs(np.diff(noise, axis=0)).max(axis=(1, 2)) > 1e-6  # between t-1 and t
     redraw = [t for t in range(1, 23) if t % 13 == 0 or (t % 13) % every == 0]
@@ -194,7 +196,7 @@ def test_noisy_dense_equals_explicit_weights():
 
 
 def test_noisynet_noise_is_fixed_per_episode_with_initial_sigma():
-    strategy, _ = build("explore=noisynet", "noisynet_sigma0=0.5")
+    strategy, _ = build("explore=noisynet", "noisynet.sigma0=0.5")
     noise, extras, _, params, _ = run_fixed_state(strategy, 64, 30, first_every=10)
     for leaf in jax.tree.leaves(extras):
         leaf = np.asarray(leaf)
@@ -228,7 +230,7 @@ def test_psne_perturbation_scale_and_layer_norm_untouched():
 
 
 def test_psne_perturbation_is_fixed_per_episode():
-    strategy, _ = build("explore=psne", "sigma_init=0.5", "init_std=0.01")
+    strategy, _ = build("explore=psne", "psne.sigma_init=0.5", "init_std=0.01")
     noise, extras, _, _, _ = run_fixed_state(strategy, 32, 30, first_every=10)
     keys = np.asarray(extras)
     for t in range(1, 30):
@@ -317,7 +319,9 @@ def test_psne_minibatch_log_prob_draws_each_episode_once_and_equals_per_segment(
 def test_psne_sigma_adapts_by_rule_451(delta, factor):
     """adapt applies (4.51): sigma * alpha if the distance (4.50) < delta, else sigma / alpha;
     scoring the segment leaves PSNE's log-probabilities as collection stored them."""
-    strategy, _ = build("explore=psne", "sigma_init=0.2", f"sigma_delta={delta}", "sigma_alpha=1.5")
+    strategy, _ = build(
+        "explore=psne", "psne.sigma_init=0.2", f"psne.sigma_delta={delta}", "psne.sigma_alpha=1.5"
+    )
     params = strategy.init(jax.random.PRNGKey(0), OBS_SIZE)
     hp = strategy.init_hparams()
     carry = strategy.init_carry(jax.random.PRNGKey(1), params, hp, 4)
@@ -333,13 +337,13 @@ def test_psne_sigma_adapts_by_rule_451(delta, factor):
 
 # ----------------------------------------------- stored log-prob equals the recompute
 
-TINY = ["env=pointmass", "num_envs=4", "num_minibatches=2", "eval_episodes=2", "policy_hidden=[16,16]"]
+TINY = ["env=pointmass", "num_envs=4", "ppo.num_minibatches=2", "eval_episodes=2", "policy_hidden=[16,16]"]
 NEW_STRATEGIES = [
-    ["explore=coherent", "coherent.integration=mc", "beta=0.3"],
-    ["explore=coherent", "coherent.integration=mc", "coherent.layers=all", "beta=0.3"],
+    ["explore=coherent", "coherent.integration=mc", "coherent.beta=0.3"],
+    ["explore=coherent", "coherent.integration=mc", "coherent.layers=all", "coherent.beta=0.3"],
     ["explore=noisynet"],
     ["explore=psne"],
-    ["explore=gsde", "gsde_resample_every=3"],
+    ["explore=gsde", "gsde.resample_every=3"],
     ["explore=pink", "episode_length=7"],
 ]
 
@@ -424,7 +428,7 @@ def offpolicy_run(behaviour, steps, first_every, num_envs=8, seed=0):
 
 def test_sac_pink_uses_the_coloured_sequence():
     """a = tanh(mean + std xi) with xi the episode's sequence at the step index."""
-    behaviour = build_behaviour("explore=pink", "episode_length=20", "pink_exponent=1")
+    behaviour = build_behaviour("explore=pink", "episode_length=20", "pink.exponent=1")
     actions, carries, actor, actor_params, _, obs = offpolicy_run(behaviour, 30, first_every=20)
     dist = actor.dist(actor_params, obs)
     noise, step = np.asarray(carries.noise), np.asarray(carries.step)
@@ -436,14 +440,16 @@ def test_sac_pink_uses_the_coloured_sequence():
 
 
 def test_sac_gsde_noise_held_for_n_steps():
-    behaviour = build_behaviour("explore=gsde", "gsde_resample_every=4")
+    behaviour = build_behaviour("explore=gsde", "gsde.resample_every=4")
     actions, *_ = offpolicy_run(behaviour, 12, first_every=100)
     change = np.abs(np.diff(actions, axis=0)).max(axis=(1, 2)) > 1e-7
     assert [t for t in range(1, 12) if change[t - 1]] == [4, 8]
 
 
 def test_sac_psne_fixed_per_episode_and_sigma_rule():
-    behaviour = build_behaviour("explore=psne", "sigma_init=0.3", "sigma_alpha=1.5", "sigma_delta=1000")
+    behaviour = build_behaviour(
+        "explore=psne", "psne.sigma_init=0.3", "psne.sigma_alpha=1.5", "psne.sigma_delta=1000"
+    )
     assert behaviour.actor_layer_norm
     _, keys, actor, actor_params, hp, obs = offpolicy_run(behaviour, 12, first_every=5)
     keys = np.asarray(keys)
@@ -453,3 +459,27 @@ def test_sac_psne_fixed_per_episode_and_sigma_rule():
     hp_small = {**hp, "sigma_delta": jnp.asarray(1e-9)}
     new_hp, _ = behaviour.adapt(jax.random.PRNGKey(3), actor, actor_params, hp_small, obs)
     assert float(new_hp["sigma"]) == pytest.approx(0.2)
+
+
+def test_strategy_table_names_importable_classes_and_every_refusal_has_a_reason():
+    """The one table of strategies: each class string resolves, every algorithm a strategy
+    lacks a class for is refused with a reason, and the config's choices are the table's."""
+    import importlib
+
+    from coherent_jax import config, strategies
+    from coherent_jax.exploration.base import OffPolicyBehaviour, OnPolicyStrategy
+
+    strategies.check_table()
+    for table, base in (
+        (strategies.ON_POLICY_CLASSES, OnPolicyStrategy),
+        (strategies.OFF_POLICY_CLASSES, OffPolicyBehaviour),
+    ):
+        for name, target in table.items():
+            module, cls = target.split(":")
+            found = getattr(importlib.import_module(f"coherent_jax.exploration.{module}"), cls)
+            assert issubclass(found, base), (name, target)
+    assert config.EXPLORES == tuple(s.name for s in strategies.STRATEGIES)
+    assert strategies.SUPPORTED_ALGOS["noisynet"] == ("ppo", "a2c")
+    assert "score-function" in strategies.REFUSED[("noisynet", "sac")]
+    with pytest.raises(config.ConfigError, match="score-function"):
+        parse_overrides(["env=pointmass", "algo=sac", "explore=noisynet"])

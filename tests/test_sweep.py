@@ -26,7 +26,7 @@ TINY = [
     "env=pointmass",
     "num_envs=4",
     "unroll_length=8",
-    "num_minibatches=2",
+    "ppo.num_minibatches=2",
     "eval_episodes=2",
     "episode_length=50",
     "total_steps=96",
@@ -60,7 +60,7 @@ def test_sweep_point_equals_single_run(tmp_path):
     through the same state hyperparameters is `test_sweepable_keys_enter_only_through_state_hparams`.
     """
     out = tmp_path / "sweep"
-    argv = [*TINY, "seeds=2", "ent_coef=[0,0.5]", "lr=[3e-4,1e-3]", f"run_dir={out}"]
+    argv = [*TINY, "seeds=2", "ppo.ent_coef=[0,0.5]", "lr=[3e-4,1e-3]", f"run_dir={out}"]
     assert sweep.main(argv) == 0
     names = sorted(p.name for p in out.iterdir() if p.is_dir())
     assert len(names) == 8 and names[7] == "p007-ent_coef=0.5-lr=0.001-seed=1", names
@@ -73,7 +73,7 @@ def test_sweep_point_equals_single_run(tmp_path):
             "tb",
         ]
     single = tmp_path / "single"
-    assert train.main([*TINY, "seed=1", "ent_coef=0.5", "lr=1e-3", f"run_dir={single}"]) == 0
+    assert train.main([*TINY, "seed=1", "ppo.ent_coef=0.5", "lr=1e-3", f"run_dir={single}"]) == 0
     expected = read_rows(single / "metrics.jsonl")
     # Its config.yaml is the single run's (its own run directory, its seed and values).
     point_yaml = (out / names[7] / "config.yaml").read_text().replace(str(out / names[7]), "RUN")
@@ -92,25 +92,25 @@ def test_sweep_point_equals_single_run(tmp_path):
     for i, (ent_coef, lr) in enumerate([(0.0, 3e-4), (0.0, 1e-3), (0.5, 3e-4), (0.5, 1e-3)]):
         returns = np.array([summaries[names[2 * i + s]]["final_eval_return"] for s in (0, 1)], np.float64)
         row = result["rows"][i]
-        assert (row["ent_coef"], row["lr"]) == (ent_coef, pytest.approx(lr))
+        assert (row["ppo.ent_coef"], row["lr"]) == (ent_coef, pytest.approx(lr))
         assert row["seeds"] == 2
         assert row["final_eval_return_mean"] == pytest.approx(returns.mean(), rel=1e-9)
         assert row["final_eval_return_std"] == pytest.approx(returns.std(), rel=1e-9, abs=1e-12)
     csv_lines = (out / "sweep.csv").read_text().splitlines()
-    assert csv_lines[0].startswith("ent_coef,lr,seeds,final_eval_return_mean") and len(csv_lines) == 5
+    assert csv_lines[0].startswith("ppo.ent_coef,lr,seeds,final_eval_return_mean") and len(csv_lines) == 5
 
 
 BAD = [
     (["foo=[1,2]"], "'foo'"),
     (["num_envs=[4,8]"], "'num_envs'"),
     (["policy_hidden=[[8],[16]]"], "'policy_hidden'"),
-    (["beta=[]"], "'beta'"),
-    (["beta=[0.5,]"], "'beta'"),
-    (["explore=coherent", "beta=[0.5,2]"], "'beta'"),
+    (["coherent.beta=[]"], "'coherent.beta'"),
+    (["coherent.beta=[0.5,]"], "'coherent.beta'"),
+    (["explore=coherent", "coherent.beta=[0.5,2]"], "'coherent.beta'"),
     (["seeds=0"], "'seeds'"),
     (["seeds=2", "seed=[1,2]"], "'seeds'"),
     # Action noise has no beta: that axis would run identical points.
-    (["explore=action", "beta=[0.01,0.5]"], "'beta'"),
+    (["explore=action", "coherent.beta=[0.01,0.5]"], "'coherent.beta'"),
 ]
 
 
@@ -140,14 +140,14 @@ def test_cli_exit_status(tmp_path):
 
 
 def test_grid_is_the_product_with_seeds_innermost():
-    plan = sweep.parse_sweep([*TINY, "seed=5", "seeds=3", "ent_coef=[0,0.01]", "gamma=[0.9,0.99]"])
-    assert plan.axes == {"ent_coef": [0.0, 0.01], "gamma": [0.9, 0.99]}
+    plan = sweep.parse_sweep([*TINY, "seed=5", "seeds=3", "ppo.ent_coef=[0,0.01]", "gamma=[0.9,0.99]"])
+    assert plan.axes == {"ppo.ent_coef": [0.0, 0.01], "gamma": [0.9, 0.99]}
     assert plan.seeds == [5, 6, 7]
-    got = [(p.values["ent_coef"], p.values["gamma"], p.seed) for p in plan.points]
+    got = [(p.values["ppo.ent_coef"], p.values["gamma"], p.seed) for p in plan.points]
     want = [(e, g, s) for e in (0.0, 0.01) for g in (0.9, 0.99) for s in (5, 6, 7)]
     assert got == want
     assert all(
-        p.cfg == parse_overrides([*TINY, f"ent_coef={e}", f"gamma={g}", f"seed={s}"])
+        p.cfg == parse_overrides([*TINY, f"ppo.ent_coef={e}", f"gamma={g}", f"seed={s}"])
         for p, (e, g, s) in zip(plan.points, want, strict=True)
     )
     with pytest.raises(ConfigError):
@@ -175,23 +175,32 @@ def test_sweepable_keys_enter_only_through_state_hparams():
     on_policy = {
         "lr": 1e-3,
         "gamma": 0.9,
-        "gae_lambda": 0.8,
-        "clip_eps": 0.3,
-        "target_kl": 0.02,
-        "vf_coef": 0.7,
-        "ent_coef": 0.01,
-        "beta": 0.5,
+        "ppo.gae_lambda": 0.8,
+        "ppo.clip_eps": 0.3,
+        "ppo.target_kl": 0.02,
+        "ppo.vf_coef": 0.7,
+        "ppo.ent_coef": 0.01,
+        "coherent.beta": 0.5,
     }
     # Coherent-SAC reads these (and lr, gamma, beta) from its state's hparams.
-    sac = {"lr": 1e-3, "gamma": 0.9, "beta": 0.5, "tau": 0.01, "temperature": 0.1}
-    sac.update({"sigma_init": 0.2, "sigma_delta": 0.2, "sigma_alpha": 1.05})
+    sac = {"lr": 1e-3, "gamma": 0.9, "coherent.beta": 0.5, "sac.tau": 0.01, "sac.temperature": 0.1}
+    sac.update({"psne.sigma_init": 0.2, "psne.sigma_delta": 0.2, "psne.sigma_alpha": 1.05})
     # With its own optimiser (vf_iters > 0) the value function also reads vf_lr.
-    separate_value = {**on_policy, "vf_lr": 3e-4}
+    separate_value = {**on_policy, "ppo.vf_lr": 3e-4}
     assert set(separate_value) | set(sac) == set(SWEEPABLE)
-    sac_base = ["algo=sac", "policy_hidden=[16]", "value_hidden=[16]", "batch_size=8", "utd_ratio=0.25"]
+    sac_base = [
+        "algo=sac",
+        "policy_hidden=[16]",
+        "value_hidden=[16]",
+        "sac.batch_size=8",
+        "sac.utd_ratio=0.25",
+    ]
     for base_overrides, changed in (
-        ([*TINY, "explore=coherent", "target_kl=0.01"], on_policy),
-        ([*TINY, "explore=coherent", "target_kl=0.01", "vf_lr=1e-3", "vf_iters=2"], separate_value),
+        ([*TINY, "explore=coherent", "ppo.target_kl=0.01"], on_policy),
+        (
+            [*TINY, "explore=coherent", "ppo.target_kl=0.01", "ppo.vf_lr=1e-3", "ppo.vf_iters=2"],
+            separate_value,
+        ),
         ([*TINY, *sac_base, "explore=coherent"], sac),
     ):
         base = parse_overrides(base_overrides)
@@ -218,26 +227,27 @@ def test_sweepable_declarations_match_every_trainer():
     from coherent_jax.agents import make_trainer
     from coherent_jax.envs.vec_env import VecEnv
 
-    changed = {"lr": 1e-3, "gamma": 0.9, "gae_lambda": 0.8, "clip_eps": 0.3, "target_kl": 0.02}
-    changed.update({"vf_coef": 0.7, "ent_coef": 0.01, "beta": 0.5, "tau": 0.01, "temperature": 0.1})
-    changed.update({"sigma_init": 0.2, "sigma_delta": 0.2, "sigma_alpha": 1.05, "vf_lr": 3e-4})
+    changed = {"lr": 1e-3, "gamma": 0.9, "ppo.gae_lambda": 0.8, "ppo.clip_eps": 0.3, "ppo.target_kl": 0.02}
+    changed.update({"ppo.vf_coef": 0.7, "ppo.ent_coef": 0.01, "coherent.beta": 0.5, "sac.tau": 0.01})
+    changed.update({"sac.temperature": 0.1, "psne.sigma_init": 0.2, "psne.sigma_delta": 0.2})
+    changed.update({"psne.sigma_alpha": 1.05, "ppo.vf_lr": 3e-4})
     assert set(changed) == set(SWEEPABLE)
     env = VecEnv("pointmass", 4, 50)
     eval_env = VecEnv("pointmass", 2, 50)
-    small = ["policy_hidden=[4]", "value_hidden=[4]", "batch_size=8", "utd_ratio=0.25"]
+    small = ["policy_hidden=[4]", "value_hidden=[4]", "sac.batch_size=8", "sac.utd_ratio=0.25"]
     # vf_lr is in the state only with the value's own optimiser (vf_iters > 0); with the
     # joint loss a vf_lr > 0 is refused, so a sweep cannot vary it there.
-    separate = ["vf_lr=1e-3", "vf_iters=2"]
+    separate = ["ppo.vf_lr=1e-3", "ppo.vf_iters=2"]
     for explore in EXPLORES:
         for algo in SUPPORTED_ALGOS[explore]:
             assert algo in ALGOS
             for mode in ([], separate) if algo != "sac" else ([],):
                 args = [*TINY, f"algo={algo}", f"explore={explore}", *small, *mode]
                 base_hp = make_trainer(parse_overrides(args), env, eval_env).init_hparams()
-                changes = {k: v for k, v in changed.items() if k != "vf_lr" or mode}
+                changes = {k: v for k, v in changed.items() if k != "ppo.vf_lr" or mode}
                 if not mode:
-                    with pytest.raises(ConfigError, match="'vf_iters'"):
-                        parse_overrides([*args, "vf_lr=3e-4"])
+                    with pytest.raises(ConfigError, match="'ppo.vf_iters'"):
+                        parse_overrides([*args, "ppo.vf_lr=3e-4"])
                 cfg = parse_overrides([*args, *(f"{k}={v}" for k, v in changes.items())])
                 own = make_trainer(cfg, env, eval_env).init_hparams()
                 declared = {k: v for k, v in changes.items() if sweepable(k).read_by(algo, explore)}
@@ -259,7 +269,7 @@ SMALL = [
     "env=pointmass",
     "algo=a2c",
     "num_envs=2",
-    "num_minibatches=1",
+    "ppo.num_minibatches=1",
     "unroll_length=4",
     "eval_episodes=2",
     "episode_length=20",

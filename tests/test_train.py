@@ -12,7 +12,7 @@ FAST = [
     "env=pointmass",
     "num_envs=32",
     "unroll_length=32",
-    "num_minibatches=4",
+    "ppo.num_minibatches=4",
     "eval_episodes=4",
     "progress=false",
 ]

@@ -130,7 +130,7 @@ class TrainState:
 def make_optimizer(cfg: Config) -> optax.GradientTransformation:
     """Gradient clipping (none if ``max_grad_norm=0``) then Adam's scaling; the learning
     rate (sweepable) is applied by hand. A separately trained value function has its own."""
-    clip = [optax.clip_by_global_norm(cfg.max_grad_norm)] if cfg.max_grad_norm > 0 else []
+    clip = [optax.clip_by_global_norm(cfg.ppo.max_grad_norm)] if cfg.ppo.max_grad_norm > 0 else []
     return optax.chain(*clip, optax.scale_by_adam(eps=1e-5))
 
 
@@ -167,7 +167,7 @@ def learner_template(cfg: Config, obs_size: int, action_size: int) -> tuple[Agen
     strategy = make_strategy(cfg, action_size)
     value_net = ValueNetwork(tuple(cfg.value_hidden), cfg.activation)
     key = jax.random.PRNGKey(0)
-    optimizer, separate = make_optimizer(cfg), cfg.vf_iters > 0
+    optimizer, separate = make_optimizer(cfg), cfg.ppo.vf_iters > 0
     return jax.eval_shape(
         lambda k: init_learner(strategy, value_net, optimizer, k, k, obs_size, separate), key
     )
@@ -199,13 +199,13 @@ class OnPolicyTrainer:
             strategy=self.strategy,
             value_net=self.value_net,
             clipped=cfg.algo == "ppo",
-            normalize_advantages=cfg.normalize_advantages,
-            value_in_loss=cfg.vf_iters == 0,
+            normalize_advantages=cfg.ppo.normalize_advantages,
+            value_in_loss=cfg.ppo.vf_iters == 0,
         )
         self.optimizer = make_optimizer(cfg)
-        self.separate_value = cfg.vf_iters > 0
+        self.separate_value = cfg.ppo.vf_iters > 0
         if cfg.algo == "ppo":
-            self.num_epochs, self.num_minibatches = cfg.num_epochs, cfg.num_minibatches
+            self.num_epochs, self.num_minibatches = cfg.ppo.num_epochs, cfg.ppo.num_minibatches
         else:  # A2C: one gradient step on the whole batch (Algorithm 1)
             self.num_epochs, self.num_minibatches = 1, 1
 
@@ -216,13 +216,13 @@ class OnPolicyTrainer:
         return HParams(
             lr=f(c.lr),
             gamma=f(c.gamma),
-            gae_lambda=f(c.gae_lambda),
-            clip_eps=f(c.clip_eps),
-            target_kl=f(c.target_kl),
-            vf_coef=f(c.vf_coef),
-            ent_coef=f(c.ent_coef),
+            gae_lambda=f(c.ppo.gae_lambda),
+            clip_eps=f(c.ppo.clip_eps),
+            target_kl=f(c.ppo.target_kl),
+            vf_coef=f(c.ppo.vf_coef),
+            ent_coef=f(c.ppo.ent_coef),
             explore=self.strategy.init_hparams(),
-            vf_lr=f(c.vf_lr) if self.separate_value else None,
+            vf_lr=f(c.ppo.vf_lr) if self.separate_value else None,
         )
 
     def init(self, key: jax.Array, hparams: HParams | None = None) -> TrainState:
@@ -303,7 +303,7 @@ class OnPolicyTrainer:
         metrics.update(episode_metrics(data))
         var_t = targets.var()
         metrics["train/explained_variance"] = 1.0 - (targets - values).var() / (var_t + 1e-8)
-        if cfg.normalize_rewards:
+        if cfg.ppo.normalize_rewards:
             metrics["train/return_std"] = jnp.sqrt(reward_norm.stats.var[0])
         metrics.update({f"train/{k}": v for k, v in strategy.metrics(new_params.policy, hp.explore).items()})
 
@@ -399,7 +399,7 @@ class OnPolicyTrainer:
         point of a sweep (Spinning Up's PPO breaks out of its policy steps there; a stopped
         step applies nothing and weighs nothing in the metrics). Only with a KL target set
         in the config (static): without one no step ever stops."""
-        if not self.cfg.target_kl > 0:
+        if not self.cfg.ppo.target_kl > 0:
             return grad_fn(params, sub)
         zeros = lambda _: jax.tree.map(  # noqa: E731
             lambda v: jnp.zeros(v.shape, v.dtype), jax.eval_shape(grad_fn, params, sub)
@@ -424,7 +424,7 @@ class OnPolicyTrainer:
             return (v, o), (value, optax.global_norm(grads))
 
         (value_params, opt_state), (value, grad_norm) = jax.lax.scan(
-            step, (value_params, opt_state), None, length=self.cfg.vf_iters
+            step, (value_params, opt_state), None, length=self.cfg.ppo.vf_iters
         )
         metrics = {"train/value_loss": value.mean(), "train/value_grad_norm": grad_norm.mean()}
         return value_params, opt_state, metrics
@@ -461,7 +461,7 @@ class OnPolicyTrainer:
         ``normalize_rewards`` divided by the running std of the discounted return, the
         statistics first merged with this segment's returns (Gymnasium's NormalizeReward
         order). Episode returns and evaluations always report the task's own rewards."""
-        if not self.cfg.normalize_rewards:
+        if not self.cfg.ppo.normalize_rewards:
             return norm, data.reward
         running, returns = losses.discounted_returns(norm.discounted_return, data.reward, data.done, gamma)
         stats = update_stats(norm.stats, returns[..., None])

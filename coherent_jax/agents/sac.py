@@ -181,18 +181,18 @@ class SACTrainer:
         self.actor_loss = functools.partial(sac_losses.actor_loss, **nets)
         self.adam = optax.scale_by_adam()
         self.num_updates = cfg.updates_per_iteration
-        self.batch_size = cfg.batch_size
+        self.batch_size = cfg.sac.batch_size
 
     # ------------------------------------------------------------------ init
     def init_hparams(self) -> SACHParams:
         c = self.cfg
         f = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
-        target_entropy = -float(self.action_size) if c.target_entropy is None else c.target_entropy
+        target_entropy = -float(self.action_size) if c.sac.target_entropy is None else c.sac.target_entropy
         return SACHParams(
             lr=f(c.lr),
             gamma=f(c.gamma),
-            tau=f(c.tau),
-            temperature=f(c.temperature),
+            tau=f(c.sac.tau),
+            temperature=f(c.sac.temperature),
             target_entropy=f(target_entropy),
             explore=self.behaviour.init_hparams(),
         )
@@ -210,7 +210,7 @@ class SACTrainer:
             obs_stats=obs_stats,
             env_state=self.env.reset(k_env),
             carry=self.behaviour.init_carry(k_carry, self.actor, params.actor, hp.explore, self.env.num_envs),
-            buffer=replay_init(self.cfg.buffer_size, obs_size, p),
+            buffer=replay_init(self.cfg.sac.buffer_size, obs_size, p),
             hparams=hp,
             key=key,
             iteration=jnp.zeros((), jnp.int32),
@@ -246,7 +246,7 @@ class SACTrainer:
         actor, opt_actor = self._apply_adam(a_grads, opt.actor, params.actor, hp.lr)
 
         log_alpha, opt_alpha = params.log_alpha, opt.alpha
-        if self.cfg.auto_temperature:
+        if self.cfg.sac.auto_temperature:
             alpha_grad = jax.grad(sac_losses.temperature_loss)(params.log_alpha, log_prob, hp.target_entropy)
             log_alpha, opt_alpha = self._apply_adam(alpha_grad, opt.alpha, params.log_alpha, hp.lr)
 
@@ -274,7 +274,7 @@ class SACTrainer:
         cfg, hp, stats = self.cfg, state.hparams, state.obs_stats
         key, k_roll, k_updates, k_adapt, k_batch = jax.random.split(state.key, 5)
         actor_params = state.params.actor
-        warm = state.env_steps < cfg.warmup_steps  # Algorithm 3 preceded by uniform random actions
+        warm = state.env_steps < cfg.sac.warmup_steps  # Algorithm 3 preceded by uniform random actions
         n, p = self.env.num_envs, self.action_size
 
         def act(k, carry, obs, first):
@@ -325,7 +325,7 @@ class SACTrainer:
             )
             return params, opt, explore, m, adapt_m
 
-        ready = env_steps >= (cfg.warmup_steps if cfg.update_after is None else cfg.update_after)
+        ready = env_steps >= (cfg.sac.warmup_steps if cfg.sac.update_after is None else cfg.sac.update_after)
         _, _, _, m_shape, a_shape = jax.eval_shape(train, (state.params, state.opt_state, hp.explore))
         nan_like = lambda tree: jax.tree.map(lambda s: jnp.full(s.shape, jnp.nan, s.dtype), tree)  # noqa: E731
 

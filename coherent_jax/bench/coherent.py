@@ -41,7 +41,7 @@ from coherent_jax import cli
 from coherent_jax.bench import IGNORED, measure
 from coherent_jax.bench.chains import CHAINS, bench_chains, chain_config, format_chains
 from coherent_jax.bench.dense import dense_log_marginals, sample_segments
-from coherent_jax.config import Config, to_dict, validate
+from coherent_jax.config import Config, to_dict, validate, with_values
 
 _count = cli.int_at_least(1)
 KEYS: dict[str, cli.Key] = {
@@ -76,7 +76,7 @@ KEYS: dict[str, cli.Key] = {
     "seg_repeats": cli.Key(10, _count, "an integer >= 1", "timed calls per log_prob measurement"),
 }
 # Training keys the suite sets itself: it runs both strategies, and remat on and off.
-FIXED: dict[str, str | None] = {"explore": None, "remat": None}
+FIXED: dict[str, str | None] = {"explore": None, "coherent.remat": None}
 
 
 def parse(items: Sequence[str]) -> cli.Parsed:
@@ -114,11 +114,12 @@ def _bench_training(cfg: Config, iterations: int, log, remat_row: bool = True) -
         # The remat row is the sequential-filter form of the loss with its scan
         # rematerialised, whose memory grows linearly with the segment (the joint form's
         # single block grows as T^2), compiled for its memory.
-        inference = "filter" if remat else cfg.coherent_inference
-        run_cfg = dataclasses.replace(cfg, explore=explore, remat=remat, coherent_inference=inference)
+        inference = "filter" if remat else cfg.coherent.inference
+        run_cfg = with_values(
+            cfg, {"explore": explore, "coherent.remat": remat, "coherent.inference": inference}
+        )
         if remat and cfg.coherent.gradient == "episode":  # the filter form has no episode mode
-            exact = dataclasses.replace(cfg.coherent, gradient="exact")
-            run_cfg = dataclasses.replace(run_cfg, coherent=exact)
+            run_cfg = with_values(run_cfg, {"coherent.gradient": "exact"})
         log(f"[bench] compiling the {cfg.algo} iteration, explore={explore} remat={remat} ({shape}) ...")
         trainer = OnPolicyTrainer(run_cfg, env=env, eval_env=env)
         # (The filter form's carry holds a belief, the joint exact form's does not: each
@@ -222,7 +223,14 @@ def _bench_filter(cfg: Config, bench: dict, log) -> dict:
     cases = []
     for q in bench["filter_q"]:
         inputs = sample_segments(
-            jax.random.PRNGKey(cfg.seed + q), batch, num_steps, q, p, cfg.w_std_init, cfg.action_std, cfg.beta
+            jax.random.PRNGKey(cfg.seed + q),
+            batch,
+            num_steps,
+            q,
+            p,
+            cfg.coherent.w_std_init,
+            cfg.coherent.action_std,
+            cfg.coherent.beta,
         )
         x, a, first, mu, w_std, action_std, beta = inputs
         grad_args = (mu, w_std, x, a, first, action_std, beta)
@@ -328,9 +336,9 @@ def _bench_filter(cfg: Config, bench: dict, log) -> dict:
         "p": p,
         "T": num_steps,
         "batch": batch,
-        "beta": cfg.beta,
-        "w_std": cfg.w_std_init,
-        "action_std": cfg.action_std,
+        "beta": cfg.coherent.beta,
+        "w_std": cfg.coherent.w_std_init,
+        "action_std": cfg.coherent.action_std,
         "dtype": "float32",
         "dense_form": "covariance (Woodbury) form of (4.33)-(4.49), one p x p solve per step",
         "cases": cases,

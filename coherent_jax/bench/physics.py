@@ -49,7 +49,7 @@ from typing import Any
 from coherent_jax import cli
 from coherent_jax.bench import measure
 from coherent_jax.config import ConfigError
-from coherent_jax.envs.native import NATIVE_TASKS
+from coherent_jax.envs.registry import NATIVE_TASKS
 
 VARIANTS: dict[str, dict[str, Any]] = {
     "mjx_ls50": {"physics": "mjx", "ls_iterations": 50},
@@ -109,7 +109,8 @@ def _measure_raw(task: str, n: int, steps: int, repeats: int) -> dict[str, Any]:
     import numpy as np
     from mujoco import batch
 
-    from coherent_jax.envs.native import DEFAULT_THREADS, mujoco_model
+    from coherent_jax.envs.native import mujoco_model
+    from coherent_jax.envs.registry import DEFAULT_THREADS
 
     model, n_frames, _, init_q = mujoco_model(task)
     b = batch.Batch(model, n, nthread=min(DEFAULT_THREADS or os.cpu_count() or 1, n))
@@ -222,7 +223,7 @@ def _prepare_jax(task: str, n: int, steps: int, variant: dict[str, Any]):
 
 def _side_by_side(spec: dict[str, Any]) -> dict[str, Any]:
     """Several (kind, env, variant) rows in one process, timed round-robin so that they share the load."""
-    from coherent_jax.envs.native import DEFAULT_THREADS
+    from coherent_jax.envs.registry import DEFAULT_THREADS
 
     calls, rows = {}, {}
     for kind, env, name in spec["plan"]:
@@ -262,7 +263,7 @@ def _worker(spec: dict[str, Any]) -> dict[str, Any]:
     if variant["physics"] == "raw":
         out = _measure_raw(spec["env"], spec["n"], spec["steps"], spec["repeats"])
     elif variant["physics"] == "envpool":
-        from coherent_jax.envs.native import DEFAULT_THREADS
+        from coherent_jax.envs.registry import DEFAULT_THREADS
 
         nthread = variant.get("nthread", DEFAULT_THREADS)
         out = _measure_envpool(spec["env"], spec["n"], spec["steps"], spec["repeats"], nthread)

@@ -30,7 +30,7 @@ from typing import Any
 
 from coherent_jax import cli
 from coherent_jax.bench import IGNORED, measure
-from coherent_jax.config import Config, to_dict, validate
+from coherent_jax.config import Config, to_dict, validate, with_values
 
 KEYS: dict[str, cli.Key] = {
     "iterations": cli.Key(
@@ -39,10 +39,10 @@ KEYS: dict[str, cli.Key] = {
     "out": cli.Key("bench_results/sac.json", cli.output_file, "a writable file path", "where the JSON goes"),
 }
 # SAC, with the strategy and the warm-up set per measured program.
-FIXED: dict[str, str | None] = {"algo": "sac", "explore": None, "warmup_steps": "0"}
+FIXED: dict[str, str | None] = {"algo": "sac", "explore": None, "sac.warmup_steps": "0"}
 # Halfcheetah with SAC's defaults, but a replay buffer of 100k transitions: the
 # buffer's size does not change the cost of an iteration, only its memory.
-CONFIG_DEFAULTS = ("env=halfcheetah", "buffer_size=100000")
+CONFIG_DEFAULTS = ("env=halfcheetah", "sac.buffer_size=100000")
 STRATEGIES = ("action", "coherent")  # SAC and Coherent-SAC
 
 
@@ -71,7 +71,7 @@ def _bench(cfg: Config, iterations: int, log) -> dict:
     for explore in STRATEGIES:
         for mode, warmup in (("iteration", 0), ("collect_only", 2**31 - 1)):
             name = f"{explore}/{mode}"
-            run_cfg = dataclasses.replace(cfg, explore=explore, warmup_steps=warmup)
+            run_cfg = with_values(cfg, {"explore": explore, "sac.warmup_steps": warmup})
             trainer = SACTrainer(run_cfg, env=env, eval_env=env)
             state = jax.jit(trainer.init)(jax.random.PRNGKey(cfg.seed))
             log(f"[bench] compiling the SAC {mode.replace('_', ' ')}, explore={explore} ...")

@@ -23,7 +23,7 @@ from typing import Any
 
 from coherent_jax import cli
 from coherent_jax.bench import measure, physics
-from coherent_jax.envs.gym_v5 import SHORT_NAMES
+from coherent_jax.envs.registry import SHORT_NAMES
 
 KEYS: dict[str, cli.Key] = {
     "tasks": cli.Key(
@@ -62,7 +62,7 @@ def run(items: Sequence[str], log: Callable[[str], None] = measure.print_log) ->
     import jax
     import mujoco
 
-    from coherent_jax.envs.native import resolve_physics
+    from coherent_jax.envs.registry import resolve_physics
 
     rows = []
     for task in settings["tasks"]:

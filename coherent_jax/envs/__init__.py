@@ -1,15 +1,41 @@
-"""MuJoCo tasks: a registry by short name and a vectorized wrapper, on MJX or native MuJoCo."""
+"""MuJoCo tasks: a registry by short name and a vectorized wrapper, on MJX or native MuJoCo.
 
-from coherent_jax.envs.native import NATIVE_TASKS, PHYSICS, NativePhysics, PhysicsError, resolve_physics
+The registry (`coherent_jax.envs.registry`: the tasks, and which engine runs each) is
+free of JAX, so the config reads it without loading JAX; the engines and the wrapper
+are imported from here on first use.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
 from coherent_jax.envs.registry import (
+    NATIVE_TASKS,
+    PHYSICS,
     TASKS,
+    PhysicsError,
     TaskSpec,
     UnknownTaskError,
     check_task,
     env_sizes,
     make_brax_env,
+    resolve_physics,
 )
-from coherent_jax.envs.vec_env import EnvState, StepOutcome, VecEnv
+
+_LAZY = {
+    "NativePhysics": "coherent_jax.envs.native",
+    "EnvState": "coherent_jax.envs.vec_env",
+    "StepOutcome": "coherent_jax.envs.vec_env",
+    "VecEnv": "coherent_jax.envs.vec_env",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "NATIVE_TASKS",

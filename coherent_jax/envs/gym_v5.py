@@ -22,7 +22,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from coherent_jax.envs.registry import EPISODE_LENGTH, SHORT_NAMES  # noqa: F401  (re-exported)
 from coherent_jax.envs.task import Kinematics, NativeModel, NativeTask, uniform_reset
+from coherent_jax.quiet import quiet_stdio
 
 
 class GymnasiumMissingError(ImportError):
@@ -45,14 +47,12 @@ def load_model(xml: str, frame_skip: int) -> NativeModel:
     """Gymnasium's model `xml` as its ``MujocoEnv`` builds it; init_q is the model's qpos0."""
     import mujoco
 
-    from coherent_jax.envs.registry import _quiet_stdio
-
     # The compiler warns that settotalmass (half_cheetah.xml, humanoid.xml) is deprecated, on
     # stdout and, unless a handler is set, into MUJOCO_LOG.TXT in the working directory.
     previous = mujoco.get_mju_user_warning()
     mujoco.set_mju_user_warning(lambda message: None)
     try:
-        with _quiet_stdio(force=True):
+        with quiet_stdio(force=True):
             model = mujoco.MjModel.from_xml_path(os.path.join(_assets_dir(), xml))
     finally:
         mujoco.set_mju_user_warning(previous)
@@ -287,19 +287,3 @@ GYM_TASKS: dict[str, NativeTask] = {
     ),
     "Reacher-v5": _task("reacher.xml", 2, (*_QV, "xpos"), _reacher_reset, _reacher_obs, _reacher_reward),
 }
-
-# The names a user types for the standard tasks.
-SHORT_NAMES: dict[str, str] = {
-    "halfcheetah": "HalfCheetah-v5",
-    "hopper": "Hopper-v5",
-    "walker2d": "Walker2d-v5",
-    "ant": "Ant-v5",
-    "humanoid": "Humanoid-v5",
-    "swimmer": "Swimmer-v5",
-    "inverted_pendulum": "InvertedPendulum-v5",
-    "inverted_double_pendulum": "InvertedDoublePendulum-v5",
-    "reacher": "Reacher-v5",
-}
-
-# Gymnasium's registered max_episode_steps.
-EPISODE_LENGTH: dict[str, int] = {gym_id: 50 if gym_id == "Reacher-v5" else 1000 for gym_id in GYM_TASKS}

@@ -13,9 +13,11 @@ fields it reads and gives its formulas in JAX; three families run here:
   ``MjModel`` Brax builds, with the MJX task's solver options (``TaskSpec.ls_iterations``
   and Brax's own overrides, such as ant's Newton solver with one iteration) copied
   onto it, the same substeps, the same reset noise drawn from the same JAX keys, and
-  the formulas of Brax's env classes, written below;
+  the formulas of Brax's env classes (`coherent_jax.envs.brax_native`);
 * two of MuJoCo Playground's DeepMind Control tasks (``dmc-ball_in_cup``,
   ``dmc-finger_turn_hard``; `coherent_jax.envs.dmc_native`), the ones MJX runs slowest.
+
+Which task runs on which engine is the registry's (`coherent_jax.envs.registry.resolve_physics`).
 
 The physics state lives in JAX, not in the engine: each env's float64
 ``mjSTATE_INTEGRATION`` row (positions, velocities, controls, solver warm start,
@@ -27,7 +29,6 @@ seeds) just batches more rows into the same call.
 
 from __future__ import annotations
 
-import functools
 import os
 import threading
 from typing import Any
@@ -37,9 +38,10 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from coherent_jax.envs.brax_native import BRAX_NATIVE
 from coherent_jax.envs.dmc_native import DMC_NATIVE
-from coherent_jax.envs.gym_v5 import GYM_TASKS, SHORT_NAMES
-from coherent_jax.envs.registry import MJX_REFUSAL, check_task, make_brax_env
+from coherent_jax.envs.gym_v5 import GYM_TASKS
+from coherent_jax.envs.registry import DEFAULT_THREADS, SHORT_NAMES, resolve_physics
 from coherent_jax.envs.task import (
     POST_CONSTRAINT_FIELDS,
     Kinematics,
@@ -47,16 +49,7 @@ from coherent_jax.envs.task import (
     NativeTask,
     PhysicsState,
     TaskPhysics,
-    quat_rotate,
-    uniform_reset,
 )
-
-PHYSICS = ("auto", "mjx", "native")
-# MuJoCo threads per call (0 = every core). On the shared 2-core machine one thread
-# was as fast as two or faster in 2 of 3 runs of `python -m coherent_jax.bench physics`
-# (loaded machine: 25k vs 15k env steps/s at 64 halfcheetah envs); on a quiet moment
-# two threads gave 41k vs 21k at 64 envs. A dedicated machine should try 0.
-DEFAULT_THREADS = 1
 
 
 @struct.dataclass
@@ -65,188 +58,15 @@ class NativeState(PhysicsState):
     the float64 ``mjSTATE_INTEGRATION`` rows bit for bit."""
 
 
-# --- Brax's tasks (Brax 0.14.2, brax/envs/<task>.py; `dt` is the env step). Body 1 is the torso.
-def _halfcheetah_obs(k: Kinematics) -> jax.Array:
-    return jnp.concatenate([k.qpos[1:], k.qvel])
-
-
-def _halfcheetah_reward(k0: Kinematics, k1: Kinematics, action: jax.Array, dt: float):
-    """r = (x_torso' - x_torso) / dt - 0.1 |a|^2; never terminates."""
-    reward = (k1.xpos[1, 0] - k0.xpos[1, 0]) / dt - 0.1 * jnp.sum(jnp.square(action))
-    return reward, jnp.zeros(())
-
-
-def _inverted_pendulum_obs(k: Kinematics) -> jax.Array:
-    return jnp.concatenate([k.qpos, k.qvel])
-
-
-def _inverted_pendulum_reward(k0: Kinematics, k1: Kinematics, action: jax.Array, dt: float):
-    """r = 1; done when the pole angle |q_1| > 0.2."""
-    return jnp.ones(()), (jnp.abs(k1.qpos[1]) > 0.2).astype(jnp.float32)
-
-
-def _planar_obs(k: Kinematics) -> jax.Array:
-    """Hopper and walker2d: q with q_1 replaced by the torso height, x dropped; qd clipped to [-10, 10]."""
-    position = k.qpos.at[1].set(k.xpos[1, 2])[1:]
-    return jnp.concatenate([position, jnp.clip(k.qvel, -10.0, 10.0)])
-
-
-def _hopper_reward(k0: Kinematics, k1: Kinematics, action: jax.Array, dt: float):
-    """r = vx + 1 - 1e-3 |a|^2; healthy: |(q_2:, qd)| < 100, z > 0.7, |angle| < 0.2."""
-    z, angle = k1.xpos[1, 2], k1.qpos[2]
-    state_vec = jnp.concatenate([k1.qpos[2:], k1.qvel])
-    healthy = jnp.all((state_vec > -100.0) & (state_vec < 100.0)) & (z > 0.7) & (angle > -0.2) & (angle < 0.2)
-    reward = (k1.xpos[1, 0] - k0.xpos[1, 0]) / dt + 1.0 - 1e-3 * jnp.sum(jnp.square(action))
-    return reward, 1.0 - healthy.astype(jnp.float32)
-
-
-def _walker2d_reward(k0: Kinematics, k1: Kinematics, action: jax.Array, dt: float):
-    """r = vx + 1 - 1e-3 |a|^2; healthy: 0.8 < z < 2, -1 < angle < 1."""
-    z, angle = k1.xpos[1, 2], k1.qpos[2]
-    healthy = (z > 0.8) & (z < 2.0) & (angle > -1.0) & (angle < 1.0)
-    reward = (k1.xpos[1, 0] - k0.xpos[1, 0]) / dt + 1.0 - 1e-3 * jnp.sum(jnp.square(action))
-    return reward, 1.0 - healthy.astype(jnp.float32)
-
-
-def _ant_obs(k: Kinematics) -> jax.Array:
-    return jnp.concatenate([k.qpos[2:], k.qvel])
-
-
-def _ant_reward(k0: Kinematics, k1: Kinematics, action: jax.Array, dt: float):
-    """r = vx + 1 - 0.5 |a|^2 (no contact cost); healthy: 0.2 <= z_torso <= 1."""
-    z = k1.xpos[1, 2]
-    healthy = (z >= 0.2) & (z <= 1.0)
-    reward = (k1.xpos[1, 0] - k0.xpos[1, 0]) / dt + 1.0 - 0.5 * jnp.sum(jnp.square(action))
-    return reward, 1.0 - healthy.astype(jnp.float32)
-
-
-def _double_pendulum_obs(k: Kinematics) -> jax.Array:
-    return jnp.concatenate(
-        [k.qpos[:1], jnp.sin(k.qpos[1:]), jnp.cos(k.qpos[1:]), jnp.clip(k.qvel, -10.0, 10.0)]
-    )
-
-
-def _double_pendulum_reward(k0: Kinematics, k1: Kinematics, action: jax.Array, dt: float):
-    """Tip = pole2 frame (body 3) applied to (0, 0, 0.6); done when tip y <= 1;
-    r = 10 (1 - done) - 0.01 x^2 - (y - 2)^2 - 1e-3 v1^2 - 5e-3 v2^2."""
-    tip = k1.xpos[3] + quat_rotate(k1.xquat[3], jnp.array([0.0, 0.0, 0.6]))
-    x, y = tip[0], tip[2]
-    v1, v2 = k1.qvel[1], k1.qvel[2]
-    done = (y <= 1.0).astype(jnp.float32)
-    reward = (1.0 - done) * 10.0 - (0.01 * x**2 + (y - 2.0) ** 2) - (1e-3 * v1**2 + 5e-3 * v2**2)
-    return reward, done
-
-
-@functools.cache
-def _brax_model(brax_task: str) -> NativeModel:
-    """The ``MjModel`` Brax builds for `brax_task`, with the solver options its MJX task uses.
-
-    Brax builds its ``System`` from an ``MjModel`` and then replaces options on the
-    ``System`` only (``TaskSpec.ls_iterations``, ant's Newton solver, ...): copy them back.
-    """
-    import copy
-
-    env = make_brax_env(brax_task)
-    model = copy.deepcopy(env.sys.mj_model)
-    opt = env.sys.opt
-    for name in (
-        "timestep",
-        "iterations",
-        "ls_iterations",
-        "tolerance",
-        "ls_tolerance",
-        "impratio",
-        "gravity",
-        "density",
-        "viscosity",
-        "magnetic",
-        "wind",
-    ):
-        setattr(model.opt, name, np.asarray(getattr(opt, name)))
-    for name in ("jacobian", "cone", "disableflags", "enableflags", "integrator", "solver"):
-        setattr(model.opt, name, int(getattr(opt, name)))
-    # Brax's initial pose (``sys.init_q``, e.g. ant's first keyframe), not the model's qpos0.
-    return NativeModel(model, int(env._n_frames), float(env.dt), np.asarray(env.sys.init_q, np.float32))
-
-
-def _brax_task(name, reset_noise, observe, reward_done, scale_action=False) -> NativeTask:
-    return NativeTask(
-        load=functools.partial(_brax_model, f"brax-{name}"),
-        fields=("qpos", "qvel", "xpos", "xquat"),
-        reset_noise=reset_noise,
-        observe=observe,
-        reward_done=reward_done,
-        scale_action=scale_action,  # Brax's inverted_pendulum maps [-1, 1] onto its ctrlrange
-        brax_scaling=True,
-        normalize_quaternions=True,
-        source="Brax 0.14.2",
-    )
-
-
-_BRAX_NATIVE: dict[str, NativeTask] = {
-    "brax-halfcheetah": _brax_task(
-        "halfcheetah", uniform_reset(0.1, 0.1, True), _halfcheetah_obs, _halfcheetah_reward
-    ),
-    "brax-inverted_pendulum": _brax_task(
-        "inverted_pendulum",
-        uniform_reset(0.01, 0.01, False),
-        _inverted_pendulum_obs,
-        _inverted_pendulum_reward,
-        scale_action=True,
-    ),
-    "brax-hopper": _brax_task("hopper", uniform_reset(5e-3, 5e-3, False), _planar_obs, _hopper_reward),
-    "brax-walker2d": _brax_task("walker2d", uniform_reset(5e-3, 5e-3, False), _planar_obs, _walker2d_reward),
-    "brax-ant": _brax_task("ant", uniform_reset(0.1, 0.1, True), _ant_obs, _ant_reward),
-    "brax-inverted_double_pendulum": _brax_task(
-        "inverted_double_pendulum",
-        uniform_reset(0.01, 0.01, True),
-        _double_pendulum_obs,
-        _double_pendulum_reward,
-    ),
-}
-
-# Every task native MuJoCo runs, by registry name: Gymnasium's (by id and by short name), six
-# of Brax's and two of the DeepMind Control Suite's.
+# Every task native MuJoCo runs, by registry name (the names are `registry.NATIVE_TASKS`,
+# which the config reads without JAX): Gymnasium's (by id and by short name), six of Brax's and two of the
+# DeepMind Control Suite's.
 NATIVE_TASKS: dict[str, NativeTask] = {
     **{short: GYM_TASKS[gym_id] for short, gym_id in SHORT_NAMES.items()},
     **GYM_TASKS,
-    **_BRAX_NATIVE,
+    **BRAX_NATIVE,
     **DMC_NATIVE,
 }
-
-
-class PhysicsError(ValueError):
-    """A physics backend that does not exist or does not support the task."""
-
-
-def resolve_physics(task: str, physics: str) -> str:
-    """The backend a task runs on: ``mjx`` or ``native`` (own-pipeline tasks keep theirs).
-
-    Gymnasium's tasks run on native MuJoCo with ``auto`` and ``native``, and their own
-    model on MJX with ``mjx`` (`coherent_jax.envs.mjx_physics`) except where MJX cannot
-    run it (refused with the reason). Brax's re-creations and Playground's tasks: ``auto`` picks
-    native MuJoCo on a CPU for those that have it (faster there, see
-    ``python -m coherent_jax.bench physics``) and MJX on accelerators. Raises
-    `PhysicsError` with a one-line message otherwise.
-    """
-    spec = check_task(task)
-    if physics not in PHYSICS:
-        raise PhysicsError(f"unknown physics {physics!r}; valid: {', '.join(PHYSICS)}")
-    if spec.backend == "native":
-        if physics != "mjx":
-            return "native"
-        if spec.gymnasium_id in MJX_REFUSAL:
-            raise PhysicsError(f"physics=mjx does not support env {task!r}: {MJX_REFUSAL[spec.gymnasium_id]}")
-        return "mjx"
-    if physics == "native" and task not in NATIVE_TASKS:
-        raise PhysicsError(
-            f"physics=native does not support env {task!r}; supported envs: {', '.join(NATIVE_TASKS)}"
-        )
-    if spec.backend != "mjx":
-        return spec.backend
-    if physics == "auto":
-        return "native" if task in NATIVE_TASKS and jax.default_backend() == "cpu" else "mjx"
-    return physics
 
 
 def mujoco_model(task: str) -> NativeModel:

@@ -19,14 +19,27 @@ DeepMind Control Suite, a test task.
 from __future__ import annotations
 
 import dataclasses
-import os
 import re
-import sys
 import warnings
 from collections.abc import Mapping
 from typing import Any
 
-from coherent_jax.envs.gym_v5 import EPISODE_LENGTH, SHORT_NAMES
+from coherent_jax.quiet import quiet_stdio
+
+# The names a user types for Gymnasium's standard tasks.
+SHORT_NAMES: Mapping[str, str] = {
+    "halfcheetah": "HalfCheetah-v5",
+    "hopper": "Hopper-v5",
+    "walker2d": "Walker2d-v5",
+    "ant": "Ant-v5",
+    "humanoid": "Humanoid-v5",
+    "swimmer": "Swimmer-v5",
+    "inverted_pendulum": "InvertedPendulum-v5",
+    "inverted_double_pendulum": "InvertedDoublePendulum-v5",
+    "reacher": "Reacher-v5",
+}
+# Gymnasium's registered max_episode_steps.
+EPISODE_LENGTH: Mapping[str, int] = {g: 50 if g == "Reacher-v5" else 1000 for g in SHORT_NAMES.values()}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -45,6 +58,8 @@ class TaskSpec:
         task with no physics engine.
       gymnasium_id: the Gymnasium id of a Gymnasium task.
       playground_id: the MuJoCo Playground id of a DeepMind Control Suite task.
+      native: whether native MuJoCo runs it (its formulas: `coherent_jax.envs.gym_v5`,
+        `coherent_jax.envs.brax_native`, `coherent_jax.envs.dmc_native`).
     """
 
     brax_name: str
@@ -54,6 +69,7 @@ class TaskSpec:
     backend: str = "mjx"
     gymnasium_id: str = ""
     playground_id: str = ""
+    native: bool = False
 
 
 _GYM_DESCRIPTIONS = {
@@ -83,22 +99,34 @@ def _gym_spec(gym_id: str) -> TaskSpec:
         description=f"Gymnasium {gym_id}: {_GYM_DESCRIPTIONS[gym_id]}",
         backend="native",
         gymnasium_id=gym_id,
+        native=True,
     )
 
 
 _BRAX: Mapping[str, TaskSpec] = {
-    "brax-halfcheetah": TaskSpec("halfcheetah", 4, description="Brax's 2D cheetah (17 obs, 6 act)"),
-    "brax-hopper": TaskSpec("hopper", 4, description="Brax's 2D one-legged hopper (11 obs, 3 act)"),
-    "brax-walker2d": TaskSpec("walker2d", 4, description="Brax's 2D biped walker (17 obs, 6 act)"),
-    "brax-ant": TaskSpec("ant", None, description="Brax's 3D quadruped (27 obs, 8 act); Brax sets ls=4"),
+    "brax-halfcheetah": TaskSpec(
+        "halfcheetah", 4, description="Brax's 2D cheetah (17 obs, 6 act)", native=True
+    ),
+    "brax-hopper": TaskSpec(
+        "hopper", 4, description="Brax's 2D one-legged hopper (11 obs, 3 act)", native=True
+    ),
+    "brax-walker2d": TaskSpec(
+        "walker2d", 4, description="Brax's 2D biped walker (17 obs, 6 act)", native=True
+    ),
+    "brax-ant": TaskSpec(
+        "ant", None, description="Brax's 3D quadruped (27 obs, 8 act); Brax sets ls=4", native=True
+    ),
     "brax-humanoid": TaskSpec(
         "humanoid", None, description="Brax's 3D humanoid (244 obs, 17 act); Brax sets ls=4"
     ),
     "brax-inverted_pendulum": TaskSpec(
-        "inverted_pendulum", None, description="Brax's cart-pole balance (4 obs, 1 act)"
+        "inverted_pendulum", None, description="Brax's cart-pole balance (4 obs, 1 act)", native=True
     ),
     "brax-inverted_double_pendulum": TaskSpec(
-        "inverted_double_pendulum", None, description="Brax's double cart-pole balance (8 obs, 1 act)"
+        "inverted_double_pendulum",
+        None,
+        description="Brax's double cart-pole balance (8 obs, 1 act)",
+        native=True,
     ),
     "brax-reacher": TaskSpec(
         "reacher", None, description="Brax's 2-link arm reaching a target (11 obs, 2 act)"
@@ -152,6 +180,10 @@ def dmc_name(playground_id: str) -> str:
     return "dmc-" + re.sub(r"(?<!^)(?=[A-Z])", "_", playground_id).lower()
 
 
+# Playground's tasks native MuJoCo runs (`coherent_jax.envs.dmc_native`): the ones MJX runs slowest.
+_DMC_NATIVE = ("BallInCup", "FingerTurnHard")
+
+
 def _dmc_spec(playground_id: str) -> TaskSpec:
     sparse = playground_id in _DMC_SPARSE
     what = _DMC_SPARSE[playground_id] if sparse else _DMC_DENSE[playground_id]
@@ -160,6 +192,7 @@ def _dmc_spec(playground_id: str) -> TaskSpec:
         None,
         description=f"DeepMind Control {'(sparse) ' if sparse else ''}{playground_id}: {what}",
         playground_id=playground_id,
+        native=playground_id in _DMC_NATIVE,
     )
 
 
@@ -198,6 +231,55 @@ def check_task(name: str) -> TaskSpec:
     return TASKS[name]
 
 
+# --- physics engines
+PHYSICS = ("auto", "mjx", "native")
+# MuJoCo threads per call (0 = every core). On the shared 2-core machine one thread
+# was as fast as two or faster in 2 of 3 runs of `python -m coherent_jax.bench physics`
+# (loaded machine: 25k vs 15k env steps/s at 64 halfcheetah envs); on a quiet moment
+# two threads gave 41k vs 21k at 64 envs. A dedicated machine should try 0.
+DEFAULT_THREADS = 1
+# Every task native MuJoCo runs, by registry name: Gymnasium's (by id and by short name),
+# six of Brax's and two of the DeepMind Control Suite's.
+NATIVE_TASKS: tuple[str, ...] = tuple(name for name, spec in TASKS.items() if spec.native)
+
+
+class PhysicsError(ValueError):
+    """A physics backend that does not exist or does not support the task."""
+
+
+def resolve_physics(task: str, physics: str) -> str:
+    """The backend a task runs on: ``mjx`` or ``native`` (own-pipeline tasks keep theirs).
+
+    Gymnasium's tasks run on native MuJoCo with ``auto`` and ``native``, and their own
+    model on MJX with ``mjx`` (`coherent_jax.envs.mjx_physics`) except where MJX cannot
+    run it (refused with the reason). Brax's re-creations and Playground's tasks: ``auto`` picks
+    native MuJoCo on a CPU for those that have it (faster there, see
+    ``python -m coherent_jax.bench physics``) and MJX on accelerators. Raises
+    `PhysicsError` with a one-line message otherwise. Only ``auto`` on such a task asks
+    JAX for its backend; everything else is decided from the registry.
+    """
+    spec = check_task(task)
+    if physics not in PHYSICS:
+        raise PhysicsError(f"unknown physics {physics!r}; valid: {', '.join(PHYSICS)}")
+    if spec.backend == "native":
+        if physics != "mjx":
+            return "native"
+        if spec.gymnasium_id in MJX_REFUSAL:
+            raise PhysicsError(f"physics=mjx does not support env {task!r}: {MJX_REFUSAL[spec.gymnasium_id]}")
+        return "mjx"
+    if physics == "native" and not spec.native:
+        raise PhysicsError(
+            f"physics=native does not support env {task!r}; supported envs: {', '.join(NATIVE_TASKS)}"
+        )
+    if spec.backend != "mjx":
+        return spec.backend
+    if physics == "auto":
+        import jax
+
+        return "native" if spec.native and jax.default_backend() == "cpu" else "mjx"
+    return physics
+
+
 def make_brax_env(name: str, **kwargs: Any):
     """Builds the raw (unwrapped, unbatched) environment of task `name` with Brax's interface
     (``reset(key)``, ``step(state, action)``, states with ``obs``, ``reward``, ``done``): a
@@ -217,13 +299,13 @@ def make_brax_env(name: str, **kwargs: Any):
 
         return {"pointmass": PointMass}[spec.brax_name](**kwargs)
     # Brax prints a warning for its optional Warp backend on import; it is noise here.
-    with _quiet_stdio():
+    with quiet_stdio():
         from brax import envs as brax_envs
 
     with warnings.catch_warnings():
         # Brax warns that its own pipelines are unmaintained; we use the MJX one.
         warnings.filterwarnings("ignore", message="Brax System, piplines")
-        with _quiet_stdio(force=True):  # MuJoCo's compiler prints deprecation notes
+        with quiet_stdio(force=True):  # MuJoCo's compiler prints deprecation notes
             env = brax_envs.get_environment(spec.brax_name, backend=spec.backend, **kwargs)
     if spec.ls_iterations is not None:
         env.sys = env.sys.tree_replace({"opt.ls_iterations": spec.ls_iterations})
@@ -239,13 +321,13 @@ def make_playground_env(playground_id: str, **config_overrides: Any):
     its control and simulation steps).
     """
     try:
-        with _quiet_stdio(force=True):  # Warp prints its kernel-cache lines on import
+        with quiet_stdio(force=True):  # Warp prints its kernel-cache lines on import
             from mujoco_playground import registry as playground
     except ImportError as err:  # pragma: no cover - a dependency of the package
         raise UnknownTaskError(
             f"the DeepMind Control tasks need MuJoCo Playground (pip install playground): {err}"
         ) from None
-    with _quiet_stdio(force=True):
+    with quiet_stdio(force=True):
         return playground.load(playground_id, config_overrides={"impl": "jax", **config_overrides})
 
 
@@ -259,32 +341,3 @@ def env_sizes(env) -> tuple[int, int]:
 
     state = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
     return int(state.obs.shape[-1]), int(env.action_size)
-
-
-class _quiet_stdio:
-    """Silences file descriptors 1 and 2 (Brax's import of optional backends prints)."""
-
-    def __init__(self, force: bool = False):
-        self._force = force
-
-    def __enter__(self):
-        if "brax.envs" in sys.modules and not self._force:
-            self._fds = None
-            return self
-        sys.stdout.flush()
-        sys.stderr.flush()
-        self._devnull = os.open(os.devnull, os.O_WRONLY)
-        self._fds = (os.dup(1), os.dup(2))
-        os.dup2(self._devnull, 1)
-        os.dup2(self._devnull, 2)
-        return self
-
-    def __exit__(self, *exc):
-        if self._fds is not None:
-            sys.stdout.flush()
-            sys.stderr.flush()
-            os.dup2(self._fds[0], 1)
-            os.dup2(self._fds[1], 2)
-            for fd in (*self._fds, self._devnull):
-                os.close(fd)
-        return False

@@ -22,14 +22,14 @@ import jax.numpy as jnp
 from flax import struct
 
 from coherent_jax.envs.mjx_physics import MjxPhysics
-from coherent_jax.envs.native import (
+from coherent_jax.envs.native import NATIVE_TASKS, NativePhysics, mujoco_model
+from coherent_jax.envs.registry import (
     DEFAULT_THREADS,
-    NATIVE_TASKS,
-    NativePhysics,
-    mujoco_model,
+    check_task,
+    env_sizes,
+    make_brax_env,
     resolve_physics,
 )
-from coherent_jax.envs.registry import check_task, env_sizes, make_brax_env
 from coherent_jax.points import any_point
 
 
@@ -87,7 +87,7 @@ class VecEnv:
     static configuration (the task and the sizes), so it is safe to close over in
     jitted functions.
 
-    ``physics`` chooses the engine (`coherent_jax.envs.native.resolve_physics`):
+    ``physics`` chooses the engine (`coherent_jax.envs.registry.resolve_physics`):
     ``native`` (MuJoCo's C engine on a thread pool through a callback, `NativePhysics`:
     Gymnasium's tasks always, six of Brax's re-creations and two of Playground's DeepMind
     Control tasks with their MJX env's model, reward and termination), ``mjx`` (Brax's or

@@ -2,37 +2,24 @@
 
 `make_strategy` builds the on-policy strategy (A2C/PPO) and `make_behaviour` the
 off-policy behaviour (SAC) named by ``cfg.explore``. Each class reads its own settings
-(``from_config``), so adding a strategy is a module and a line in each table below,
-never a change to an algorithm.
+(``from_config``); the classes are named in the strategy table (`coherent_jax.strategies`),
+so adding a strategy is a module and a row there, never a change to an algorithm.
 """
 
 from __future__ import annotations
 
 import importlib
+from collections.abc import Mapping
 
 from coherent_jax.exploration.base import ActOutput, OffPolicyBehaviour, OnPolicyStrategy, SegmentLogProb
+from coherent_jax.strategies import OFF_POLICY_CLASSES, ON_POLICY_CLASSES
 
-# explore name -> "module:Class", imported on first use.
-_ON_POLICY = {
-    "action": "action:ActionNoise",
-    "coherent": "coherent:CoherentExploration",
-    "coherent-mc": "coherent_mc:CoherentMC",
-    "coherent-all": "coherent_mc:CoherentAllLayers",
-    "noisynet": "noisynet:NoisyNet",
-    "psne": "psne:ParameterNoise",
-    "gsde": "gsde:GeneralizedSDE",
-    "pink": "pink:PinkNoise",
-}
-_OFF_POLICY = {
-    "action": "base:OffPolicyBehaviour",
-    "coherent": "coherent:CoherentBehaviour",
-    "psne": "psne:PsneBehaviour",
-    "gsde": "gsde:GsdeBehaviour",
-    "pink": "pink:PinkBehaviour",
-}
+# explore name (and ablation variant) -> "module:Class", from the strategy table.
+_ON_POLICY = ON_POLICY_CLASSES
+_OFF_POLICY = OFF_POLICY_CLASSES
 
 
-def _load(table: dict[str, str], name: str, kind: str):
+def _load(table: Mapping[str, str], name: str, kind: str):
     if name not in table:
         raise ValueError(f"unknown {kind} explore {name!r}; valid: {', '.join(sorted(table))}")
     module, cls = table[name].split(":")

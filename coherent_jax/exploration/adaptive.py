@@ -43,7 +43,7 @@ class SigmaRule:
 
     @classmethod
     def from_config(cls, cfg) -> SigmaRule:
-        return cls(float(cfg.sigma_init), float(cfg.sigma_delta), float(cfg.sigma_alpha))
+        return cls(float(cfg.psne.sigma_init), float(cfg.psne.sigma_delta), float(cfg.psne.sigma_alpha))
 
     def hparams(self, with_sigma: bool = True) -> dict[str, jax.Array]:
         """Sweepable scalars: delta, alpha and (where it is not per-env state) sigma itself."""

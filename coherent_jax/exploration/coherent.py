@@ -109,10 +109,10 @@ class ChainStrategy(OnPolicyStrategy):
     def chain_settings(cfg) -> dict:
         """The constructor's chain arguments as ``cfg`` gives them."""
         return {
-            "beta": cfg.beta,
-            "w_std_init": cfg.w_std_init,
-            "action_std": cfg.action_std,
-            "learn_action_std": cfg.learn_action_std,
+            "beta": cfg.coherent.beta,
+            "w_std_init": cfg.coherent.w_std_init,
+            "action_std": cfg.coherent.action_std,
+            "learn_action_std": cfg.coherent.learn_action_std,
         }
 
     def init_hparams(self):
@@ -214,8 +214,8 @@ class CoherentExploration(ChainStrategy):
             cfg.policy_hidden,
             cfg.activation,
             **cls.chain_settings(cfg),
-            remat=cfg.remat,
-            inference=cfg.coherent_inference,
+            remat=cfg.coherent.remat,
+            inference=cfg.coherent.inference,
             gradient=cfg.coherent.gradient,
             episode_restart=cfg.coherent.episode_restart,
             episode_length=cfg.episode_length,
@@ -426,7 +426,7 @@ class CoherentBehaviour(OffPolicyBehaviour):
 
     @classmethod
     def from_config(cls, cfg, action_size: int):
-        return cls(cfg.beta, SigmaRule.from_config(cfg))
+        return cls(cfg.coherent.beta, SigmaRule.from_config(cfg))
 
     def init_hparams(self):
         return {"beta": jnp.asarray(self.beta, jnp.float32), **self.rule.hparams()}

@@ -88,7 +88,7 @@ class GeneralizedSDE(OnPolicyStrategy):
 
     @classmethod
     def from_config(cls, cfg, action_size: int):
-        return cls(action_size, cfg.policy_hidden, cfg.activation, cfg.init_std, cfg.gsde_resample_every)
+        return cls(action_size, cfg.policy_hidden, cfg.activation, cfg.init_std, cfg.gsde.resample_every)
 
     def init(self, key, obs_size):
         q, p = self.feature_size, self.action_size
@@ -141,7 +141,7 @@ class GsdeBehaviour(OffPolicyBehaviour):
 
     @classmethod
     def from_config(cls, cfg, action_size: int):
-        return cls(cfg.gsde_resample_every)
+        return cls(cfg.gsde.resample_every)
 
     def init_carry(self, key, actor, actor_params, hparams, num_envs):
         return init_gsde_carry(key, num_envs, actor.feature_size, actor.action_size)

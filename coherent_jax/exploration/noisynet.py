@@ -63,7 +63,7 @@ class NoisyNet(OnPolicyStrategy):
 
     @classmethod
     def from_config(cls, cfg, action_size: int):
-        return cls(action_size, cfg.policy_hidden, cfg.activation, cfg.init_std, cfg.noisynet_sigma0)
+        return cls(action_size, cfg.policy_hidden, cfg.activation, cfg.init_std, cfg.noisynet.sigma0)
 
     def _sizes(self, obs_size):
         sizes = (obs_size, *self.hidden, self.action_size)

@@ -153,7 +153,7 @@ class PinkNoise(ActionNoise):
     @classmethod
     def from_config(cls, cfg, action_size: int):
         hidden, activation = cfg.policy_hidden, cfg.activation
-        return cls(action_size, hidden, activation, cfg.init_std, cfg.pink_exponent, cfg.episode_length)
+        return cls(action_size, hidden, activation, cfg.init_std, cfg.pink.exponent, cfg.episode_length)
 
     def init_carry(self, key, params, hparams, num_envs):
         return init_pink_carry(key, self.exponent, self.length, num_envs, self.action_size)
@@ -179,7 +179,7 @@ class PinkBehaviour(OffPolicyBehaviour):
 
     @classmethod
     def from_config(cls, cfg, action_size: int):
-        return cls(action_size, cfg.pink_exponent, cfg.episode_length)
+        return cls(action_size, cfg.pink.exponent, cfg.episode_length)
 
     def init_carry(self, key, actor, actor_params, hparams, num_envs):
         return init_pink_carry(key, self.exponent, self.length, num_envs, self.action_size)

@@ -1,0 +1,98 @@
+"""Typed, validated run configuration with ``key=value`` overrides; no JAX.
+
+The configuration is one dataclass (`Config`, `coherent_jax.config.schema`): the
+settings every run reads at the top level, an algorithm's or a strategy's own in a
+group (``ppo.*``, ``sac.*``, ``coherent.*``, ``noisynet.*``, ``psne.*``, ``gsde.*``,
+``pink.*``; `coherent_jax.config.groups`). Every field declares its help, its range or
+choices and, for a sweepable scalar, a `Sweepable` saying which (algo, explore) pairs
+hold it in the train state (`coherent_jax.config.declare`); validation is derived from
+these declarations plus a few named cross-field checks (`coherent_jax.config.checks`).
+Overrides are parsed, and stored configs read, by `coherent_jax.config.parse`, which
+also maps the flat keys of before (``clip_eps``) to their groups' (``ppo.clip_eps``).
+
+Shape-determining settings (``num_envs``, ``unroll_length``, network sizes, ...) are
+static Python values; the sweepable scalars (`SWEEPABLE`) become arrays inside the
+train state so that `jax.vmap` can run a grid of them as one program.
+"""
+
+from coherent_jax.config.checks import CROSS_CHECKS, ConfigError, validate
+from coherent_jax.config.declare import Sweepable
+from coherent_jax.config.groups import (
+    COHERENT_GRADIENT,
+    COHERENT_INFERENCE,
+    COHERENT_INTEGRATION,
+    COHERENT_LAYERS,
+    CoherentOptions,
+    GsdeOptions,
+    NoisyNetOptions,
+    PinkOptions,
+    PPOOptions,
+    PsneOptions,
+    SACOptions,
+)
+from coherent_jax.config.parse import (
+    flat_dict,
+    from_stored,
+    help_text,
+    modern_items,
+    modern_key,
+    parse_overrides,
+    to_dict,
+    upgrade_stored,
+)
+from coherent_jax.config.schema import (
+    ACTIVATIONS,
+    FIELDS,
+    GROUPS,
+    LEGACY_KEYS,
+    SECTIONS,
+    SWEEPABLE,
+    Config,
+    get_value,
+    hparam_name,
+    sweepable,
+    with_values,
+)
+from coherent_jax.strategies import ALGOS, EXPLORES, ON_POLICY, REFUSED, SUPPORTED_ALGOS
+
+__all__ = [
+    "ACTIVATIONS",
+    "ALGOS",
+    "COHERENT_GRADIENT",
+    "COHERENT_INFERENCE",
+    "COHERENT_INTEGRATION",
+    "COHERENT_LAYERS",
+    "CROSS_CHECKS",
+    "EXPLORES",
+    "FIELDS",
+    "GROUPS",
+    "LEGACY_KEYS",
+    "ON_POLICY",
+    "REFUSED",
+    "SECTIONS",
+    "SUPPORTED_ALGOS",
+    "SWEEPABLE",
+    "CoherentOptions",
+    "Config",
+    "ConfigError",
+    "GsdeOptions",
+    "NoisyNetOptions",
+    "PPOOptions",
+    "PinkOptions",
+    "PsneOptions",
+    "SACOptions",
+    "Sweepable",
+    "flat_dict",
+    "from_stored",
+    "get_value",
+    "help_text",
+    "hparam_name",
+    "modern_items",
+    "modern_key",
+    "parse_overrides",
+    "sweepable",
+    "to_dict",
+    "upgrade_stored",
+    "validate",
+    "with_values",
+]

@@ -1,0 +1,196 @@
+"""Validation: the declared ranges and choices of every field, then the few cross-field checks.
+
+Each declared check comes from the field's metadata (`coherent_jax.config.declare`);
+what cannot be declared on one field (a value that depends on another: a divisor of
+``num_envs``, a pair of settings a strategy refuses) is one named function below. The
+first problem raises `ConfigError`, one line naming the key and what is allowed. No JAX.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+from coherent_jax import limits
+from coherent_jax.config.schema import FIELDS, Config, get_value
+from coherent_jax.envs.registry import NATIVE_TASKS, TASKS, PhysicsError, resolve_physics
+from coherent_jax.presets import NO_PRESET
+from coherent_jax.strategies import ON_POLICY, REFUSED, SUPPORTED_ALGOS
+
+
+class ConfigError(ValueError):
+    """A bad override: unknown key, wrong type or value out of range."""
+
+
+def check(cond: bool, key: str, value: Any, allowed: str) -> None:
+    if not cond:
+        raise ConfigError(f"invalid value for {key!r}: {value!r} (allowed: {allowed})")
+
+
+def _declared(cfg: Config) -> None:
+    """Every field's declared choices and range, in declaration order."""
+    for key, field in FIELDS.items():
+        value = get_value(cfg, key)
+        choices = field.metadata.get("choices")
+        if choices is not None:
+            shown = [c for c in choices if c not in NO_PRESET] if key == "preset" else choices
+            check(value in choices, key, value, ", ".join(str(c) for c in shown))
+        declared = field.metadata.get("check")
+        if declared is not None:
+            ok, allowed = declared
+            check(ok(value), key, list(value) if isinstance(value, list) else value, allowed)
+
+
+def validate(cfg: Config) -> Config:
+    """Checks ranges, choices and the cross-field rules; returns `cfg` with the task's time
+    limit for ``episode_length=0`` and ``""`` for no preset. Raises `ConfigError` naming the
+    first bad key."""
+    check(cfg.env in TASKS, "env", cfg.env, ", ".join(TASKS))
+    if cfg.episode_length == 0:  # the task's registered time limit, written into the resolved config
+        cfg = dataclasses.replace(cfg, episode_length=TASKS[cfg.env].episode_length)
+    _declared(cfg)
+    cfg = dataclasses.replace(cfg, preset="") if cfg.preset in NO_PRESET else cfg
+    for rule in CROSS_CHECKS:
+        rule(cfg)
+    overflow = limits.counter_problem(cfg)
+    if overflow is not None:
+        check(False, *overflow)
+    return cfg
+
+
+# ------------------------------------------------------------------ cross-field checks
+def strategy_runs_with_algo(cfg: Config) -> None:
+    """The strategy table's algorithms for ``explore`` (`coherent_jax.strategies`)."""
+    supported = SUPPORTED_ALGOS[cfg.explore]
+    reason = REFUSED.get((cfg.explore, cfg.algo))
+    check(
+        cfg.algo in supported,
+        "algo",
+        cfg.algo,
+        f"{', '.join(supported)} with explore={cfg.explore}" + (f": {reason}" if reason else ""),
+    )
+
+
+def minibatches_split_envs(cfg: Config) -> None:
+    """A2C/PPO: minibatches split the envs, never time."""
+    check(
+        cfg.algo not in ON_POLICY or cfg.num_envs % cfg.ppo.num_minibatches == 0,
+        "ppo.num_minibatches",
+        cfg.ppo.num_minibatches,
+        f"a divisor of num_envs={cfg.num_envs} (minibatches split envs)",
+    )
+
+
+def value_steps_match_rate(cfg: Config) -> None:
+    """A separate value function has both a rate and steps, a joint loss neither."""
+    ppo = cfg.ppo
+    separate = f"an integer >= 1 with vf_lr={ppo.vf_lr}" if ppo.vf_lr > 0 else "0 with vf_lr=0 (joint loss)"
+    check(ppo.vf_iters >= 0 and (ppo.vf_iters > 0) == (ppo.vf_lr > 0), "ppo.vf_iters", ppo.vf_iters, separate)
+
+
+def sac_sizes(cfg: Config) -> None:
+    """SAC: no reward scaling, a buffer that holds an iteration, at least one update per iteration."""
+    if cfg.algo != "sac":
+        return
+    check(
+        not cfg.ppo.normalize_rewards,
+        "ppo.normalize_rewards",
+        cfg.ppo.normalize_rewards,
+        "false with algo=sac (reward scaling is a2c/ppo's)",
+    )
+    check(
+        cfg.sac.buffer_size >= cfg.steps_per_iteration,
+        "sac.buffer_size",
+        cfg.sac.buffer_size,
+        f"at least num_envs * unroll_length = {cfg.steps_per_iteration} (one iteration's data)",
+    )
+    check(
+        cfg.updates_per_iteration >= 1,
+        "sac.utd_ratio",
+        cfg.sac.utd_ratio,
+        f"at least 1 / (num_envs * unroll_length) = {1 / cfg.steps_per_iteration:.3g}",
+    )
+
+
+def physics_runs_task(cfg: Config) -> None:
+    """``physics=native`` needs a native task, ``physics=mjx`` a task MJX can run."""
+    check(
+        cfg.physics != "native" or cfg.env in NATIVE_TASKS,
+        "env",
+        cfg.env,
+        "with physics=native: " + ", ".join(NATIVE_TASKS),
+    )
+    if cfg.physics == "mjx":
+        try:
+            resolve_physics(cfg.env, cfg.physics)
+        except PhysicsError as exc:
+            raise ConfigError(
+                f"invalid value for 'physics': 'mjx' with env={cfg.env} ({exc}) (allowed: auto, native)"
+            ) from None
+
+
+def coherent_ablations(cfg: Config) -> None:
+    """The coherent options that only go together (thesis §5)."""
+    if cfg.explore != "coherent":
+        return
+    co, on_policy = cfg.coherent, cfg.algo in ON_POLICY
+    check(
+        co.gradient != "episode" or co.inference == "joint",
+        "coherent.inference",
+        co.inference,
+        "joint with coherent.gradient=episode (the loss re-infers the episode prefix in joint form)",
+    )
+    check(
+        co.episode_restart or co.gradient != "episode",
+        "coherent.episode_restart",
+        co.episode_restart,
+        "true with coherent.gradient=episode (the prefix it re-infers starts at the episode start)",
+    )
+    check(
+        co.episode_restart or (on_policy and co.integration == "analytic"),
+        "coherent.episode_restart",
+        co.episode_restart,
+        "true with algo=sac or coherent.integration=mc (the switch is the analytic chain's)",
+    )
+    check(
+        on_policy or co.integration == "mc",
+        "coherent.integration",
+        co.integration,
+        "mc with algo=sac: analytic integration needs an on-policy algorithm "
+        "(SAC never scores its behaviour actions)",
+    )
+    check(
+        co.layers == "last" or co.integration == "mc",
+        "coherent.integration",
+        co.integration,
+        "mc with coherent.layers=all: only the last layer integrates analytically",
+    )
+    check(
+        co.layers == "last" or on_policy,
+        "coherent.layers",
+        co.layers,
+        "last with algo=sac: Coherent-SAC perturbs the actor's mean head (thesis §4.3); "
+        "every-layer noise for SAC is explore=psne",
+    )
+
+
+def pink_needs_episodes(cfg: Config) -> None:
+    """Pink noise draws one sequence per episode: at least two steps."""
+    if cfg.explore == "pink":
+        check(
+            cfg.episode_length >= 2,
+            "episode_length",
+            cfg.episode_length,
+            "an integer >= 2 with explore=pink (one noise sequence per episode)",
+        )
+
+
+CROSS_CHECKS = (
+    strategy_runs_with_algo,
+    minibatches_split_envs,
+    value_steps_match_rate,
+    sac_sizes,
+    physics_runs_task,
+    coherent_ablations,
+    pink_needs_episodes,
+)

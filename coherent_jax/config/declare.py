@@ -1,0 +1,104 @@
+"""How a config field is declared: its metadata, the ranges, the sweepable marker.
+
+A field declares everything about itself in its metadata: the one-line help
+(``--help``), the allowed values (``choices``) or range (``check``: a predicate and the
+text of what it allows), the help section of a top-level field (``group``), for a
+sweepable scalar a `Sweepable`, and for a field that moved into a group the flat key it
+had before (``old``: ``clip_eps`` is now ``ppo.clip_eps``). `coherent_jax.config.checks`
+validates from these declarations. No JAX here.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from typing import Any
+
+from coherent_jax.strategies import ALGOS, EXPLORES, ON_POLICY
+
+
+@dataclasses.dataclass(frozen=True)
+class Sweepable:
+    """Marks a scalar that lives in the train state as an array, so a vmapped sweep may vary it.
+
+    Attributes:
+      reads: the (algos, explores) pairs whose train state holds it; a sweep axis
+        for any other pair would run identical points and is refused.
+      hparam: its name in the state's hyperparameters when that is not the key's last part.
+    """
+
+    reads: tuple[tuple[tuple[str, ...], tuple[str, ...]], ...]
+    hparam: str | None = None
+
+    def read_by(self, algo: str, explore: str) -> bool:
+        return any(algo in algos and explore in explores for algos, explores in self.reads)
+
+
+# --- declared ranges: (predicate, what is allowed)
+Check = tuple[Callable[[Any], bool], str]
+
+
+def number(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+
+POSITIVE: Check = (lambda v: number(v) and v > 0, "a finite number > 0")
+NON_NEGATIVE: Check = (lambda v: number(v) and v >= 0, "a finite number >= 0")
+UNIT: Check = (lambda v: number(v) and 0.0 <= v <= 1.0, "a number in [0, 1]")
+
+
+def at_least(low: int, allowed: str | None = None, below: int | None = None) -> Check:
+    """An integer >= ``low`` (and < ``below``, if given)."""
+    return (
+        lambda v: v >= low and (below is None or v < below),
+        allowed or f"an integer >= {low}",
+    )
+
+
+COUNT = at_least(1, below=2**31)  # sizes and counts held in int32 counters
+LAYERS: Check = (lambda v: len(v) >= 1 and all(n >= 1 for n in v), "a list of ints >= 1")
+
+
+def field(
+    default: Any,
+    help: str,
+    *,
+    group: str | None = None,
+    check: Check | None = None,
+    choices: tuple[Any, ...] | None = None,
+    sweep: Sweepable | None = None,
+    old: str | None = None,
+) -> Any:
+    """A config field with its help and declarations (see the module's docstring)."""
+    metadata: dict[str, Any] = {"help": help}
+    for name, value in (
+        ("group", group),
+        ("check", check),
+        ("choices", choices),
+        ("sweep", sweep),
+        ("old", old),
+    ):
+        if value is not None:
+            metadata[name] = value
+    if isinstance(default, list):
+        return dataclasses.field(default_factory=lambda: list(default), metadata=metadata)
+    return dataclasses.field(default=default, metadata=metadata)
+
+
+def sweep(*reads: tuple[tuple[str, ...], tuple[str, ...]], hparam: str | None = None) -> Sweepable:
+    return Sweepable(reads=tuple(reads), hparam=hparam)
+
+
+EVERY = (ALGOS, EXPLORES)
+ON_POLICY_ALL = (ON_POLICY, EXPLORES)
+SAC_ALL = (("sac",), EXPLORES)
+# The adaptive-sigma rule (4.50)-(4.51): PSNE everywhere, Coherent-SAC (its chain's scale).
+SIGMA_RULE = ((("sac",), ("coherent", "psne")), (ON_POLICY, ("psne",)))
+
+
+class Group:
+    """A group's ``__str__``: ``{key=value,...}``, as a log line shows it."""
+
+    def __str__(self) -> str:
+        return "{" + ",".join(f"{f.name}={getattr(self, f.name)}" for f in dataclasses.fields(self)) + "}"

@@ -1,0 +1,188 @@
+"""``key=value`` overrides into a validated `Config`; stored configs; the flat keys of before.
+
+OmegaConf turns the dataclass into a structured config, so ``key=value`` overrides
+(Hydra's syntax, ``ppo.clip_eps=0.1`` for a group's key) are type-checked on merge.
+
+The settings that moved into a group keep working under their old flat keys
+(``clip_eps=0.1``, ``beta=0.1``, ``coherent_inference=filter``): on the command line
+with a one-line note on stderr naming the new key (`modern_items`), and in a stored
+``config.yaml`` silently (`upgrade_stored`), so every run written before still loads,
+resumes and reports. A checkpoint's fingerprint is taken over the flat layout
+(`flat_dict`), so a run checkpointed before resumes under the new names. No JAX here.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+from omegaconf import OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from coherent_jax.config.checks import ConfigError, validate
+from coherent_jax.config.schema import FIELDS, GROUPS, LEGACY_KEYS, SECTIONS, SWEEPABLE, Config
+from coherent_jax.presets import ALGO_DEFAULTS, help_lines, layered_base
+
+_NOTED: set[str] = set()  # the flat keys already noted in this process
+
+
+def modern_key(key: str, note: bool = True) -> str:
+    """`key`, or the grouped key a flat key of before now is (with a note on stderr, once)."""
+    new = LEGACY_KEYS.get(key)
+    if new is None:
+        return key
+    if note and key not in _NOTED:
+        _NOTED.add(key)
+        print(f"note: config key {key!r} is now {new!r}; the old name is deprecated", file=sys.stderr)
+    return new
+
+
+def modern_items(items: Sequence[str], note: bool = True) -> list[str]:
+    """``key=value`` items with every flat key of before renamed to its group's (`modern_key`)."""
+    out = []
+    for item in items:
+        key, eq, value = item.partition("=")
+        new = modern_key(key.strip(), note) if eq else key
+        out.append(f"{new}={value}" if eq and new != key.strip() else item)
+    return out
+
+
+def upgrade_stored(stored: dict[str, Any]) -> dict[str, Any]:
+    """A stored config (``config.yaml``, a policy record) in the grouped layout; a flat one
+    of before is moved into its groups, silently. A key both flat and grouped keeps the grouped."""
+    out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in stored.items() if k not in LEGACY_KEYS}
+    for old, new in LEGACY_KEYS.items():
+        if old in stored:
+            group, name = new.split(".", 1)
+            out.setdefault(group, {}).setdefault(name, stored[old])
+    return out
+
+
+def from_stored(stored: dict[str, Any]) -> Config:
+    """The (unvalidated) `Config` of a stored mapping, flat or grouped; OmegaConf errors propagate."""
+    merged = OmegaConf.merge(OmegaConf.structured(Config()), OmegaConf.create(upgrade_stored(stored)))
+    return OmegaConf.to_object(merged)
+
+
+def to_dict(cfg: Config) -> dict[str, Any]:
+    """Plain-dict view of the config, groups as nested dicts (``config.yaml``)."""
+    return dataclasses.asdict(cfg)
+
+
+def flat_dict(cfg: Config) -> dict[str, Any]:
+    """The config in the flat layout of before the groups (what checkpoint fingerprints hash):
+    the moved settings at the top level under their old keys, ``coherent``'s ablations nested."""
+    out = to_dict(cfg)
+    for old, new in LEGACY_KEYS.items():
+        group, name = new.split(".", 1)
+        out[old] = out[group].pop(name)
+    for group in GROUPS:
+        if not out[group]:
+            del out[group]
+    return out
+
+
+def parse_overrides(overrides: Sequence[str], base: Config | None = None) -> Config:
+    """Builds a validated `Config` from ``key=value`` strings (Hydra/OmegaConf syntax).
+
+    Lists are written ``policy_hidden=[64,64]``, a group's key dotted (``ppo.clip_eps=0.1``).
+    Raises `ConfigError` with a one-line message for a malformed override, an unknown
+    key, a value of the wrong type or out of range. The defaults of the chosen algorithm
+    (`presets.ALGO_DEFAULTS`) apply first, then the chosen preset's values for it, then the
+    overrides (`coherent_jax.presets.layered_base`): ``algo=sac num_envs=4`` keeps
+    SAC's network sizes and takes the user's env count.
+    """
+    overrides = modern_items(overrides)
+    chosen: dict[str, str | None] = {"algo": None, "preset": None}
+    for item in overrides:
+        if "=" not in item or item.startswith("="):
+            raise ConfigError(f"malformed override {item!r}: expected key=value")
+        key, text = (s.strip() for s in item.split("=", 1))
+        if key not in FIELDS:
+            raise ConfigError(f"unknown key {key!r}; valid keys: {', '.join(sorted(FIELDS))}")
+        _check_yaml(key, text)
+        if key in chosen:
+            chosen[key] = text
+    base = layered_base(base if base is not None else Config(), **chosen)
+    try:
+        merged = OmegaConf.merge(OmegaConf.structured(base), OmegaConf.from_dotlist(list(overrides)))
+        cfg = OmegaConf.to_object(merged)
+    except OmegaConfBaseException as exc:
+        key = getattr(exc, "full_key", None) or "?"
+        field = FIELDS.get(key)
+        expected = _type_name(field.type) if field is not None else "a valid value"
+        if field is not None and "choices" in field.metadata:
+            expected = ", ".join(str(c) for c in field.metadata["choices"] if c)
+        msg = str(exc).splitlines()[0]
+        raise ConfigError(f"invalid value for {key!r}: {msg} (allowed: {expected})") from None
+    return validate(cfg)
+
+
+def _check_yaml(key: str, text: str) -> None:
+    """Raises `ConfigError` naming `key` if its value is not valid YAML (``[64,64``, ``{``)."""
+    import yaml
+
+    try:
+        yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        problem = getattr(exc, "problem", None) or "malformed"
+        raise ConfigError(
+            f"invalid value for {key!r}: {text!r} is not valid YAML ({problem}) "
+            f"(allowed: a YAML scalar or a list such as [64,64])"
+        ) from None
+
+
+def _type_name(tp: Any) -> str:
+    return {"int": "an integer", "float": "a number", "bool": "true or false", "str": "a string"}.get(
+        str(tp), str(tp)
+    )
+
+
+def _shown(value: Any) -> str:
+    if isinstance(value, list):
+        return "[" + ",".join(str(v) for v in value) + "]"
+    if value is None:
+        return "null"
+    return str(value).lower() if isinstance(value, bool) else str(value)
+
+
+def _algo_changes() -> dict[str, dict[str, Any]]:
+    """key -> {algo: the default that algorithm sets} (`presets.ALGO_DEFAULTS`), keys dotted."""
+    out: dict[str, dict[str, Any]] = {}
+    for algo, values in ALGO_DEFAULTS.items():
+        for k, v in values.items():
+            for key, value in (
+                {f"{k}.{g}": w for g, w in v.items()} if isinstance(v, dict) else {k: v}
+            ).items():
+                out.setdefault(key, {})[algo] = value
+    return out
+
+
+def help_text() -> str:
+    """Every option with its default and a one-line description, in sections and groups;
+    a default another algorithm changes says so (``[algo=sac: 8]``)."""
+    changes = _algo_changes()
+    legacy = {new: old for old, new in LEGACY_KEYS.items()}
+    lines = ["usage: python -m coherent_jax.train [key=value ...]", "", *help_lines()]
+    lines.append(f"sweepable (a list runs a grid with coherent_jax.sweep): {', '.join(SWEEPABLE)}")
+    lines.append(
+        "a group's key is dotted (ppo.clip_eps=0.1); the flat keys of before (clip_eps=0.1) "
+        "still work, with a note naming the new key"
+    )
+    default = Config()
+    sections = [(s, [k for k, f in FIELDS.items() if f.metadata.get("group") == s]) for s in SECTIONS]
+    group_help = {f.name: f.metadata["help"] for f in dataclasses.fields(Config) if f.name in GROUPS}
+    sections += [(f"{g}.* ({group_help[g]})", [k for k in FIELDS if k.startswith(g + ".")]) for g in GROUPS]
+    for title, keys in sections:
+        lines += ["", f"{title}:"]
+        for key in keys:
+            group, _, name = key.rpartition(".")
+            value = getattr(getattr(default, group) if group else default, name)
+            text = FIELDS[key].metadata.get("help", "")
+            text += "".join(f" [algo={a}: {_shown(v)}]" for a, v in changes.get(key, {}).items())
+            if key in legacy and legacy[key] != name:
+                text += f" (was {legacy[key]})"
+            lines.append(f"  {key}={_shown(value)}".ljust(34) + f"  {text}")
+    return "\n".join(lines)
