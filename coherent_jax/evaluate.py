@@ -182,12 +182,12 @@ def _make_quietly(gymnasium, gym_id: str, episode_length: int):
     prints and, with no handler set, appends to MUJOCO_LOG.TXT in the working directory."""
     import mujoco
 
-    from coherent_jax.envs.registry import _quiet_stdio
+    from coherent_jax.quiet import quiet_stdio
 
     previous = mujoco.get_mju_user_warning()
     mujoco.set_mju_user_warning(lambda message: None)
     try:
-        with _quiet_stdio(force=True):
+        with quiet_stdio(force=True):
             return gymnasium.make(gym_id, max_episode_steps=episode_length)
     finally:
         mujoco.set_mju_user_warning(previous)
