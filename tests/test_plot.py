@@ -105,7 +105,8 @@ def test_settings_that_change_only_with_the_task_split_no_group(tmp_path):
     other = write_run(tmp_path, "ant", "coherent", 0, 0.0, scaled, name="a-c2")
     runs.append(load_run(other, "eval/episode_return"))
     scores, _ = normalized_final_scores(runs)
-    assert "coherent normalize_rewards=True" in scores and "coherent normalize_rewards=False" not in scores
+    assert "coherent ppo.normalize_rewards=True" in scores
+    assert "coherent ppo.normalize_rewards=False" not in scores
 
 
 def png_pixels(path):
