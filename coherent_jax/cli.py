@@ -30,8 +30,6 @@ import yaml
 
 from coherent_jax.config import Config, ConfigError, parse_overrides
 
-EXIT_BAD_INPUT = 2  # exit status of every command on bad input
-
 
 @dataclasses.dataclass(frozen=True)
 class Key:

@@ -38,7 +38,6 @@ from pathlib import Path
 from typing import Any
 
 from coherent_jax.config import Config
-from coherent_jax.points import vmap_points
 from coherent_jax.runs import (
     CHECKPOINT,
     METRICS,
@@ -51,6 +50,7 @@ from coherent_jax.runs import (
     state_to_bytes,
     truncate_metrics,
 )
+from coherent_jax.sweep_axis import vmap_points
 
 
 class DivergenceError(RuntimeError):
@@ -119,23 +119,6 @@ class StopRequest:
     def __exit__(self, *exc: Any) -> None:
         for sig, handler in self._previous.items():
             signal.signal(sig, handler)
-
-
-def run_command(
-    argv: list[str], help_text: Callable[[], str], body: Callable[[list[str], StopRequest], int]
-) -> int:
-    """The entry of ``train`` and ``sweep``: ``--help``, else ``body(argv, stop)`` with SIGINT
-    and SIGTERM turned into a stop request; a Ctrl-C before the handler took over exits
-    130 without a traceback."""
-    if any(a in ("-h", "--help", "help") for a in argv):
-        print(help_text())
-        return 0
-    with StopRequest() as stop:
-        try:
-            return body(argv, stop)
-        except KeyboardInterrupt:
-            print(f"{PREFIX} interrupted", file=sys.stderr, flush=True)
-            return 128 + signal.SIGINT
 
 
 def first_non_finite(tree: Any) -> str:
@@ -303,19 +286,19 @@ def run_loop(
     import numpy as np
     from tqdm.auto import tqdm
 
-    from coherent_jax import distributed, parallel
+    from coherent_jax import multihost, sharding
 
     cfg, trainer, n = job.cfg, job.trainer, job.num_points
     t_start = time.perf_counter()
-    available = parallel.resolve_num_devices(cfg.num_devices)
+    available = sharding.resolve_num_devices(cfg.num_devices)
     keys = [run_keys(s) for s in job.seeds]
     if job.points:
-        num_devices = parallel.point_device_count(n, available)
+        num_devices = sharding.point_device_count(n, available)
         key = jnp.stack([k for k, _ in keys])
         init_key = jnp.stack([k for _, k in keys])
     else:
         num_devices = available
-        parallel.check_env_split(cfg.num_envs, num_devices)
+        sharding.check_env_split(cfg.num_envs, num_devices)
         key, init_key = keys[0]
     # The engine `physics=auto` resolved to (trainers keep their training env in `.env`).
     physics = getattr(getattr(trainer, "env", None), "physics", cfg.physics)
@@ -327,20 +310,20 @@ def run_loop(
     start = 0
     if resume is None:
         if job.points:
-            state, shardings = parallel.init_points(trainer, init_key, job.hparams, num_devices)
+            state, shardings = sharding.init_points(trainer, init_key, job.hparams, num_devices)
         else:
-            state, shardings = parallel.init_state(trainer, init_key, num_devices, cfg.num_envs)
+            state, shardings = sharding.init_state(trainer, init_key, num_devices, cfg.num_envs)
     else:  # the state's structure from tracing init, its values from the checkpoint
         # Several processes: each reads the checkpoint, only process 0 has a run_dir.
         checkpoint_path = Path(cfg.resume or job.run_dir or ".") / CHECKPOINT
         if job.points:
             template = jax.eval_shape(vmap_points(trainer.init), init_key, job.hparams)
             state = restore_state(template, resume.state_bytes, checkpoint_path)
-            state, shardings = parallel.shard_points(state, num_devices)
+            state, shardings = sharding.shard_points(state, num_devices)
         else:
             template = jax.eval_shape(trainer.init, init_key)
             state = restore_state(template, resume.state_bytes, checkpoint_path)
-            state, shardings = parallel.shard_state(state, num_devices, cfg.num_envs)
+            state, shardings = sharding.shard_state(state, num_devices, cfg.num_envs)
         loop, start = resume.loop, resume.iteration
         key = jnp.asarray(loop.eval_key, dtype=jnp.uint32)
 
@@ -351,7 +334,7 @@ def run_loop(
         )
 
     vmapped = vmap_points if job.points else (lambda f: f)
-    iteration = parallel.compile_iteration(trainer, state, shardings, points=job.points)
+    iteration = sharding.compile_iteration(trainer, state, shardings, points=job.points)
     evaluate = jax.jit(vmapped(trainer.evaluate)).lower(state, key).compile()
     check_params = jax.jit(vmapped(params_finite)).lower(state).compile()
     split = jax.jit(vmapped(jax.random.split))
@@ -387,12 +370,12 @@ def run_loop(
 
     files, writers = _open_outputs(job, start, resume is not None)
     # Several processes: only process 0 has the run directory, but all gather the state.
-    checkpoints = distributed.from_writer(job.run_dir is not None)
+    checkpoints = multihost.from_writer(job.run_dir is not None)
     bar = tqdm(
         total=cfg.num_iterations * cfg.steps_per_iteration,
         initial=start * cfg.steps_per_iteration,
         unit="step",
-        disable=not cfg.progress or not distributed.is_writer(),  # one progress bar per run
+        disable=not cfg.progress or not multihost.is_writer(),  # one progress bar per run
         dynamic_ncols=True,
         mininterval=1.0,
         # One rate: the postfix's training env steps/s (tqdm's own would count compile and eval).
@@ -402,15 +385,15 @@ def run_loop(
     saved = start if resume is not None else -1
     # A signal to one process stops all of them after the same iteration; the agreed
     # value, not the local one, decides (a signal may arrive after the agreement).
-    stopping = distributed.largest(stop.signum or 0)
+    stopping = multihost.largest(stop.signum or 0)
     try:
         for i in range(start, cfg.num_iterations):
             if stopping:
                 break
             t0 = time.perf_counter()
             state, metrics = iteration(state)
-            metrics = _per_point(distributed.to_host(metrics), n)
-            finite = np.asarray(distributed.to_host(check_params(state))).reshape(n)
+            metrics = _per_point(multihost.to_host(metrics), n)
+            finite = np.asarray(multihost.to_host(check_params(state))).reshape(n)
             loop.train_s += time.perf_counter() - t0
             for j in range(n):
                 if j in diverged:
@@ -434,7 +417,7 @@ def run_loop(
                 t0 = time.perf_counter()
                 keys_now = split(key)
                 key, eval_key = (keys_now[:, 0], keys_now[:, 1]) if job.points else (keys_now[0], keys_now[1])
-                last_eval = _per_point(distributed.to_host(evaluate(state, eval_key)), n)
+                last_eval = _per_point(multihost.to_host(evaluate(state, eval_key)), n)
                 loop.eval_s += time.perf_counter() - t0
                 metrics.update(last_eval)
             ret = metrics["train/episode_return"]
@@ -456,7 +439,7 @@ def run_loop(
             if progress_fn:
                 progress_fn(done, {k: float(v[0]) for k, v in metrics.items()})
             every = cfg.checkpoint_every > 0 and done % cfg.checkpoint_every == 0
-            stopping = distributed.largest(stop.signum or 0)
+            stopping = multihost.largest(stop.signum or 0)
             if checkpoints and (last or every or stopping):
                 save_checkpoint(done)
                 saved = done
@@ -504,7 +487,7 @@ def write_params(trainer: Any, state: Any, point_dirs: list[Path], points: bool)
     import jax
     from flax import serialization
 
-    from coherent_jax.distributed import to_host
+    from coherent_jax.multihost import to_host
 
     params = to_host(trainer.export_params(state))
     for j, d in enumerate(point_dirs):

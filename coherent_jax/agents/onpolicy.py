@@ -35,8 +35,8 @@ from coherent_jax.envs.vec_env import EnvState, VecEnv
 from coherent_jax.exploration import make_strategy
 from coherent_jax.exploration.base import OnPolicyStrategy
 from coherent_jax.networks import RunningStats, ValueNetwork, normalize, scale_rewards, update_stats
-from coherent_jax.points import all_points
 from coherent_jax.rollout import EpisodeHistory, episode_metrics, evaluation_metrics, unroll
+from coherent_jax.sweep_axis import all_points
 
 
 @struct.dataclass

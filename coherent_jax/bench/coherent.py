@@ -99,11 +99,11 @@ def _bench_training(cfg: Config, iterations: int, log, remat_row: bool = True) -
     import jax
     import jax.numpy as jnp
 
-    from coherent_jax import parallel
+    from coherent_jax import sharding
     from coherent_jax.agents.onpolicy import OnPolicyTrainer
     from coherent_jax.envs.vec_env import VecEnv
 
-    num_devices = parallel.resolve_num_devices(cfg.num_devices)
+    num_devices = sharding.resolve_num_devices(cfg.num_devices)
     shape = f"{cfg.env}, {cfg.num_envs} envs x {cfg.unroll_length} steps, {num_devices} device(s)"
     # One env object for all trainers (building an MJX model takes seconds); no
     # evaluation runs here, so it also stands in for the evaluation env.
@@ -124,11 +124,11 @@ def _bench_training(cfg: Config, iterations: int, log, remat_row: bool = True) -
         # (The filter form's carry holds a belief, the joint exact form's does not: each
         # row starts from its own state.)
         # With several devices (num_devices) the envs are split over them as in training.
-        state, shardings = parallel.init_state(
+        state, shardings = sharding.init_state(
             trainer, jax.random.PRNGKey(cfg.seed), num_devices, cfg.num_envs
         )
         t0 = time.perf_counter()
-        step = parallel.compile_iteration(trainer, state, shardings)
+        step = sharding.compile_iteration(trainer, state, shardings)
         compile_s = time.perf_counter() - t0
         mem = measure.memory(step)
         log(f"[bench]   compiled in {compile_s:.1f} s; peak memory {measure.peak_mb(mem)} MB")

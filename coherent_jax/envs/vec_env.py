@@ -30,7 +30,7 @@ from coherent_jax.envs.native import (
     resolve_physics,
 )
 from coherent_jax.envs.registry import check_task, env_sizes, make_brax_env
-from coherent_jax.points import any_point
+from coherent_jax.sweep_axis import any_point
 
 
 @struct.dataclass
