@@ -28,6 +28,7 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from coherent_jax.agents.trainer import Trainer
 from coherent_jax.config import ConfigError
 from coherent_jax.sweep_axis import POINT_AXIS, vmap_points
 
@@ -106,7 +107,7 @@ def device_count_of(array: jax.Array) -> int:
     return len(array.sharding.device_set)
 
 
-def init_state(trainer: Any, init_key: jax.Array, num_devices: int, num_envs: int):
+def init_state(trainer: Trainer, init_key: jax.Array, num_devices: int, num_envs: int):
     """The initial train state, on one device or already sharded over ``num_devices``.
 
     Returns:
@@ -141,7 +142,7 @@ def point_device_count(num_points: int, available: int) -> int:
     return max(d for d in range(1, available + 1) if num_points % d == 0)
 
 
-def init_points(trainer: Any, init_keys: jax.Array, hparams: Any, num_devices: int):
+def init_points(trainer: Trainer, init_keys: jax.Array, hparams: Any, num_devices: int):
     """The stacked initial states of a sweep's points, ``vmap(trainer.init)``, split over the devices.
 
     Returns:
@@ -165,7 +166,7 @@ def shard_points(states: Any, num_devices: int):
     return place(states, shardings), shardings
 
 
-def compile_iteration(trainer: Any, state: Any, shardings: Any = None, points: bool = False):
+def compile_iteration(trainer: Trainer, state: Any, shardings: Any = None, points: bool = False):
     """``iteration(state) -> (state, metrics)`` compiled; the state's buffers are donated.
 
     With ``points`` the state is a sweep's stack of states and the iteration is

@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import Any
 
 from coherent_jax import cli, launch, limits, multihost, rundir, sweep_resume
+from coherent_jax.agents.trainer import Trainer
 from coherent_jax.config import (
     SWEEPABLE,
     Config,
@@ -53,7 +54,8 @@ from coherent_jax.config import (
     sweepable,
     validate,
 )
-from coherent_jax.loop import PREFIX, Job, Outcome, StopRequest, to_float, write_params
+from coherent_jax.loop import PREFIX, StopRequest, to_float, write_params
+from coherent_jax.loop_state import Job, Outcome
 from coherent_jax.memory import check_memory
 from coherent_jax.runs import (
     METRICS,
@@ -215,7 +217,7 @@ def point_hparams(base_hparams: Any, point: Point) -> Any:
     return hparams
 
 
-def stacked_hparams(plan: SweepPlan, trainer: Any) -> Any:
+def stacked_hparams(plan: SweepPlan, trainer: Trainer) -> Any:
     """Every point's hyperparameters stacked on a leading axis (the vmapped init's input)."""
     import jax
     import jax.numpy as jnp

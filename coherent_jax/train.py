@@ -43,7 +43,8 @@ from typing import Any
 
 from coherent_jax import launch, multihost, rundir
 from coherent_jax.config import Config, help_text, parse_overrides
-from coherent_jax.loop import PREFIX, Job, StopRequest, to_float, write_params
+from coherent_jax.loop import PREFIX, StopRequest, to_float, write_params
+from coherent_jax.loop_state import Job
 from coherent_jax.memory import check_memory
 from coherent_jax.runs import (
     METRICS,
