@@ -13,6 +13,12 @@ are printed. With ``video=true`` it also renders the first episode
 states come from inside the jitted evaluation, so the video shows exactly the episodes
 whose returns are printed. `pointmass` has no MuJoCo model and refuses ``video=true``.
 A sweep's root directory is refused with the list of its points.
+
+``engine=gymnasium`` also runs the policy in Gymnasium itself,
+``gymnasium.make(<the task's Gymnasium id>)``, and prints Gymnasium's return beside
+ours over the same number of episodes: the policy that training evaluates, acting on
+each observation exactly as in training (`gymnasium_returns`). Only Gymnasium's own
+tasks have a Gymnasium id; it needs ``gymnasium[mujoco]`` (the ``test`` extra).
 """
 
 from __future__ import annotations
@@ -31,9 +37,18 @@ from coherent_jax.config import ConfigError
 from coherent_jax.exit_codes import EXIT_BAD_INPUT
 from coherent_jax.runs import CHECKPOINT, CheckpointError, decode_checkpoint, load_config
 
+ENGINES = ("jax", "gymnasium")
+GYMNASIUM_EXTRA = 'pip install -e ".[test]"'
+
 KEYS: dict[str, cli.Key] = {
     "episodes": cli.Key(
         10, cli.int_at_least(1), "an integer >= 1", "deterministic episodes, run in parallel"
+    ),
+    "engine": cli.Key(
+        "jax",
+        cli.choice(ENGINES),
+        " or ".join(ENGINES),
+        "jax: our engine alone; gymnasium: also gymnasium.make(<the task's Gymnasium id>), side by side",
     ),
     "video": cli.Key(False, cli.boolean, "true or false", "render the first episode (MuJoCo tasks only)"),
     "seed": cli.Key(
@@ -61,6 +76,7 @@ class EvalConfig:
     """Settings of ``python -m coherent_jax.evaluate RUN_DIR [key=value ...]`` (defaults: `KEYS`)."""
 
     episodes: int
+    engine: str
     video: bool
     seed: int
     video_path: str
@@ -85,7 +101,97 @@ def parse_eval_args(argv: Sequence[str]) -> tuple[Path, EvalConfig]:
             f"invalid key 'video_path': {settings['video_path']!r} without video=true "
             "(allowed: video_path only with video=true)"
         )
+    if settings["video"] and settings["engine"] != "jax":
+        raise ConfigError(
+            f"invalid value for 'engine': {settings['engine']!r} with video=true "
+            "(allowed: jax; the video shows our engine's episodes)"
+        )
     return Path(positional[0]), EvalConfig(**settings)
+
+
+def gymnasium_id(env: str) -> str:
+    """The Gymnasium id of task ``env``; raises `ConfigError` naming the tasks that have one."""
+    from coherent_jax.envs.registry import TASKS
+
+    if not TASKS[env].gymnasium_id:
+        having = ", ".join(name for name, spec in TASKS.items() if spec.gymnasium_id)
+        raise ConfigError(
+            f"invalid value for 'engine': gymnasium with env={env}, which has no Gymnasium id "
+            f"(allowed: engine=jax, or a run of one of {having})"
+        )
+    return TASKS[env].gymnasium_id
+
+
+def check_gymnasium() -> None:
+    """Raises `ConfigError` in one line when Gymnasium's MuJoCo tasks cannot be made."""
+    try:
+        import gymnasium.envs.mujoco.mujoco_env  # noqa: F401 - needs mujoco (gymnasium[mujoco])
+    except Exception as exc:  # noqa: BLE001 - ImportError or gymnasium's DependencyNotInstalled
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ConfigError(
+            f"engine=gymnasium needs gymnasium[mujoco] ({reason}): install the test extra, {GYMNASIUM_EXTRA}"
+        ) from None
+
+
+def gymnasium_returns(policy, env: str, episode_length: int, episodes: int, seed: int):
+    """Returns and lengths [episodes] of the policy's deterministic episodes in Gymnasium.
+
+    One ``gymnasium.make(gym_id, max_episode_steps=episode_length)`` per episode, stepped
+    in lockstep so that the policy runs once per step on the batch of observations. Each
+    observation is cast to float32 (our observations' type) and passed through the
+    run's normalisation inside `Policy.mean_action`; the action is clipped to [-1, 1]
+    and mapped onto Gymnasium's action space with the task's own map (`control`:
+    centre + a * half-width), exactly what `VecEnv.step` and the task do in training;
+    SAC's tanh-squashed mean is already in [-1, 1]. An episode ends where Gymnasium's
+    ``terminated`` or ``truncated`` (its time limit, here the run's ``episode_length``)
+    says. Episode i is reset with the i-th word of ``SeedSequence(seed)``, so ``seed``
+    reproduces the episodes and different seeds give different ones.
+    """
+    import gymnasium
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from coherent_jax.envs.native import NATIVE_TASKS
+    from coherent_jax.envs.task import control
+
+    gym_id = gymnasium_id(env)
+    envs = [_make_quietly(gymnasium, gym_id, episode_length) for _ in range(episodes)]
+    space = envs[0].action_space
+    ctrl_range = np.stack([space.low, space.high], axis=-1)
+    task = NATIVE_TASKS[gym_id]
+    act = jax.jit(lambda p, o: control(task, jnp.clip(p.mean_action(o), -1.0, 1.0), ctrl_range))
+    seeds = np.random.SeedSequence(seed).generate_state(episodes)
+    obs = np.stack([e.reset(seed=int(s))[0] for e, s in zip(envs, seeds, strict=True)])
+    returns, lengths = np.zeros(episodes), np.zeros(episodes, np.int64)
+    running = np.ones(episodes, bool)
+    while running.any():
+        actions = np.asarray(act(policy, jnp.asarray(obs, jnp.float32)), space.dtype)
+        for i in np.flatnonzero(running):
+            obs[i], reward, terminated, truncated, _ = envs[i].step(actions[i])
+            returns[i] += reward
+            lengths[i] += 1
+            running[i] = not (terminated or truncated)
+    for e in envs:
+        e.close()
+    return returns, lengths
+
+
+def _make_quietly(gymnasium, gym_id: str, episode_length: int):
+    """``gymnasium.make(gym_id, max_episode_steps=episode_length)`` without MuJoCo's compiler
+    warnings (settotalmass is deprecated in half_cheetah.xml and humanoid.xml), which it
+    prints and, with no handler set, appends to MUJOCO_LOG.TXT in the working directory."""
+    import mujoco
+
+    from coherent_jax.envs.registry import _quiet_stdio
+
+    previous = mujoco.get_mju_user_warning()
+    mujoco.set_mju_user_warning(lambda message: None)
+    try:
+        with _quiet_stdio(force=True):
+            return gymnasium.make(gym_id, max_episode_steps=episode_length)
+    finally:
+        mujoco.set_mju_user_warning(previous)
 
 
 def evaluate_run(run_dir: Path, opts: EvalConfig) -> dict[str, Any]:
@@ -117,7 +223,21 @@ def evaluate_run(run_dir: Path, opts: EvalConfig) -> dict[str, Any]:
         "return_mean": float(metrics["eval/episode_return"]),
         "return_std": float(metrics["eval/episode_return_std"]),
         "episode_length_mean": float(metrics["eval/episode_length"]),
+        "engine": opts.engine,
     }
+    if opts.engine == "gymnasium":
+        import gymnasium
+
+        returns, lengths = gymnasium_returns(policy, cfg.env, cfg.episode_length, opts.episodes, opts.seed)
+        result.update(
+            {
+                "gymnasium_id": gymnasium_id(cfg.env),
+                "gymnasium_version": gymnasium.__version__,
+                "gymnasium_return_mean": float(returns.mean()),
+                "gymnasium_return_std": float(returns.std()),
+                "gymnasium_episode_length_mean": float(lengths.mean()),
+            }
+        )
     if opts.video:
         jax.effects_barrier()
         frames = video.render_frames(
@@ -163,6 +283,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                 f"invalid value for 'video': true with env={cfg.env} "
                 "(allowed: false; this task has no MuJoCo model to render)"
             )
+        if opts.engine == "gymnasium":
+            gymnasium_id(cfg.env)
+            check_gymnasium()
     except (ConfigError, CheckpointError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -183,6 +306,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"(mean +- std over {opts.episodes} episodes, mean length {result['episode_length_mean']:.1f})",
         flush=True,
     )
+    if opts.engine == "gymnasium":
+        print(
+            f"[coherent_jax] Gymnasium {result['gymnasium_version']} {result['gymnasium_id']}: return "
+            f"{result['gymnasium_return_mean']:.2f} +- {result['gymnasium_return_std']:.2f} "
+            f"(mean +- std over {opts.episodes} episodes, "
+            f"mean length {result['gymnasium_episode_length_mean']:.1f})",
+            flush=True,
+        )
     if opts.video:
         print(f"[coherent_jax] video: {result['video']} ({result['frames']} frames)", flush=True)
     print(json.dumps(result), flush=True)

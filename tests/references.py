@@ -55,6 +55,78 @@ def reference_log_marginals(x, a, first, mu, w_std, action_std, beta):
     return total
 
 
+# ------------------------------------------- numpy references (test_coherent_filter.py)
+# The thesis's dense recursion in information form and the joint Gaussian of one episode,
+# both plain numpy float64: the process whose chain restarts where ``first`` is True.
+
+
+def np_log_normal(y, mean, cov):
+    """log N(y; mean, cov) for a full covariance, via slogdet and solve."""
+    d = y - mean
+    sign, logdet = np.linalg.slogdet(cov)
+    assert sign > 0
+    return -0.5 * (len(y) * _LOG_2PI + logdet + d @ np.linalg.solve(cov, d))
+
+
+def thesis_flatten(m):
+    """(4.30): the rows of W one after another, then the p biases. m is [p, q+1]."""
+    return np.concatenate([m[:, :-1].reshape(-1), m[:, -1]])
+
+
+def thesis_stack(x, p):
+    """X_t of (4.31), [p, pq+p], so that X_t w_t = W_t x_t + b_t."""
+    q = len(x)
+    big_x = np.zeros((p, p * q + p))
+    for i in range(p):
+        big_x[i, i * q : (i + 1) * q] = x
+        big_x[i, p * q + i] = 1.0
+    return big_x
+
+
+def dense_thesis_logp(x, a, first, mu, w_std, action_std, beta):
+    """The dense recursion (4.33)-(4.49) in information form, as the thesis writes it."""
+    num_steps, p = a.shape
+    mu_flat = thesis_flatten(mu)
+    lam_inv = np.diag(thesis_flatten(w_std) ** 2)  # Lambda^-1
+    lam_a_inv = np.diag(action_std**2)  # Lambda_a^-1
+    lam_a = np.diag(action_std**-2.0)
+    logp = np.zeros(num_steps)
+    v, l_inv = mu_flat, lam_inv
+    for t in range(num_steps):
+        if t == 0 or first[t]:
+            v, l_inv = mu_flat, lam_inv  # (4.33)
+        big_x = thesis_stack(x[t], p)
+        logp[t] = np_log_normal(a[t], big_x @ v, lam_a_inv + big_x @ l_inv @ big_x.T)  # (4.49)
+        l_mat = np.linalg.inv(l_inv)
+        sigma = np.linalg.inv(l_mat + big_x.T @ lam_a @ big_x)  # (4.42)
+        u = sigma @ (big_x.T @ lam_a @ a[t] + l_mat @ v)  # (4.41)
+        v = (1.0 - beta) * u + beta * mu_flat  # (4.45)
+        l_inv = (2.0 * beta - beta**2) * lam_inv + (1.0 - beta) ** 2 * sigma  # (4.46)
+    return logp
+
+
+def joint_episode_logp(x, a, mu, w_std, action_std, beta):
+    """log N(a_flat; mean, C) of one whole episode's actions, flattened (t, i).
+
+    Cov(a_s,i, a_t,j) = delta_ij [(1-beta)^|s-t| xh_s' diag(w_std_i^2) xh_t
+                                  + delta_st action_std_i^2].
+    """
+    num_steps, p = a.shape
+    xh = np.concatenate([x, np.ones((num_steps, 1))], axis=1)
+    lags = np.abs(np.subtract.outer(np.arange(num_steps), np.arange(num_steps)))
+    decay = (1.0 - beta) ** lags.astype(float)  # 0.0 ** 0.0 == 1.0 at beta = 1
+    cov = np.zeros((num_steps, p, num_steps, p))
+    for i in range(p):
+        kernel = (xh * w_std[i] ** 2) @ xh.T
+        cov[:, i, :, i] = decay * kernel + np.eye(num_steps) * action_std[i] ** 2
+    mean = xh @ mu.T  # [T, p]
+    size = num_steps * p
+    return np_log_normal(a.reshape(size), mean.reshape(size), cov.reshape(size, size))
+
+
+# ---------------------------------------------------------------- helpers
+
+
 def trunk(theta, obs):
     return jnp.tanh(obs @ theta["w"] + theta["b"])
 

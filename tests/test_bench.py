@@ -31,6 +31,7 @@ def _positive(value) -> bool:
     return isinstance(value, int | float) and math.isfinite(value) and value > 0
 
 
+@pytest.mark.slow
 def test_coherent_suite_writes_every_figure(tmp_path):
     """Every figure of the suite is a positive finite number, and block and dense filters agree."""
     out = tmp_path / "results" / "coherent.json"
@@ -103,6 +104,7 @@ def test_long_chain_rows_are_the_preset_and_the_episode_gradient():
         chain_config(cfg, "stored")
 
 
+@pytest.mark.slow
 def test_dense_reference_checkpointed_equals_plain_and_block():
     """The chunk-checkpointed dense scan (used when its gradient would not fit) is the same function."""
     import jax
@@ -173,6 +175,7 @@ def test_cli_entry_point_exits_2_and_writes_nothing(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow
 def test_throughput_suite_writes_every_row(tmp_path):
     """Raw env, PPO and Coherent-PPO rows with positive rates, compile times, memory and ratios.
 

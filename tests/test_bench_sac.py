@@ -26,6 +26,7 @@ def test_bad_settings_exit_2_and_write_nothing(tmp_path, capsys, args, key):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow
 def test_tiny_run_reports_both_strategies(tmp_path):
     out = tmp_path / "sac.json"
     overrides = [

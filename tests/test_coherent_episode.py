@@ -93,6 +93,7 @@ def reference_segment(strategy, params, obs, a, first, start, end, beta):
 
 
 @pytest.mark.parametrize("beta", [0.01, 0.1])
+@pytest.mark.slow
 def test_episode_gradient_equals_the_whole_episode_reference_after_an_update(x64, beta):
     """Segments 2 and 3 of a 48-step episode (the window reaching back into an earlier
     episode and into padding): log-probabilities and the gradient of sum_t A_t log p equal
@@ -134,6 +135,7 @@ def test_episode_gradient_equals_the_whole_episode_reference_after_an_update(x64
         assert np.max(np.abs(np.asarray(cut) - np.asarray(want))) > 1e-3
 
 
+@pytest.mark.slow
 def test_the_trainers_loss_reads_each_segment_with_its_own_history(x64):
     """`losses.segment_log_prob` on a minibatch of two envs in different episode phases,
     the context being what `EpisodeHistory.extend` kept: each env's terms equal its
@@ -179,6 +181,7 @@ def test_history_length_reaches_back_to_the_episode_start():
 
 
 @pytest.mark.parametrize("beta", [0.05, 0.3])
+@pytest.mark.slow
 def test_exact_without_episode_restart_is_the_thesis_buffer(x64, beta):
     """``coherent.episode_restart=false`` (the protocol's chain): a 32-step segment with an
     env reset at step 12 is scored as ONE chain from the segment's first step, values and
@@ -239,6 +242,7 @@ def _lag_correlations(strategy, beta, num_envs=4000, unroll=8, reset_at=4):
     ]
 
 
+@pytest.mark.slow
 def test_the_protocols_chain_is_drawn_only_at_buffer_starts():
     """Lag-1 correlations of z under ``exact`` + ``episode_restart=false``: 1 - beta at every
     step, across the env reset too, and 0 across the segment (buffer) boundary; with the
@@ -256,6 +260,7 @@ def test_the_protocols_chain_is_drawn_only_at_buffer_starts():
     assert abs(corr_episode[7] - (1.0 - beta)) < 0.03 and abs(corr_episode[3]) < 0.03
 
 
+@pytest.mark.slow
 def test_the_trainer_keeps_the_history_and_its_first_ratio_is_one():
     """coherent.gradient=episode through the trainer's own iteration: the history holds the
     last H steps (padding flagged as episode starts until real steps fill it), the

@@ -201,6 +201,7 @@ def _check_segment_against_reference(strategy, hp, params, carry_start, data, se
         np.testing.assert_allclose(data.log_prob, ref, rtol=1e-4, atol=1e-3)
 
 
+@pytest.mark.slow
 def test_exact_mode_behaviour_and_loss_follow_the_process_across_an_update():
     """coherent.gradient=exact (the default): the chain restarts at each segment start.
 
@@ -278,6 +279,7 @@ def test_float32_loss_stays_finite_and_accurate_at_extreme_weight_to_noise_ratio
         np.testing.assert_allclose(logp32, logp64, atol=1e-2)
 
 
+@pytest.mark.slow
 def test_gradient_bench_passes_for_exact_forms_and_exposes_stored(tmp_path, capsys):
     """`python -m coherent_jax.bench gradient` on small shapes: the exact and re-filtered forms
     meet the bound (exit 0), the stored form is visibly off once the segment has a history,

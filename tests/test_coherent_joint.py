@@ -43,6 +43,7 @@ def test_joint_equals_filter_float64(x64, beta, resets):
 
 
 @pytest.mark.parametrize("beta", [0.0, 0.3, 1.0])
+@pytest.mark.slow
 def test_joint_gradients_equal_filter_gradients(x64, beta):
     rng = np.random.default_rng(1)
     belief0, x, a, first, mu, w_std, action_std = random_problem(rng, T=9, p=2, q=3, resets=(4,))
@@ -60,6 +61,7 @@ def test_joint_gradients_equal_filter_gradients(x64, beta):
 
 
 @pytest.mark.parametrize("beta", [0.0, 0.01, 1.0])
+@pytest.mark.slow
 def test_joint_float32_consecutive_segments_match_float64(beta):
     """Realistic sizes in float32: 4 chained 64-step segments of one 256-step episode."""
     rng = np.random.default_rng(2)
@@ -84,7 +86,7 @@ def test_joint_float32_consecutive_segments_match_float64(beta):
     np.testing.assert_allclose(logp, ref, rtol=2e-3, atol=2e-2)
 
 
-@pytest.mark.parametrize("size", [1, 7, 16, 33])
+@pytest.mark.parametrize("size", [1, *(pytest.param(n, marks=pytest.mark.slow) for n in (7, 16, 33))])
 def test_whiten_reverse_pass_equals_jaxs_own(x64, size):
     """`linalg.whiten` (products with L^-1, forward and reverse) against JAX's generic
     Cholesky and triangular-solve rules, float64: cotangents on z alone (the loss), on z

@@ -88,6 +88,7 @@ def test_coherent_first_minibatch_ratio_is_one():
     assert state.carry.cov.shape == (4, 2, 0, 0) and state.carry.mean.shape == (4, 2, 0)
 
 
+@pytest.mark.slow
 def test_target_kl_stops_epochs_early():
     """Algorithm 2/5 step 17: with a tiny KL target the update stops; with none it runs all."""
     base = TINY + ["explore=coherent", "unroll_length=16", "num_epochs=4", "lr=3e-3"]
@@ -101,6 +102,7 @@ def test_target_kl_stops_epochs_early():
     assert 1 <= applied[1e-6] < 8
 
 
+@pytest.mark.slow
 def test_beta_is_a_sweepable_array():
     """beta lives in the train state: vmapping the iteration over beta values runs one program."""
     cfg = parse_overrides(TINY + ["explore=coherent", "unroll_length=8"])

@@ -59,6 +59,7 @@ out["sweep"] = sweep.main([*TINY, "seeds=2", f"run_dir={tmp / 'sweep'}"])
 """
 
 
+@pytest.mark.slow
 def test_two_cpu_devices_split_envs_and_sweep_points(tmp_path):
     env = child_env()
     env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2").strip()

@@ -31,6 +31,7 @@ def test_dmc_family_is_playgrounds_control_suite():
         assert spec.backend == "mjx"
 
 
+@pytest.mark.slow
 def test_dmc_task_under_the_vectorized_wrapper():
     """Playground's env under the vectorized wrapper, jitted: the reset is Playground's
     reset from the wrapper's keys, actions are clipped to [-1, 1], the sparse reward is 0

@@ -67,7 +67,24 @@ def test_every_gymnasium_task_resets_and_steps_under_jit(name):
     assert not bool(jnp.allclose(first.obs, state.obs)), "stepping changes the state"
 
 
-@pytest.mark.parametrize("name", sorted(set(EXPECTED) - set(MJX_SIDE_BY_SIDE)))
+# MJX compiles these in 10-30 s each (measured in CI): they run in the full suite only.
+SLOW_MJX = {
+    "brax-ant",
+    "brax-hopper",
+    "brax-humanoid",
+    "brax-inverted_double_pendulum",
+    "brax-reacher",
+    "brax-walker2d",
+}
+
+
+@pytest.mark.parametrize(
+    "name",
+    [
+        pytest.param(name, marks=pytest.mark.slow) if name in SLOW_MJX else name
+        for name in sorted(set(EXPECTED) - set(MJX_SIDE_BY_SIDE))
+    ],
+)
 def test_every_brax_task_resets_and_steps_under_jit(name):
     """Registry-wide smoke test: jitted reset and step of the task, shapes and finite values.
     (The tasks of `helpers.MJX_SIDE_BY_SIDE` get the same checks in

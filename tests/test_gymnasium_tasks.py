@@ -143,6 +143,7 @@ MJX_ALWAYS = ("InvertedPendulum-v5",)
 
 
 @pytest.mark.parametrize("gym_id", MJX_GYM_TASKS)
+@pytest.mark.slow
 def test_mjx_runs_the_same_task_as_native_mujoco(gym_id):
     """physics=mjx steps the task's own model (Gymnasium's solver, integrator, contacts) with
     the same formulas: from the same keys and actions its first observations equal native

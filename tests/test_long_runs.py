@@ -98,6 +98,7 @@ def snapshot(path: Path) -> dict[str, str]:
     }
 
 
+@pytest.mark.slow
 def test_sigkill_then_resume_equals_an_uninterrupted_run(tmp_path, monkeypatch):
     """SIGKILL mid-run, move the directory, resume it from elsewhere: metrics and parameters
     equal an uninterrupted run's. Then ``total_steps`` extends the finished run."""

@@ -19,7 +19,11 @@ ALWAYS = MJX_SIDE_BY_SIDE
 BRAX_NATIVE = [task for task in NATIVE_TASKS if task.startswith("brax-")]
 
 
-@pytest.mark.parametrize("task", BRAX_NATIVE)
+# brax-halfcheetah's MJX program compiles in about 20 s: the full suite checks it, the everyday
+# subset checks brax-inverted_pendulum.
+@pytest.mark.parametrize(
+    "task", [pytest.param(t, marks=pytest.mark.slow) if t == "brax-halfcheetah" else t for t in BRAX_NATIVE]
+)
 def test_native_steps_match_mjx_side_by_side(task):
     """From the same keys (so identical initial states) and actions, native MuJoCo and MJX give
     the same observations, rewards and terminations for several steps, to float32 accuracy.

@@ -228,6 +228,7 @@ def leaves_close(a, b) -> bool:
     return all(np.allclose(x, y, rtol=1e-5, atol=1e-6) for x, y in pairs)
 
 
+@pytest.mark.slow
 def test_separate_value_keeps_the_value_loss_out_of_the_policy_step():
     """With its own optimiser, vf_coef does not reach the policy (clipping on, so a shared
     global norm would couple them); with the joint loss it does."""
@@ -239,6 +240,7 @@ def test_separate_value_keeps_the_value_loss_out_of_the_policy_step():
     assert not leaves_equal(c.params.policy, d.params.policy)
 
 
+@pytest.mark.slow
 def test_value_takes_vf_iters_adam_steps_on_its_own_optimizer():
     state, metrics = run_iterations(["vf_lr=1e-3", "vf_iters=3"], iterations=2)
     # Adam's step counters: 3 value steps per iteration, the policy's applied steps apart.
@@ -272,6 +274,7 @@ def test_value_takes_vf_iters_adam_steps_on_its_own_optimizer():
     assert float(m["train/value_loss"]) == pytest.approx(float(jnp.mean(jnp.stack(first))), rel=1e-6)
 
 
+@pytest.mark.slow
 def test_max_grad_norm_zero_means_no_clipping():
     free, metrics = run_iterations(["max_grad_norm=0"])
     huge, _ = run_iterations(["max_grad_norm=1e30"])  # a clip that never binds
@@ -300,6 +303,7 @@ def test_sac_updates_start_at_update_after_during_the_random_actions():
     assert rows == [(8, 1, 0), (16, 1, 4), (24, 1, 4), (32, 1, 4), (40, 1, 4), (48, 0, 4)]
 
 
+@pytest.mark.slow
 def test_separate_value_run_resumes_to_the_uninterrupted_run(tmp_path):
     """The value's optimiser state is in the checkpoint: a run stopped and resumed equals
     one run straight through, and its policy loads from the checkpoint."""
@@ -323,6 +327,7 @@ def test_separate_value_run_resumes_to_the_uninterrupted_run(tmp_path):
     assert np.all(np.isfinite(policy.mean_action(jnp.zeros((1, 6)))))
 
 
+@pytest.mark.slow
 def test_steps_after_an_early_stop_are_skipped_and_change_nothing(monkeypatch):
     """With a KL target, once the policy steps have stopped no gradient is computed (the
     cond's zero branch), and the run equals one that computes and discards them."""

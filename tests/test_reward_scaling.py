@@ -89,6 +89,7 @@ def _train(normalize: bool, scales, iterations: int = 3):
     return [run(jnp.float32(c)) for c in scales]
 
 
+@pytest.mark.slow
 def test_scaled_rewards_train_the_same_agent_only_with_reward_scaling():
     """With normalize_rewards the value targets, advantages and every update see r / std(G),
     which does not change when every reward is multiplied by c; the return statistics do,

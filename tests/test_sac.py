@@ -247,6 +247,7 @@ def test_warmup_collects_uniform_actions_without_updates():
     assert all(jax.tree.leaves(moved))
 
 
+@pytest.mark.slow
 def test_sac_same_seed_same_run():
     cfg = parse_overrides([*FAST, "warmup_steps=128", "utd_ratio=0.125", "explore=coherent"])
     trainer = SACTrainer(cfg)
@@ -269,6 +270,7 @@ def test_sac_same_seed_same_run():
 
 
 @pytest.mark.parametrize("explore", ["action", "coherent"])
+@pytest.mark.slow
 def test_sac_learns_pointmass(explore):
     """Deterministic eval return far above the untrained policy's (about -100).
 

@@ -238,6 +238,7 @@ def test_psne_perturbation_is_fixed_per_episode():
     assert noise.std() > 0.05
 
 
+@pytest.mark.slow
 def test_psne_minibatch_log_prob_draws_each_episode_once_and_equals_per_segment():
     """`batch_log_prob` equals `log_prob` segment by segment, values and gradients, at two
     parameter points, both when the minibatch's episodes fit the chunked layout and when

@@ -52,6 +52,7 @@ def assert_rows_close(rows, expected):
                 assert row[key] == pytest.approx(ref[key], rel=1e-4, abs=1e-5), key
 
 
+@pytest.mark.slow
 def test_sweep_point_equals_single_run(tmp_path):
     """Point (ent_coef=0.5, lr=1e-3, seed=1) of a vmapped 2x2x2 grid logs the metrics of that single run.
 
@@ -153,6 +154,7 @@ def test_grid_is_the_product_with_seeds_innermost():
         sweep.parse_sweep(["seed=[]"])
 
 
+@pytest.mark.slow
 def test_sweepable_keys_enter_only_through_state_hparams():
     """Changing a sweepable key changes init_hparams() and nothing in the traced iteration.
 

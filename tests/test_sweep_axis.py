@@ -67,6 +67,7 @@ def test_sweep_iteration_keeps_its_conds(explore):
     assert count_conds(named) >= count_conds(plain) + {"action": 1, "pink": 2, "psne": 4}[explore]
 
 
+@pytest.mark.slow
 def test_each_point_of_a_sweep_runs_as_alone():
     """Pink noise (conds of env resets and episode draws): the points differ in their
     episode phase, so their predicates differ; each point's next iterations equal that
