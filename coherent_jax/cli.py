@@ -31,8 +31,6 @@ import yaml
 
 from coherent_jax.config import FIELDS, Config, ConfigError, modern_items, parse_overrides
 
-EXIT_BAD_INPUT = 2  # exit status of every command on bad input
-
 
 @dataclasses.dataclass(frozen=True)
 class Key:

@@ -34,6 +34,7 @@ from typing import Any
 
 from coherent_jax import cli, limits, rundir, video
 from coherent_jax.config import ConfigError
+from coherent_jax.exit_codes import EXIT_BAD_INPUT
 from coherent_jax.runs import CHECKPOINT, CheckpointError, decode_checkpoint, load_config
 
 ENGINES = ("jax", "gymnasium")
@@ -287,13 +288,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             check_gymnasium()
     except (ConfigError, CheckpointError) as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return cli.EXIT_BAD_INPUT
+        return EXIT_BAD_INPUT
     print(f"[coherent_jax] evaluating {run_dir} ({opts.episodes} episodes)", flush=True)
     try:
         result = evaluate_run(run_dir, opts)
     except (CheckpointError, PolicyError) as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return cli.EXIT_BAD_INPUT
+        return EXIT_BAD_INPUT
     when = (
         f"{result['source']}"
         if result["iteration"] is None

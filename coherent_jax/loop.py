@@ -20,11 +20,15 @@ states (``vmap(trainer.iteration)``). Either way it
   aggregate leaves it out; the other points continue unchanged (vmapped points never
   exchange values, so a NaN in one cannot reach another). The sweep stops when every
   point has diverged.
+
+Its steps are named functions of a `loop_state.Session`: `start_session` (devices,
+keys, initial or restored state), `compile_programs`, `open_outputs`, then per
+iteration `iterate` (which calls `guard`, the checks of `coherent_jax.divergence`),
+`sink_metrics`, `save_checkpoint` and `show_progress`, and `close_outputs`.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import signal
@@ -35,9 +39,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from coherent_jax.config import Config
-from coherent_jax.points import vmap_points
-from coherent_jax.quiet import quiet_imports  # noqa: F401  (re-exported: train and sweep call it)
+from coherent_jax.agents.trainer import Trainer
+from coherent_jax.divergence import DivergenceError, PointView, check_finite
+from coherent_jax.loop_state import Job, Outcome, Programs, Session
 from coherent_jax.runs import (
     CHECKPOINT,
     METRICS,
@@ -50,10 +54,7 @@ from coherent_jax.runs import (
     state_to_bytes,
     truncate_metrics,
 )
-
-
-class DivergenceError(RuntimeError):
-    """A loss or a parameter became non-finite; the message names the iteration and the quantity."""
+from coherent_jax.sweep_axis import vmap_points
 
 
 def run_keys(seed: int):
@@ -114,145 +115,6 @@ class StopRequest:
             signal.signal(sig, handler)
 
 
-def run_command(
-    argv: list[str], help_text: Callable[[], str], body: Callable[[list[str], StopRequest], int]
-) -> int:
-    """The entry of ``train`` and ``sweep``: ``--help``, else ``body(argv, stop)`` with SIGINT
-    and SIGTERM turned into a stop request; a Ctrl-C before the handler took over exits
-    130 without a traceback."""
-    if any(a in ("-h", "--help", "help") for a in argv):
-        print(help_text())
-        return 0
-    with StopRequest() as stop:
-        try:
-            return body(argv, stop)
-        except KeyboardInterrupt:
-            print(f"{PREFIX} interrupted", file=sys.stderr, flush=True)
-            return 128 + signal.SIGINT
-
-
-def first_non_finite(tree: Any) -> str:
-    """Path of the first array of `tree` (on the host) holding a NaN or an infinity."""
-    import jax
-    import numpy as np
-
-    for where, leaf in jax.tree_util.tree_flatten_with_path(jax.device_get(tree))[0]:
-        leaf = np.asarray(leaf)
-        if np.issubdtype(leaf.dtype, np.inexact) and not np.all(np.isfinite(leaf)):
-            return jax.tree_util.keystr(where)
-    return "?"
-
-
-def check_finite(
-    it: int,
-    metrics: dict[str, float],
-    params_ok: bool,
-    state: Any,
-    trainer: Any,
-    run_dir: Path | None,
-    saved: int,
-) -> None:
-    """Raises `DivergenceError` if a loss metric or a parameter is non-finite.
-
-    Losses are checked only when the iteration applied an update
-    (``train/updates_applied`` > 0, or absent): SAC reports NaN losses by design while
-    its replay buffer warms up. Parameters are always checked. `saved` is the
-    iteration of the last checkpoint written (the one a resume starts from).
-    """
-    updated = metrics.get("train/updates_applied", 1.0) > 0
-    bad = [k for k, v in metrics.items() if updated and "loss" in k and not math.isfinite(v)]
-    if not bad and params_ok:
-        return
-    if bad:
-        quantity = f"{bad[0]} = {metrics[bad[0]]}"
-    else:
-        quantity = f"parameter {first_non_finite(trainer.export_params(state))} is not finite"
-    kept = (
-        f"; last good checkpoint: iteration {saved} in {run_dir / CHECKPOINT}"
-        if run_dir and (run_dir / CHECKPOINT).exists()
-        else "; no checkpoint was written before it"
-    )
-    raise DivergenceError(f"diverged at iteration {it}: {quantity}{kept}")
-
-
-@dataclasses.dataclass(frozen=True)
-class Job:
-    """What the loop runs.
-
-    Attributes:
-      cfg: the settings every point shares (shapes, schedule, outputs).
-      trainer: `coherent_jax.agents.make_trainer`'s object for `cfg`.
-      seeds: one seed per point (a single run: one).
-      names: one name per point, for messages.
-      run_dir: where the checkpoint lives (None: nothing is written).
-      point_dirs: per point, where its metrics, TensorBoard files, parameters and
-        summary go (a single run: ``[run_dir]``).
-      hparams: a sweep's stacked hyperparameters (leading axis: points); None for a
-        single run, whose state is not vmapped.
-      label: how the start-up line names the job.
-    """
-
-    cfg: Config
-    trainer: Any
-    seeds: list[int]
-    names: list[str]
-    run_dir: Path | None
-    point_dirs: list[Path] | None
-    hparams: Any = None
-    label: str = ""
-
-    @property
-    def points(self) -> bool:
-        return self.hparams is not None
-
-    @property
-    def num_points(self) -> int:
-        return len(self.seeds)
-
-
-@dataclasses.dataclass
-class Outcome:
-    """How the loop ended.
-
-    Attributes:
-      state: the final train state (stacked for a sweep).
-      loop: the loop's state (timers; per-point last returns and evaluations).
-      start, done: the iteration it started after and the last one done.
-      compile_s: seconds of compilation in this process.
-      num_devices: devices the work was spread over.
-      physics: the physics engine the trainer's env resolved to.
-      stopped_by: the signal's name when SIGINT/SIGTERM ended it early, else None.
-      last_return, last_eval: per point (lists of length num_points).
-      diverged: per diverged point (index), the reason.
-      wall_s: seconds since the run began, over all its sessions.
-    """
-
-    state: Any
-    loop: LoopState
-    start: int
-    done: int
-    compile_s: float
-    num_devices: int
-    physics: str
-    stopped_by: str | None
-    last_return: list[float]
-    last_eval: dict[str, list[float]]
-    diverged: dict[int, str]
-    wall_s: float
-
-
-class _PointView:
-    """One point of a stacked state, for `check_finite`'s parameter search."""
-
-    def __init__(self, trainer: Any, index: int) -> None:
-        self.trainer, self.index = trainer, index
-
-    def export_params(self, states: Any) -> Any:
-        import jax
-
-        return jax.tree.map(lambda x: x[self.index], self.trainer.export_params(states))
-
-
 def _per_point(values: dict[str, Any], n: int) -> dict[str, Any]:
     """Metrics as float64 arrays of one value per point ([n])."""
     import numpy as np
@@ -279,63 +141,82 @@ def _open_outputs(job: Job, start: int, resumed: bool):
     return files, writers
 
 
-def run_loop(
-    job: Job,
-    stop: StopRequest,
-    resume: Checkpoint | None = None,
-    progress_fn: Callable[[int, dict[str, float]], None] | None = None,
-) -> Outcome:
-    """Runs `job` from scratch or from `resume`, until the budget is spent or `stop` is requested.
+def start_session(job: Job, resume: Checkpoint | None, t_start: float) -> Session:
+    """Step 1, start: the devices, the keys (`run_keys`), the initial or restored state.
 
-    ``progress_fn(iteration, metrics)`` receives a single run's metrics (Python
-    floats) after every iteration. Raises `DivergenceError` when a single run
-    diverges (see the module docstring for sweeps).
+    Says "compiling ..." before anything slow. A resumed state takes its structure
+    from tracing ``init`` and its values from the checkpoint; its loop state and
+    evaluation key continue where the checkpoint left them.
     """
     import jax
     import jax.numpy as jnp
-    import numpy as np
-    from tqdm.auto import tqdm
 
-    from coherent_jax import distributed, parallel
+    from coherent_jax import sharding
 
     cfg, trainer, n = job.cfg, job.trainer, job.num_points
-    t_start = time.perf_counter()
-    available = parallel.resolve_num_devices(cfg.num_devices)
+    available = sharding.resolve_num_devices(cfg.num_devices)
     keys = [run_keys(s) for s in job.seeds]
     if job.points:
-        num_devices = parallel.point_device_count(n, available)
+        num_devices = sharding.point_device_count(n, available)
         key = jnp.stack([k for k, _ in keys])
         init_key = jnp.stack([k for _, k in keys])
     else:
         num_devices = available
-        parallel.check_env_split(cfg.num_envs, num_devices)
+        sharding.check_env_split(cfg.num_envs, num_devices)
         key, init_key = keys[0]
     # The engine `physics=auto` resolved to (trainers keep their training env in `.env`).
     physics = getattr(getattr(trainer, "env", None), "physics", cfg.physics)
     devices_note = f" on {num_devices} devices" if num_devices > 1 else ""
     print(f"{PREFIX} {job.label} physics={physics}: compiling{devices_note} ...", flush=True)
 
-    t0 = time.perf_counter()
+    t_compile = time.perf_counter()
     loop = LoopState(eval_key=jax.device_get(key).tolist())
     start = 0
     if resume is None:
         if job.points:
-            state, shardings = parallel.init_points(trainer, init_key, job.hparams, num_devices)
+            state, shardings = sharding.init_points(trainer, init_key, job.hparams, num_devices)
         else:
-            state, shardings = parallel.init_state(trainer, init_key, num_devices, cfg.num_envs)
-    else:  # the state's structure from tracing init, its values from the checkpoint
+            state, shardings = sharding.init_state(trainer, init_key, num_devices, cfg.num_envs)
+    else:
         # Several processes: each reads the checkpoint, only process 0 has a run_dir.
         checkpoint_path = Path(cfg.resume or job.run_dir or ".") / CHECKPOINT
         if job.points:
             template = jax.eval_shape(vmap_points(trainer.init), init_key, job.hparams)
             state = restore_state(template, resume.state_bytes, checkpoint_path)
-            state, shardings = parallel.shard_points(state, num_devices)
+            state, shardings = sharding.shard_points(state, num_devices)
         else:
             template = jax.eval_shape(trainer.init, init_key)
             state = restore_state(template, resume.state_bytes, checkpoint_path)
-            state, shardings = parallel.shard_state(state, num_devices, cfg.num_envs)
+            state, shardings = sharding.shard_state(state, num_devices, cfg.num_envs)
         loop, start = resume.loop, resume.iteration
         key = jnp.asarray(loop.eval_key, dtype=jnp.uint32)
+    return Session(
+        job=job,
+        num_devices=num_devices,
+        physics=physics,
+        state=state,
+        shardings=shardings,
+        key=key,
+        loop=loop,
+        start=start,
+        resumed=resume is not None,
+        t_start=t_start,
+        t_compile=t_compile,
+    )
+
+
+def compile_programs(run: Session) -> None:
+    """Step 2, compile: the iteration, the evaluation, the parameter check, the key split.
+
+    Says how long the compile took (the state's init or restore included), apart
+    from the training time that follows.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    from coherent_jax import sharding
+
+    job, trainer, cfg = run.job, run.job.trainer, run.job.cfg
 
     def params_finite(s):
         leaves = jax.tree.leaves(trainer.export_params(s))
@@ -344,151 +225,240 @@ def run_loop(
         )
 
     vmapped = vmap_points if job.points else (lambda f: f)
-    iteration = parallel.compile_iteration(trainer, state, shardings, points=job.points)
-    evaluate = jax.jit(vmapped(trainer.evaluate)).lower(state, key).compile()
-    check_params = jax.jit(vmapped(params_finite)).lower(state).compile()
-    split = jax.jit(vmapped(jax.random.split))
-    compile_s = time.perf_counter() - t0
+    run.programs = Programs(
+        iteration=sharding.compile_iteration(trainer, run.state, run.shardings, points=job.points),
+        evaluate=jax.jit(vmapped(trainer.evaluate)).lower(run.state, run.key).compile(),
+        check_params=jax.jit(vmapped(params_finite)).lower(run.state).compile(),
+        split=jax.jit(vmapped(jax.random.split)),
+    )
+    run.compile_s = time.perf_counter() - run.t_compile
     print(
-        f"{PREFIX} compiled in {compile_s:.1f} s; {cfg.num_iterations} iterations of "
+        f"{PREFIX} compiled in {run.compile_s:.1f} s; {cfg.num_iterations} iterations of "
         f"{cfg.steps_per_iteration} env steps"
         + (" per point" if job.points else "")
-        + (f"; resuming after iteration {start}" if resume is not None else ""),
+        + (f"; resuming after iteration {run.start}" if run.resumed else ""),
         flush=True,
     )
 
+
+def open_outputs(run: Session, stop: StopRequest) -> None:
+    """The per-point loop values, the metrics files, TensorBoard writers and the progress bar.
+
+    Several processes: only process 0 has the run directory, but all take part in
+    gathering a checkpoint's state, and all agree on a stop before the first iteration.
+    """
+    import numpy as np
+    from tqdm.auto import tqdm
+
+    from coherent_jax import multihost
+
+    job, cfg, loop, n = run.job, run.job.cfg, run.loop, run.job.num_points
     # Per-point loop state as arrays; a single run keeps scalars in its checkpoint.
-    last_return = np.broadcast_to(np.asarray(loop.last_return, np.float64), (n,)).copy()
-    last_eval = {k: np.asarray(v, np.float64).reshape(n) for k, v in loop.last_eval.items()}
-    diverged = {int(k): v for k, v in loop.diverged.items()}
-    elapsed_before = loop.elapsed_s
-
-    def save_checkpoint(done: int) -> None:
-        loop.eval_key = jax.device_get(key).tolist()
-        loop.elapsed_s = elapsed_before + time.perf_counter() - t_start
-        loop.last_return = last_return.tolist() if job.points else float(last_return[0])
-        loop.last_eval = {k: v.tolist() if job.points else float(v[0]) for k, v in last_eval.items()}
-        loop.diverged = {str(k): v for k, v in diverged.items()}
-        state_bytes = state_to_bytes(state)  # every process: the state is gathered from all
-        if not job.run_dir:
-            return
-        blob = encode_checkpoint(cfg, done, done * cfg.steps_per_iteration, loop, state_bytes)
-        atomic_write(job.run_dir / CHECKPOINT, blob)
-        for w in writers:
-            if w is not None:
-                w.flush()
-
-    files, writers = _open_outputs(job, start, resume is not None)
-    # Several processes: only process 0 has the run directory, but all gather the state.
-    checkpoints = distributed.from_writer(job.run_dir is not None)
-    bar = tqdm(
+    run.last_return = np.broadcast_to(np.asarray(loop.last_return, np.float64), (n,)).copy()
+    run.last_eval = {k: np.asarray(v, np.float64).reshape(n) for k, v in loop.last_eval.items()}
+    run.diverged = {int(k): v for k, v in loop.diverged.items()}
+    run.elapsed_before = loop.elapsed_s
+    run.files, run.writers = _open_outputs(job, run.start, run.resumed)
+    run.checkpoints = multihost.from_writer(job.run_dir is not None)
+    run.bar = tqdm(
         total=cfg.num_iterations * cfg.steps_per_iteration,
-        initial=start * cfg.steps_per_iteration,
+        initial=run.start * cfg.steps_per_iteration,
         unit="step",
-        disable=not cfg.progress or not distributed.is_writer(),  # one progress bar per run
+        disable=not cfg.progress or not multihost.is_writer(),  # one progress bar per run
         dynamic_ncols=True,
         mininterval=1.0,
         # One rate: the postfix's training env steps/s (tqdm's own would count compile and eval).
         bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}{postfix}]",
     )
-    done = start
-    saved = start if resume is not None else -1
+    run.done = run.start
+    run.saved = run.start if run.resumed else -1
     # A signal to one process stops all of them after the same iteration; the agreed
     # value, not the local one, decides (a signal may arrive after the agreement).
-    stopping = distributed.largest(stop.signum or 0)
-    try:
-        for i in range(start, cfg.num_iterations):
-            if stopping:
-                break
-            t0 = time.perf_counter()
-            state, metrics = iteration(state)
-            metrics = _per_point(distributed.to_host(metrics), n)
-            finite = np.asarray(distributed.to_host(check_params(state))).reshape(n)
-            loop.train_s += time.perf_counter() - t0
-            for j in range(n):
-                if j in diverged:
-                    continue
-                try:
-                    view = _PointView(trainer, j) if job.points else trainer
-                    one = {k: float(v[j]) for k, v in metrics.items()}
-                    check_finite(i + 1, one, bool(finite[j]), state, view, job.run_dir, max(saved, 0))
-                except DivergenceError as exc:
-                    if not job.points:
-                        raise
-                    diverged[j] = str(exc).split("; last good", 1)[0].split("; no checkpoint", 1)[0]
-                    print(
-                        f"{PREFIX} warning: point {job.names[j]} {diverged[j]}; its rows stop here, "
-                        "the other points continue",
-                        file=sys.stderr,
-                        flush=True,
-                    )
-            last = i == cfg.num_iterations - 1
-            if last or (cfg.eval_every > 0 and (i + 1) % cfg.eval_every == 0):
-                t0 = time.perf_counter()
-                keys_now = split(key)
-                key, eval_key = (keys_now[:, 0], keys_now[:, 1]) if job.points else (keys_now[0], keys_now[1])
-                last_eval = _per_point(distributed.to_host(evaluate(state, eval_key)), n)
-                loop.eval_s += time.perf_counter() - t0
-                metrics.update(last_eval)
-            ret = metrics["train/episode_return"]
-            last_return = np.where(np.isnan(ret), last_return, ret)
-            env_steps = (i + 1) * cfg.steps_per_iteration
-            time_s = elapsed_before + time.perf_counter() - t_start
-            for j, (f, w) in enumerate(zip(files, writers, strict=True)):
-                if j in diverged:
-                    continue
-                row = {"iteration": i + 1, "env_steps": env_steps, "time_s": time_s}
-                row.update({k: to_float(v[j]) for k, v in metrics.items()})
-                f.write(json.dumps(row) + "\n")
-                f.flush()
-                if w is not None:
-                    for k, v in metrics.items():
-                        if math.isfinite(v[j]):
-                            w.add_scalar(k, float(v[j]), env_steps)
-            done = i + 1
-            if progress_fn:
-                progress_fn(done, {k: float(v[0]) for k, v in metrics.items()})
-            every = cfg.checkpoint_every > 0 and done % cfg.checkpoint_every == 0
-            stopping = distributed.largest(stop.signum or 0)
-            if checkpoints and (last or every or stopping):
-                save_checkpoint(done)
-                saved = done
-            bar.update(cfg.steps_per_iteration)
-            live = [j for j in range(n) if j not in diverged and math.isfinite(last_return[j])]
-            bar.set_postfix(
-                sps=f"{n * env_steps / max(loop.train_s, 1e-9):.0f}",
-                ret=f"{np.mean(last_return[live]):.1f}" if live else "nan",
-                eval=f"{np.nanmean(last_eval['eval/episode_return']):.1f}" if last_eval else "nan",
-                refresh=False,
+    run.stopping = multihost.largest(stop.signum or 0)
+
+
+def iterate(run: Session, i: int) -> dict[str, Any]:
+    """Step 3, iterate: iteration ``i + 1``, its divergence guard, and an evaluation when due.
+
+    Returns the iteration's metrics per point (float64 [n] arrays), the evaluation's
+    merged in on an evaluation row; updates the timers and the last returns.
+    """
+    import numpy as np
+
+    from coherent_jax import multihost
+
+    job, cfg, loop, n, programs = run.job, run.job.cfg, run.loop, run.job.num_points, run.programs
+    t0 = time.perf_counter()
+    run.state, metrics = programs.iteration(run.state)
+    metrics = _per_point(multihost.to_host(metrics), n)
+    finite = np.asarray(multihost.to_host(programs.check_params(run.state))).reshape(n)
+    loop.train_s += time.perf_counter() - t0
+    guard(run, i + 1, metrics, finite)
+    if i == cfg.num_iterations - 1 or (cfg.eval_every > 0 and (i + 1) % cfg.eval_every == 0):
+        t0 = time.perf_counter()
+        keys_now = programs.split(run.key)
+        run.key, eval_key = (keys_now[:, 0], keys_now[:, 1]) if job.points else (keys_now[0], keys_now[1])
+        run.last_eval = _per_point(multihost.to_host(programs.evaluate(run.state, eval_key)), n)
+        loop.eval_s += time.perf_counter() - t0
+        metrics.update(run.last_eval)
+    ret = metrics["train/episode_return"]
+    run.last_return = np.where(np.isnan(ret), run.last_return, ret)
+    return metrics
+
+
+def guard(run: Session, it: int, metrics: dict[str, Any], finite: Any) -> None:
+    """Step 4, guard: `check_finite` for every point still live after iteration `it`.
+
+    A single run raises `DivergenceError`; a sweep marks the point as diverged (its
+    rows stop here), names it on stderr and continues with the others.
+    """
+    job = run.job
+    for j in range(job.num_points):
+        if j in run.diverged:
+            continue
+        try:
+            view = PointView(job.trainer, j) if job.points else job.trainer
+            one = {k: float(v[j]) for k, v in metrics.items()}
+            check_finite(it, one, bool(finite[j]), run.state, view, job.run_dir, max(run.saved, 0))
+        except DivergenceError as exc:
+            if not job.points:
+                raise
+            run.diverged[j] = str(exc).split("; last good", 1)[0].split("; no checkpoint", 1)[0]
+            print(
+                f"{PREFIX} warning: point {job.names[j]} {run.diverged[j]}; its rows stop here, "
+                "the other points continue",
+                file=sys.stderr,
+                flush=True,
             )
-            if len(diverged) == n:
-                break
-        if stopping and checkpoints and saved != done:
-            save_checkpoint(done)  # stopped before the first iteration: resume starts here
-    finally:
-        bar.close()
-        for f in files:
-            f.close()
-        for w in writers:
-            if w is not None:
-                w.close()
-    return Outcome(
-        state=state,
-        loop=loop,
-        start=start,
-        done=done,
-        compile_s=compile_s,
-        num_devices=num_devices,
-        physics=physics,
-        stopped_by=signal.Signals(stopping).name if stopping else None,
-        last_return=[float(x) for x in last_return],
-        last_eval={k: [float(x) for x in v] for k, v in last_eval.items()},
-        diverged=diverged,
-        wall_s=elapsed_before + time.perf_counter() - t_start,
+
+
+def sink_metrics(run: Session, it: int, metrics: dict[str, Any]) -> None:
+    """Step 5, sink metrics: iteration `it`'s row in each live point's ``metrics.jsonl`` and
+    its finite scalars in TensorBoard (step: env steps)."""
+    cfg = run.job.cfg
+    env_steps = it * cfg.steps_per_iteration
+    time_s = run.elapsed_before + time.perf_counter() - run.t_start
+    for j, (f, w) in enumerate(zip(run.files, run.writers, strict=True)):
+        if j in run.diverged:
+            continue
+        row = {"iteration": it, "env_steps": env_steps, "time_s": time_s}
+        row.update({k: to_float(v[j]) for k, v in metrics.items()})
+        f.write(json.dumps(row) + "\n")
+        f.flush()
+        if w is not None:
+            for k, v in metrics.items():
+                if math.isfinite(v[j]):
+                    w.add_scalar(k, float(v[j]), env_steps)
+
+
+def save_checkpoint(run: Session) -> None:
+    """Step 6, checkpoint: the whole state and the loop's state after ``run.done`` iterations.
+
+    Every process gathers the state (a collective); only the one with the run
+    directory writes it, atomically, and flushes the TensorBoard writers so that
+    their events are not behind the checkpoint.
+    """
+    import jax
+
+    job, loop, points = run.job, run.loop, run.job.points
+    loop.eval_key = jax.device_get(run.key).tolist()
+    loop.elapsed_s = run.elapsed_before + time.perf_counter() - run.t_start
+    loop.last_return = run.last_return.tolist() if points else float(run.last_return[0])
+    loop.last_eval = {k: v.tolist() if points else float(v[0]) for k, v in run.last_eval.items()}
+    loop.diverged = {str(k): v for k, v in run.diverged.items()}
+    state_bytes = state_to_bytes(run.state)  # every process: the state is gathered from all
+    if not job.run_dir:
+        return
+    blob = encode_checkpoint(job.cfg, run.done, run.done * job.cfg.steps_per_iteration, loop, state_bytes)
+    atomic_write(job.run_dir / CHECKPOINT, blob)
+    for w in run.writers:
+        if w is not None:
+            w.flush()
+
+
+def show_progress(run: Session) -> None:
+    """The progress bar after ``run.done`` iterations: training env steps/s, last return, last evaluation."""
+    import numpy as np
+
+    n, steps = run.job.num_points, run.job.cfg.steps_per_iteration
+    run.bar.update(steps)
+    live = [j for j in range(n) if j not in run.diverged and math.isfinite(run.last_return[j])]
+    run.bar.set_postfix(
+        sps=f"{n * run.done * steps / max(run.loop.train_s, 1e-9):.0f}",
+        ret=f"{np.mean(run.last_return[live]):.1f}" if live else "nan",
+        eval=f"{np.nanmean(run.last_eval['eval/episode_return']):.1f}" if run.last_eval else "nan",
+        refresh=False,
     )
 
 
-def write_params(trainer: Any, state: Any, point_dirs: list[Path], points: bool) -> None:
+def close_outputs(run: Session) -> None:
+    """The progress bar, the metrics files and the TensorBoard writers, closed."""
+    run.bar.close()
+    for f in run.files:
+        f.close()
+    for w in run.writers:
+        if w is not None:
+            w.close()
+
+
+def run_loop(
+    job: Job,
+    stop: StopRequest,
+    resume: Checkpoint | None = None,
+    progress_fn: Callable[[int, dict[str, float]], None] | None = None,
+) -> Outcome:
+    """Runs `job` from scratch or from `resume`, until the budget is spent or `stop` is requested.
+
+    The steps: `start_session`, `compile_programs`, then per iteration `iterate` (with
+    `guard`), `sink_metrics` and, every ``checkpoint_every`` iterations, at the end and
+    on a stop, `save_checkpoint`. ``progress_fn(iteration, metrics)`` receives a single
+    run's metrics (Python floats) after every iteration. Raises `DivergenceError` when
+    a single run diverges (see the module docstring for sweeps).
+    """
+    from coherent_jax import multihost
+
+    cfg, n = job.cfg, job.num_points
+    run = start_session(job, resume, time.perf_counter())
+    compile_programs(run)
+    open_outputs(run, stop)
+    try:
+        for i in range(run.start, cfg.num_iterations):
+            if run.stopping:
+                break
+            metrics = iterate(run, i)
+            sink_metrics(run, i + 1, metrics)
+            run.done = i + 1
+            if progress_fn:
+                progress_fn(run.done, {k: float(v[0]) for k, v in metrics.items()})
+            every = cfg.checkpoint_every > 0 and run.done % cfg.checkpoint_every == 0
+            run.stopping = multihost.largest(stop.signum or 0)
+            if run.checkpoints and (i == cfg.num_iterations - 1 or every or run.stopping):
+                save_checkpoint(run)
+                run.saved = run.done
+            show_progress(run)
+            if len(run.diverged) == n:
+                break
+        if run.stopping and run.checkpoints and run.saved != run.done:
+            save_checkpoint(run)  # stopped before the first iteration: resume starts here
+    finally:
+        close_outputs(run)
+    return Outcome(
+        state=run.state,
+        loop=run.loop,
+        start=run.start,
+        done=run.done,
+        compile_s=run.compile_s,
+        num_devices=run.num_devices,
+        physics=run.physics,
+        stopped_by=signal.Signals(run.stopping).name if run.stopping else None,
+        last_return=[float(x) for x in run.last_return],
+        last_eval={k: [float(x) for x in v] for k, v in run.last_eval.items()},
+        diverged=run.diverged,
+        wall_s=run.elapsed_before + time.perf_counter() - run.t_start,
+    )
+
+
+def write_params(trainer: Trainer, state: Any, point_dirs: list[Path], points: bool) -> None:
     """Each point's final parameters and observation statistics (flax msgpack) in its directory.
 
     Several processes: every process must call it (the parameters are gathered from
@@ -497,7 +467,7 @@ def write_params(trainer: Any, state: Any, point_dirs: list[Path], points: bool)
     import jax
     from flax import serialization
 
-    from coherent_jax.distributed import to_host
+    from coherent_jax.multihost import to_host
 
     params = to_host(trainer.export_params(state))
     for j, d in enumerate(point_dirs):

@@ -37,6 +37,7 @@ import numpy as np
 
 from coherent_jax import cli
 from coherent_jax.config import ConfigError, to_dict
+from coherent_jax.exit_codes import EXIT_BAD_INPUT
 from coherent_jax.runs import CONFIG, METRICS, load_config, read_metrics
 
 KEYS: dict[str, cli.Key] = {
@@ -373,7 +374,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         runs = [load_run(p, opts["metric"]) for p in find_runs(paths)]
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return cli.EXIT_BAD_INPUT
+        return EXIT_BAD_INPUT
     out = Path(opts["out"])
     out.mkdir(parents=True, exist_ok=True)
     grouped = group_curves(runs)

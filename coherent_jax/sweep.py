@@ -19,7 +19,7 @@ continue; exit status 3 at the end). A resume may restate the grid but not chang
 single run's is (`coherent_jax.runlock`). Each point derives its keys exactly as a
 single run does (`loop.run_keys`), so point i equals ``python -m
 coherent_jax.train`` with that point's settings. With several JAX devices the
-points are split over them (`parallel.point_shardings`).
+points are split over them (`sharding.point_shardings`).
 
 Outputs, in ``run_dir`` (default ``runs/sweep-<env>-<algo>-<explore>-<time>``): the
 shared ``config.yaml`` and the grid (``grid.json``), ``versions.json``, the
@@ -34,18 +34,17 @@ before anything is written.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import itertools
 import json
-import signal
 import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from coherent_jax import cli, distributed, limits, rundir
+from coherent_jax import cli, launch, limits, multihost, rundir, sweep_resume
+from coherent_jax.agents.trainer import Trainer
 from coherent_jax.config import (
     FIELDS,
     SWEEPABLE,
@@ -60,26 +59,14 @@ from coherent_jax.config import (
     validate,
     with_values,
 )
-from coherent_jax.loop import (
-    PREFIX,
-    Job,
-    StopRequest,
-    quiet_imports,
-    run_command,
-    run_loop,
-    to_float,
-    write_params,
-)
+from coherent_jax.loop import PREFIX, StopRequest, to_float, write_params
+from coherent_jax.loop_state import Job, Outcome
 from coherent_jax.memory import check_memory
 from coherent_jax.runs import (
     METRICS,
     Checkpoint,
-    CheckpointError,
     atomic_write,
-    prepare_output_dir,
-    record_versions,
     resume_point,
-    split_resume,
     write_config,
 )
 from coherent_jax.sweep_table import aggregate, fmt, format_table, to_csv
@@ -96,7 +83,6 @@ SWEEP_KEYS = {
         help="runs every point with seeds seed, seed+1, ..., seed+N-1 (default: seed alone)",
     ),
 }
-EXIT_DIVERGED = 3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -237,7 +223,7 @@ def point_hparams(base_hparams: Any, point: Point) -> Any:
     return hparams
 
 
-def stacked_hparams(plan: SweepPlan, trainer: Any) -> Any:
+def stacked_hparams(plan: SweepPlan, trainer: Trainer) -> Any:
     """Every point's hyperparameters stacked on a leading axis (the vmapped init's input)."""
     import jax
     import jax.numpy as jnp
@@ -264,10 +250,31 @@ def run_sweep(
     ``env`` and ``eval_env`` (`VecEnv`s of the plan's shapes) are built if not given.
     With `resume` (a verified checkpoint of ``out_dir``) the grid continues after it.
     """
-    import contextlib
+    job = sweep_job(plan, out_dir, env, eval_env)
+    out = launch.drive(job, stop, resume)
+    result = sweep_result(plan, out, resume is not None)
+    if launch.report_stopped(out, out_dir):
+        return result
+    write_params(job.trainer, out.state, job.point_dirs, points=True)  # every process: a collective
+    if out_dir is not None:
+        for d, summary in zip(job.point_dirs, result["points"], strict=True):
+            atomic_write(d / "summary.json", json.dumps(summary, indent=2).encode())
+        atomic_write(out_dir / "sweep.csv", to_csv(plan, result["rows"]).encode())
+        atomic_write(out_dir / "sweep.json", json.dumps(result, indent=2).encode())
+    print(format_table(plan, result["rows"]), flush=True)
+    for name, reason in result["diverged"].items():
+        print(f"{PREFIX} point {name} {reason}", flush=True)
+    print(
+        f"{PREFIX} sweep done: {result['sweep_env_steps_per_s']:.0f} env steps/s over all points, "
+        f"compile {out.compile_s:.1f} s, wall {result['wall_s']:.0f} s"
+        + (f"; results in {out_dir}" if out_dir else ""),
+        flush=True,
+    )
+    return result
 
-    import jax
 
+def sweep_job(plan: SweepPlan, out_dir: Path | None, env=None, eval_env=None) -> Job:
+    """The loop's job for `plan`: one trainer for every point, each point's directory and config written."""
     from coherent_jax.agents import make_trainer
     from coherent_jax.envs.vec_env import VecEnv
 
@@ -277,7 +284,6 @@ def run_sweep(
         cfg.env, cfg.eval_episodes, cfg.episode_length, cfg.physics, cfg.physics_threads
     )
     trainer = make_trainer(cfg, env, eval_env)  # shapes and program: shared by every point
-    num_points = len(plan.points)
     point_dirs: list[Path] = []
     if out_dir is not None:
         for p in plan.points:
@@ -285,7 +291,7 @@ def run_sweep(
             d.mkdir(exist_ok=True)  # a resumed sweep, or one started over in its own directory
             write_config(d, _point_config(p, d))
             point_dirs.append(d)
-    job = Job(
+    return Job(
         cfg=cfg,
         trainer=trainer,
         seeds=[p.seed for p in plan.points],
@@ -293,24 +299,13 @@ def run_sweep(
         run_dir=out_dir,
         point_dirs=point_dirs,
         hparams=stacked_hparams(plan, trainer),
-        label=f"sweep of {num_points} points ({cfg.env} {cfg.algo} explore={cfg.explore})",
+        label=f"sweep of {len(plan.points)} points ({cfg.env} {cfg.algo} explore={cfg.explore})",
     )
-    with contextlib.ExitStack() as stack:
-        stop = stop or stack.enter_context(StopRequest())
-        out = run_loop(job, stop, resume)
 
-    total_steps = out.done * cfg.steps_per_iteration
-    common = {
-        "env_steps": total_steps,
-        "compile_s": round(out.compile_s, 2),
-        "train_s": round(out.loop.train_s, 2),
-        "eval_s": round(out.loop.eval_s, 2),
-        "jax_version": jax.__version__,
-        "backend": jax.default_backend(),
-        "num_devices": out.num_devices,
-    }
-    nan = [float("nan")] * num_points
-    evals, stds = (out.last_eval.get(f"eval/episode_return{s}", nan) for s in ("", "_std"))
+
+def point_summaries(plan: SweepPlan, out: Outcome, common: dict[str, Any]) -> list[dict[str, Any]]:
+    """Each point's ``summary.json``: its settings and final returns (None for a diverged point)."""
+    cfg = plan.base
     summaries = []
     for j, p in enumerate(plan.points):
         ok = j not in out.diverged
@@ -332,43 +327,28 @@ def run_sweep(
                 **common,
             }
         )
-    rows = aggregate(plan, summaries)
-    result = {
+    return summaries
+
+
+def sweep_result(plan: SweepPlan, out: Outcome, resumed: bool) -> dict[str, Any]:
+    """``sweep.json``: the grid, the timings, the aggregate rows over seeds and every point's summary."""
+    num_points = len(plan.points)
+    total_steps = out.done * plan.base.steps_per_iteration
+    common = {"env_steps": total_steps, **launch.timings(out), **launch.platform(out)}
+    summaries = point_summaries(plan, out, common)
+    return {
         "axes": plan.axes,
         "seeds": plan.seeds,
         "num_points": num_points,
         **common,
         "wall_s": round(out.wall_s, 2),
         "sweep_env_steps_per_s": round(num_points * total_steps / max(out.loop.train_s, 1e-9), 1),
-        "resumed_from": out.start if resume is not None else None,
+        "resumed_from": out.start if resumed else None,
         "stopped_by": out.stopped_by,
         "diverged": {plan.points[j].name: reason for j, reason in sorted(out.diverged.items())},
-        "rows": rows,
+        "rows": aggregate(plan, summaries),
         "points": summaries,
     }
-    if out.stopped_by is not None:
-        print(
-            f"{PREFIX} stopped by {out.stopped_by} after iteration {out.done}; "
-            + (f"checkpoint saved; continue with resume={out_dir}" if out_dir else "nothing saved"),
-            flush=True,
-        )
-        return result
-    write_params(trainer, out.state, point_dirs, points=True)  # every process: a collective
-    if out_dir is not None:
-        for d, summary in zip(point_dirs, summaries, strict=True):
-            atomic_write(d / "summary.json", json.dumps(summary, indent=2).encode())
-        atomic_write(out_dir / "sweep.csv", to_csv(plan, rows).encode())
-        atomic_write(out_dir / "sweep.json", json.dumps(result, indent=2).encode())
-    print(format_table(plan, rows), flush=True)
-    for name, reason in result["diverged"].items():
-        print(f"{PREFIX} point {name} {reason}", flush=True)
-    print(
-        f"{PREFIX} sweep done: {result['sweep_env_steps_per_s']:.0f} env steps/s over all points, "
-        f"compile {out.compile_s:.1f} s, wall {result['wall_s']:.0f} s"
-        + (f"; results in {out_dir}" if out_dir else ""),
-        flush=True,
-    )
-    return result
 
 
 def sweep_help() -> str:
@@ -388,87 +368,68 @@ def sweep_help() -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    return run_command(list(sys.argv[1:] if argv is None else argv), sweep_help, _main)
+    return launch.run_command(
+        list(sys.argv[1:] if argv is None else argv),
+        sweep_help,
+        lambda args, stop: launch.launch(SweepCommand(), args, stop),
+    )
 
 
-def _main(argv: list[str], stop: StopRequest) -> int:
-    from coherent_jax import runlock, sweep_resume
-    from coherent_jax.parallel import check_devices
+class SweepCommand:
+    """What ``python -m coherent_jax.sweep`` has of its own on the launch path: its plan is a `SweepPlan`."""
 
-    resume_dir, rest = split_resume(argv)
-    checkpoint, lock = None, None
-    try:
-        cli.check_unique(argv)
-        if resume_dir is not None:
-            cfg, out_dir, axes, seeds = sweep_resume.resume_plan(resume_dir, rest)
-            plan = make_plan(cfg, axes, seeds)
-            if distributed.needs_supervisor(cfg.distributed):
-                return distributed.supervise("coherent_jax.sweep", argv)
-            # Several hosts: every process reads the checkpoint, only process 0 writes.
-            is_writer = check_devices(cfg, split_envs=False)
-            check_point_split(cfg, plan)
-            check_memory(cfg, len(plan.points))
-            checkpoint = resume_point(out_dir, cfg, out_dir / plan.points[0].name / METRICS)
-            if checkpoint is not None:
-                done = checkpoint.iteration >= cfg.num_iterations and (out_dir / "sweep.json").exists()
-                sweep_resume.check_rows(out_dir, [p.name for p in plan.points], checkpoint, done)
-                if done:
-                    print(f"{PREFIX} {out_dir} is already complete ({checkpoint.iteration} iterations)")
-                    return 0
-            out_dir = out_dir if is_writer else None
-            lock = runlock.acquire(out_dir, "resume") if out_dir else None
-        else:
-            plan = parse_sweep(argv)
-            cfg = plan.base
-            if distributed.needs_supervisor(cfg.distributed):
-                return distributed.supervise("coherent_jax.sweep", argv)
-            writer = check_devices(cfg, split_envs=False)
-            check_point_split(cfg, plan)
-            check_memory(cfg, len(plan.points))
-            out_dir = None
-            if writer:
-                path = Path(cfg.run_dir) if cfg.run_dir else default_sweep_dir(cfg)
-                runlock.refuse_if_held(path, "run_dir")
-                out_dir = prepare_output_dir(path)
-                lock = runlock.acquire(out_dir, "run_dir")
-    except (ConfigError, CheckpointError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    with lock or contextlib.nullcontext():
-        return _run(cfg, plan, out_dir, resume_dir, checkpoint, stop)
+    module = "coherent_jax.sweep"
+    summary_file = "sweep.json"
 
+    def config(self, plan: SweepPlan) -> Config:
+        return plan.base
 
-def _run(cfg: Config, plan: SweepPlan, out_dir: Path | None, resume_dir, checkpoint, stop) -> int:
-    """Writes the sweep's config, grid and versions, runs it, and returns the exit status."""
-    if out_dir is not None:
-        cfg = dataclasses.replace(cfg, run_dir=str(out_dir))
-        write_config(out_dir, cfg)
-        if resume_dir is None:
+    def parse(self, argv: list[str]) -> SweepPlan:
+        return parse_sweep(argv)
+
+    def resume(self, resume_dir: str, rest: list[str]) -> tuple[SweepPlan, Path]:
+        cfg, out_dir, axes, seeds = sweep_resume.resume_plan(resume_dir, rest)
+        return make_plan(cfg, axes, seeds), out_dir
+
+    def check(self, plan: SweepPlan) -> bool:
+        from coherent_jax.sharding import check_devices
+
+        is_writer = check_devices(plan.base, split_envs=False)  # several hosts: only process 0 writes
+        check_point_split(plan.base, plan)
+        check_memory(plan.base, len(plan.points))
+        return is_writer
+
+    def default_dir(self, cfg: Config) -> Path:
+        return default_sweep_dir(cfg)
+
+    def resume_point(self, run_dir: Path, plan: SweepPlan) -> Checkpoint | None:
+        return resume_point(run_dir, plan.base, run_dir / plan.points[0].name / METRICS)
+
+    def check_rows(self, run_dir: Path, plan: SweepPlan, checkpoint: Checkpoint, finished: bool) -> None:
+        sweep_resume.check_rows(run_dir, [p.name for p in plan.points], checkpoint, finished)
+
+    def write_inputs(self, run_dir: Path, plan: SweepPlan, resumed: bool) -> None:
+        write_config(run_dir, dataclasses.replace(plan.base, run_dir=str(run_dir)))
+        if not resumed:
             grid = {"axes": plan.axes, "seeds": plan.seeds}
-            atomic_write(out_dir / GRID, json.dumps(grid, indent=2).encode())
-        record_versions(out_dir, None if resume_dir is None else (checkpoint.iteration if checkpoint else 0))
-        print(f"{PREFIX} sweep dir {out_dir}: {len(plan.points)} points", flush=True)
-    if stop.signum is not None:
-        print(f"{PREFIX} stopped by {stop.name} before training started", flush=True)
-        return 128 + stop.signum
-    quiet_imports()
-    try:
-        result = run_sweep(plan, out_dir, resume=checkpoint, stop=stop)
-    except CheckpointError as exc:  # a state that does not fit this grid, found on restoring it
-        print(f"error: {exc}", file=sys.stderr, flush=True)
-        return 2
-    if result["stopped_by"] is not None:
-        return 128 + int(signal.Signals[result["stopped_by"]])
-    return EXIT_DIVERGED if result["diverged"] else 0
+            atomic_write(run_dir / GRID, json.dumps(grid, indent=2).encode())
+
+    def dir_line(self, run_dir: Path, plan: SweepPlan) -> str:
+        return f"sweep dir {run_dir}: {len(plan.points)} points"
+
+    def run(
+        self, plan: SweepPlan, run_dir: Path | None, checkpoint: Checkpoint | None, stop: StopRequest
+    ) -> dict:
+        return run_sweep(plan, run_dir, resume=checkpoint, stop=stop)
 
 
 def check_point_split(cfg: Config, plan: SweepPlan) -> None:
     """Several processes: the points must spread over every device of every process."""
-    from coherent_jax import parallel
+    from coherent_jax import sharding
 
-    available = parallel.resolve_num_devices(cfg.num_devices)
-    distributed.check_device_split(parallel.point_device_count(len(plan.points), available))
+    available = sharding.resolve_num_devices(cfg.num_devices)
+    multihost.check_device_split(sharding.point_device_count(len(plan.points), available))
 
 
 if __name__ == "__main__":
-    sys.exit(distributed.run_cli(main))
+    sys.exit(multihost.run_cli(main))

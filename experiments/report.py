@@ -203,7 +203,8 @@ def _label(cell: reproduce.Cell, run: plot.Run, suite: str | None = None) -> str
 def build(
     results: Path, out: Path, suites: Sequence[str] = ("thesis", "ablations", "beyond", "sparse")
 ) -> str:
-    figures = results / "figures"
+    """RESULTS.md's text: per suite its curves, cell table, provenance and aggregates, then the
+    verdicts on the claims, the compute spent and the cells not finished."""
     lines = [
         "# Results",
         "",
@@ -220,81 +221,144 @@ def build(
         if not done:
             continue
         done += _reference_cells(suite, done, results)
-        lines += [f"## Suite `{suite}`", ""]
-        runs = {c.name: cell_runs(c, results) for c in done}
-        # Curves: one figure per algorithm, one panel per task.
-        figures.mkdir(parents=True, exist_ok=True)
-        by_algo: dict[str, list[plot.Run]] = defaultdict(list)
-        for c in done:
-            by_algo[c.setting("algo")] += runs[c.name]
-        for algo, algo_runs in sorted(by_algo.items()):
-            path = figures / f"{suite}-{algo}.png"
-            plot.plot_curves(plot.group_curves(algo_runs), METRIC, path, REPS, 0)
-            lines += [f"![{suite} {algo}]({os.path.relpath(path, out.parent)})", ""]
-        lines += [
-            "| cell | seeds | final return (95% CI) | area under curve (95% CI) | env steps/s | wall |",
-            "|---|---|---|---|---|---|",
-        ]
-        finals: dict[str, dict[str, dict[str, np.ndarray]]] = defaultdict(lambda: defaultdict(dict))
-        aucs: dict[str, dict[str, dict[str, np.ndarray]]] = defaultdict(lambda: defaultdict(dict))
-        for c in done:
-            rs = runs[c.name]
-            f = np.array([r.values[-1] for r in rs])
-            a = np.array([auc(r) for r in rs])
-            for label in sorted({_label(c, r, suite) for r in rs}):
-                keep = [i for i, r in enumerate(rs) if _label(c, r, suite) == label]
-                finals[c.setting("algo")][label][c.setting("env")] = f[keep]
-                aucs[c.setting("algo")][label][c.setting("env")] = a[keep]
-            summary = json.loads((reproduce.cell_dir(c, results) / "sweep" / "sweep.json").read_text())
-            wall = float(summary.get("wall_s", 0.0))
-            total_wall += wall if c.suite == suite else 0.0  # a reference cell counts in its own suite
-            name = c.name if c.suite == suite else f"{c.name} ({c.suite} suite)"
-            fm, fl, fh = interval(f)
-            am, al, ah = interval(a)
-            lines.append(
-                f"| {name} | {len(rs)} | {fm:.0f} ({fl:.0f}, {fh:.0f}) | {am:.0f} ({al:.0f}, {ah:.0f}) | "
-                f"{summary.get('sweep_env_steps_per_s', float('nan')):.0f} | {wall / 3600:.2f} h |"
+        section, walls = suite_section(suite, done, results, out, claims)
+        lines += section
+        for wall in walls:
+            total_wall += wall
+    lines += verdict_lines(claims)
+    lines += compute_lines(total_wall, missing, still_needed)
+    return "\n".join(lines)
+
+
+def suite_section(
+    suite: str,
+    done: list[reproduce.Cell],
+    results: Path,
+    out: Path,
+    claims: list[tuple[str, str, dict[str, float]]],
+) -> tuple[list[str], list[float]]:
+    """One suite's section (its claims appended to `claims`) and the wall times of its own cells."""
+    lines = [f"## Suite `{suite}`", ""]
+    runs = {c.name: cell_runs(c, results) for c in done}
+    lines += curve_figures(suite, done, runs, results / "figures", out)
+    table, finals, aucs, walls = cell_table(suite, done, runs, results)
+    lines += table
+    lines += provenance_lines([c for c in done if c.suite == suite], results)
+    if suite == "sparse":
+        lines += sparse_lines(done, results)
+    for algo in sorted(finals):
+        for what, per_label in (("final return", finals[algo]), ("area under curve", aucs[algo])):
+            norm = normalised(per_label)
+            if len(norm) >= 2:
+                lines += aggregate_table(algo, what, per_label, norm)
+            claims += suite_claims(suite, algo, what, per_label)
+    return lines, walls
+
+
+def curve_figures(
+    suite: str, done: list[reproduce.Cell], runs: dict[str, list[plot.Run]], figures: Path, out: Path
+) -> list[str]:
+    """The learning curves: one figure per algorithm, one panel per task; their image lines."""
+    lines: list[str] = []
+    figures.mkdir(parents=True, exist_ok=True)
+    by_algo: dict[str, list[plot.Run]] = defaultdict(list)
+    for c in done:
+        by_algo[c.setting("algo")] += runs[c.name]
+    for algo, algo_runs in sorted(by_algo.items()):
+        path = figures / f"{suite}-{algo}.png"
+        plot.plot_curves(plot.group_curves(algo_runs), METRIC, path, REPS, 0)
+        lines += [f"![{suite} {algo}]({os.path.relpath(path, out.parent)})", ""]
+    return lines
+
+
+def cell_table(suite: str, done: list[reproduce.Cell], runs: dict[str, list[plot.Run]], results: Path):
+    """The table of cells (seeds, final return and area with 95% CIs, rate, wall time).
+
+    Returns its lines, the final returns and areas per algorithm, label and task (one
+    value per seed), and the wall times of the suite's own cells (a reference cell
+    counts in its own suite).
+    """
+    lines = [
+        "| cell | seeds | final return (95% CI) | area under curve (95% CI) | env steps/s | wall |",
+        "|---|---|---|---|---|---|",
+    ]
+    finals: dict[str, dict[str, dict[str, np.ndarray]]] = defaultdict(lambda: defaultdict(dict))
+    aucs: dict[str, dict[str, dict[str, np.ndarray]]] = defaultdict(lambda: defaultdict(dict))
+    walls: list[float] = []
+    for c in done:
+        rs = runs[c.name]
+        f = np.array([r.values[-1] for r in rs])
+        a = np.array([auc(r) for r in rs])
+        for label in sorted({_label(c, r, suite) for r in rs}):
+            keep = [i for i, r in enumerate(rs) if _label(c, r, suite) == label]
+            finals[c.setting("algo")][label][c.setting("env")] = f[keep]
+            aucs[c.setting("algo")][label][c.setting("env")] = a[keep]
+        summary = json.loads((reproduce.cell_dir(c, results) / "sweep" / "sweep.json").read_text())
+        wall = float(summary.get("wall_s", 0.0))
+        walls.append(wall if c.suite == suite else 0.0)
+        name = c.name if c.suite == suite else f"{c.name} ({c.suite} suite)"
+        fm, fl, fh = interval(f)
+        am, al, ah = interval(a)
+        lines.append(
+            f"| {name} | {len(rs)} | {fm:.0f} ({fl:.0f}, {fh:.0f}) | {am:.0f} ({al:.0f}, {ah:.0f}) | "
+            f"{summary.get('sweep_env_steps_per_s', float('nan')):.0f} | {wall / 3600:.2f} h |"
+        )
+    lines.append("")
+    return lines, finals, aucs, walls
+
+
+def sparse_lines(done: list[reproduce.Cell], results: Path) -> list[str]:
+    """The sparse suite's table: the seeds that reached the reward, and when they first did."""
+    lines = [
+        "Seeds whose exploration ever reached the sparse reward (a training episode",
+        "with positive return), and the median env step of the first one. The",
+        "tasks' episodes are 1,000 steps and all 64 envs end theirs together, so",
+        "a seed reports returns every 64,000 env steps: that is the resolution of",
+        "the first step.",
+        "",
+        "| task | strategy | seeds that reached it | first reached at (median env steps) |",
+        "|---|---|---|---|",
+    ]
+    for c in done:
+        lines += reach_rows(c, results)
+    lines.append("")
+    return lines
+
+
+def suite_claims(
+    suite: str, algo: str, what: str, per_label: dict[str, dict[str, np.ndarray]]
+) -> list[tuple[str, str, dict[str, float]]]:
+    """Each claim of the suite on the tasks both of its strategies have finished, with its verdict."""
+    claims = []
+    for coherent, baseline in _pairs(suite, per_label):
+        pair = normalised({coherent: per_label[coherent], baseline: per_label[baseline]})
+        if not pair:
+            continue
+        poi = probability_of_improvement(pair[coherent], pair[baseline])
+        tasks = pair[coherent].shape[1]
+        claims.append(
+            (
+                f"{suite}, {algo}, {what}: {coherent} improves on {baseline} ({tasks} task(s))",
+                verdict(poi, suite),
+                poi,
             )
-        lines.append("")
-        lines += provenance_lines([c for c in done if c.suite == suite], results)
-        if suite == "sparse":
-            lines += [
-                "Seeds whose exploration ever reached the sparse reward (a training episode",
-                "with positive return), and the median env step of the first one. The",
-                "tasks' episodes are 1,000 steps and all 64 envs end theirs together, so",
-                "a seed reports returns every 64,000 env steps: that is the resolution of",
-                "the first step.",
-                "",
-                "| task | strategy | seeds that reached it | first reached at (median env steps) |",
-                "|---|---|---|---|",
-            ]
-            for c in done:
-                lines += reach_rows(c, results)
-            lines.append("")
-        for algo in sorted(finals):
-            for what, table in (("final return", finals[algo]), ("area under curve", aucs[algo])):
-                norm = normalised(table)
-                if len(norm) >= 2:
-                    lines += aggregate_table(algo, what, table, norm)
-                # Each claim on the tasks both of its strategies have finished.
-                for coherent, baseline in _pairs(suite, table):
-                    pair = normalised({coherent: table[coherent], baseline: table[baseline]})
-                    if not pair:
-                        continue
-                    poi = probability_of_improvement(pair[coherent], pair[baseline])
-                    tasks = pair[coherent].shape[1]
-                    claims.append(
-                        (
-                            f"{suite}, {algo}, {what}: {coherent} improves on {baseline} ({tasks} task(s))",
-                            verdict(poi, suite),
-                            poi,
-                        )
-                    )
-    if claims:
-        lines += ["## Verdicts", "", "| claim | P(improvement) (95% CI) | verdict |", "|---|---|---|"]
-        lines += [f"| {c} | {p['p']:.2f} ({p['low']:.2f}, {p['high']:.2f}) | {v} |" for c, v, p in claims]
-        lines.append("")
-    lines += [
+        )
+    return claims
+
+
+def verdict_lines(claims: list[tuple[str, str, dict[str, float]]]) -> list[str]:
+    """The verdicts table (empty without claims)."""
+    if not claims:
+        return []
+    lines = ["## Verdicts", "", "| claim | P(improvement) (95% CI) | verdict |", "|---|---|---|"]
+    lines += [f"| {c} | {p['p']:.2f} ({p['low']:.2f}, {p['high']:.2f}) | {v} |" for c, v, p in claims]
+    lines.append("")
+    return lines
+
+
+def compute_lines(total_wall: float, missing: list[str], still_needed: float) -> list[str]:
+    """The compute section: wall time spent, the budget per cell, and the cells not finished."""
+    lines = [
         "## Compute",
         "",
         f"Wall time of the finished cells: {total_wall / 3600:.1f} h on the 2-core CPU, two cells"
@@ -311,9 +375,8 @@ def build(
             " (`python experiments/reproduce.py SUITE --status`).",
             "",
         ]
-    if missing:
         lines += ["## Cells not finished", ""] + [f"- {m}" for m in missing] + [""]
-    return "\n".join(lines)
+    return lines
 
 
 def provenance_lines(cells: Sequence[reproduce.Cell], results: Path) -> list[str]:

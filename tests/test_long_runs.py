@@ -189,8 +189,8 @@ def test_guard_skips_losses_of_an_iteration_without_update_but_never_parameters(
     """SAC logs NaN losses while its buffer warms up (no update applied): not a divergence."""
     import jax.numpy as jnp
 
-    from coherent_jax.loop import DivergenceError
-    from coherent_jax.loop import check_finite as _check_finite
+    from coherent_jax.divergence import DivergenceError
+    from coherent_jax.divergence import check_finite as _check_finite
 
     class Trainer:
         def export_params(self, state):

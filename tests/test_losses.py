@@ -101,7 +101,7 @@ def test_value_loss_and_standardize():
 def _onpolicy_setup(dtype=np.float32, clipped=True):
     import jax
 
-    from coherent_jax.agents.onpolicy import AgentParams, HParams
+    from coherent_jax.agents.onpolicy_state import AgentParams, HParams
     from coherent_jax.exploration.action import ActionNoise
     from coherent_jax.networks import ValueNetwork
 

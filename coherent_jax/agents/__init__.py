@@ -1,4 +1,4 @@
-"""Training algorithms. Every trainer exposes the same pure, jit-able functions.
+"""Training algorithms. Every trainer exposes the same pure, jit-able functions (`Trainer`).
 
 ``init(key, hparams=None) -> state``, ``iteration(state) -> (state, metrics)``,
 ``evaluate(state, key) -> metrics`` and ``export_params(state) -> pytree`` (what
@@ -8,10 +8,10 @@ loop, sweeps and benchmarks only use these, whatever the algorithm.
 
 from __future__ import annotations
 
-from typing import Any
+from coherent_jax.agents.trainer import Trainer
 
 
-def make_trainer(cfg, env=None, eval_env=None) -> Any:
+def make_trainer(cfg, env=None, eval_env=None) -> Trainer:
     """The trainer of ``cfg.algo`` (A2C/PPO: `OnPolicyTrainer`; SAC: `SACTrainer`)."""
     if cfg.algo in ("ppo", "a2c"):
         from coherent_jax.agents.onpolicy import OnPolicyTrainer

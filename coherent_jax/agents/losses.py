@@ -11,17 +11,15 @@ network are static arguments (bind them with ``functools.partial``).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import Any, NamedTuple
 
 import chex
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from coherent_jax.agents.onpolicy_state import AgentParams, HParams
 from coherent_jax.exploration.base import OnPolicyStrategy
-
-if TYPE_CHECKING:
-    from coherent_jax.agents.onpolicy import AgentParams, HParams
 
 
 def gae(

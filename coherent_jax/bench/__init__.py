@@ -11,13 +11,16 @@ and ``format_table(result)``.
 * `sac`: SAC and Coherent-SAC iterations, collection and updates apart;
 * `physics`: MJX settings against native MuJoCo, one subprocess per row;
 * `standard`: Gymnasium's tasks against their Brax re-creations and EnvPool;
-* `gradient`: each coherent loss's gradient against a float64 whole-episode reference.
+* `gradient`: each coherent loss's gradient against a float64 whole-episode reference;
+* `processes`: one training process with N devices against N processes of one device
+  (``distributed=true`` over loopback), each a fresh ``python -m coherent_jax.train``.
 
 `measure` holds what every suite records (times, memory, machine, JSON).
 """
 
-SUITES = ("throughput", "coherent", "sac", "physics", "standard", "gradient")
+SUITES = ("throughput", "coherent", "sac", "physics", "standard", "gradient", "processes")
 DEFAULT_SUITE = "throughput"  # what ``python -m coherent_jax.bench`` runs with no suite named
-# Training keys no suite reads (a benchmark times iterations: it writes no run directory,
-# checkpoint or TensorBoard file, and runs no fixed budget): refused, not ignored.
+# Training keys the in-process suites do not read (they time iterations: they write no run
+# directory, checkpoint or TensorBoard file, and run no fixed budget): refused, not ignored.
+# A suite that starts training commands of its own names its own (``IGNORED_KEYS``).
 IGNORED = ("run_dir", "resume", "checkpoint_every", "tensorboard", "progress", "total_steps", "eval_every")

@@ -10,6 +10,7 @@ from types import ModuleType
 from coherent_jax import cli
 from coherent_jax.bench import DEFAULT_SUITE, IGNORED, SUITES
 from coherent_jax.config import ConfigError
+from coherent_jax.exit_codes import EXIT_BAD_INPUT
 
 
 def suite_module(name: str) -> ModuleType:
@@ -28,12 +29,12 @@ def help_text() -> str:
         lines += ["", f"{name} suite options (key=default):", *cli.help_lines(module.KEYS)]
         fixed = getattr(module, "FIXED", None)
         if fixed is not None:
+            ignored = getattr(module, "IGNORED_KEYS", IGNORED)
             lines.append(
                 "  and every training option of `python -m coherent_jax.train --help` except "
                 + ", ".join(fixed)
-                + " (set by the suite) and "
-                + ", ".join(IGNORED)
-                + " (no suite uses them)"
+                + " (set by the suite)"
+                + (" and " + ", ".join(ignored) + " (the suite does not use them)" if ignored else "")
             )
     return "\n".join(lines)
 
@@ -49,13 +50,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     name, items = argv[0], argv[1:]
     if name not in SUITES:
         print(f"error: unknown suite {name!r}; valid suites: {', '.join(SUITES)}", file=sys.stderr)
-        return cli.EXIT_BAD_INPUT
+        return EXIT_BAD_INPUT
     suite = suite_module(name)
     try:
         suite.parse(items)
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return cli.EXIT_BAD_INPUT
+        return EXIT_BAD_INPUT
     result = suite.run(items)
     print()
     print(suite.format_table(result), flush=True)

@@ -119,47 +119,50 @@ def run(items: Sequence[str], log: Callable[[str], None] = measure.print_log) ->
         jax.config.update("jax_enable_x64", previous)
 
 
-def _run(settings: dict[str, Any], log: Callable[[str], None]) -> dict[str, Any]:
-    import jax
-    import jax.numpy as jnp
+class _Forms:
+    """The loss's log p of a segment in each mode, and the two dense references, as functions of
+    ``(params, obs, a, beta, params0)`` for the settings' ``p``, ``q`` and ``segment``."""
 
-    from coherent_jax.exploration import coherent as C
-    from coherent_jax.exploration import coherent_exact as E
-    from coherent_jax.exploration import coherent_filter as F
-    from coherent_jax.exploration import coherent_joint as J
+    def __init__(self, settings: dict[str, Any]) -> None:
+        self.settings = settings
+        self.p, self.q, self.seg = settings["p"], settings["q"], settings["segment"]
+        self.strategies: dict[int, Any] = {}
 
-    dtype = jnp.float64 if settings["dtype"] == "float64" else jnp.float32
-    p, q, seg = settings["p"], settings["q"], settings["segment"]
-    log_2pi = math.log(2.0 * math.pi)
-    strategies = {}
-
-    def strategy(history):
+    def strategy(self, history: int):
         """The trainer's coherent strategy in episode mode, for episodes of history + segment steps."""
-        if history not in strategies:
-            strategies[history] = C.CoherentExploration(
-                p, [q], "tanh", 0.0, settings["w_std"], settings["action_std"],
-                gradient="episode", episode_length=history + seg, unroll_length=seg,
+        from coherent_jax.exploration import coherent as C
+
+        if history not in self.strategies:
+            self.strategies[history] = C.CoherentExploration(
+                self.p, [self.q], "tanh", 0.0, self.settings["w_std"], self.settings["action_std"],
+                gradient="episode", episode_length=history + self.seg, unroll_length=self.seg,
             )  # fmt: skip
-        return strategies[history]
+        return self.strategies[history]
 
-    def trunk(params, obs):
-        return strategy(0).trunk.apply(params["trunk"], obs)
+    def trunk(self, params, obs):
+        return self.strategy(0).trunk.apply(params["trunk"], obs)
 
-    def heads(params):
-        action_std = jnp.full((p,), settings["action_std"], params["mu"].dtype)
+    def heads(self, params):
+        import jax.numpy as jnp
+
+        action_std = jnp.full((self.p,), self.settings["action_std"], params["mu"].dtype)
         return params["mu"], jnp.exp(params["log_w_std"]), action_std
 
-    def reference_logp(params, obs, a, beta):
+    def reference_logp(self, params, obs, a, beta):
         """Every step's log p(a_t | a_<t, s_<=t) of one chain from the first step of ``obs``,
         from its dense joint Gaussian (no beliefs, no blocks, no filter)."""
-        mu, w_std, action_std = heads(params)
-        x = trunk(params, obs)
+        import jax
+        import jax.numpy as jnp
+
+        log_2pi = math.log(2.0 * math.pi)
+        mu, w_std, action_std = self.heads(params)
+        x = self.trunk(params, obs)
         num_steps = x.shape[0]
         xh = jnp.concatenate([x, jnp.ones((num_steps, 1), x.dtype)], axis=1)
         idx = jnp.arange(num_steps)
         decay = (1.0 - beta) ** jnp.abs(idx[:, None] - idx[None, :]).astype(x.dtype)
         total = jnp.zeros(num_steps, x.dtype)
-        for i in range(p):
+        for i in range(self.p):
             cov = decay * ((xh * w_std[i] ** 2) @ xh.T) + action_std[i] ** 2 * jnp.eye(
                 num_steps, dtype=x.dtype
             )
@@ -170,30 +173,39 @@ def _run(settings: dict[str, Any], log: Callable[[str], None]) -> dict[str, Any]
 
     # The two processes a mode can be exact for: one chain through the whole episode, or
     # a chain restarted at the segment's first step. Each gives (logp, loss) of the segment.
-    def whole_episode(params, obs, a, beta):
-        return reference_logp(params, obs, a, beta)[-seg:]
+    def whole_episode(self, params, obs, a, beta, params0):
+        return self.reference_logp(params, obs, a, beta)[-self.seg :]
 
-    def restarted(params, obs, a, beta):
-        return reference_logp(params, obs[-seg:], a[-seg:], beta)
+    def restarted(self, params, obs, a, beta, params0):
+        return self.reference_logp(params, obs[-self.seg :], a[-self.seg :], beta)
 
-    def episode_mode(params, obs, a, beta, params0):
+    def episode_mode(self, params, obs, a, beta, params0):
         """``coherent.gradient=episode`` as the trainer's loss runs it: the strategy's
         `log_prob` of the window of `history_length` prefix steps (padded in front as
         the trainer's empty history is) and the segment; the last T steps."""
+        import jax.numpy as jnp
+
         del params0
-        strat = strategy(obs.shape[0] - seg)
+        p, seg = self.p, self.seg
+        strat = self.strategy(obs.shape[0] - seg)
         pad = strat.history_length + seg - obs.shape[0]
         first = jnp.concatenate([jnp.ones(pad, bool), jnp.zeros(obs.shape[0], bool)])
         w_obs = jnp.concatenate([jnp.zeros((pad, obs.shape[1]), obs.dtype), obs])
         w_a = jnp.concatenate([jnp.zeros((pad, p), a.dtype), a])
-        hp = {"beta": beta, "action_std": heads(params)[2]}
+        hp = {"beta": beta, "action_std": self.heads(params)[2]}
         return strat.log_prob(params, hp, None, w_obs, w_a, first.at[pad].set(True)).log_prob[-seg:]
 
-    def exact_mode(params, obs, a, beta, params0):
+    def exact_mode(self, params, obs, a, beta, params0):
         """``coherent.gradient=exact``: the segment scored from the prior, as the trainer does."""
+        import jax.numpy as jnp
+
+        from coherent_jax.exploration import coherent_exact as E
+        from coherent_jax.exploration import coherent_filter as F
+
         del params0
-        mu, w_std, action_std = heads(params)
-        x = trunk(params, obs[-seg:])
+        seg = self.seg
+        mu, w_std, action_std = self.heads(params)
+        x = self.trunk(params, obs[-seg:])
         first = jnp.zeros(seg, bool).at[0].set(True)
         prior = F.prior_belief(mu, w_std)
         logp, _, _ = E.chained_marginals(
@@ -201,86 +213,128 @@ def _run(settings: dict[str, Any], log: Callable[[str], None]) -> dict[str, Any]
         )
         return logp
 
-    def stored_mode(params, obs, a, beta, params0):
+    def stored_mode(self, params, obs, a, beta, params0):
         """``coherent.gradient=stored``: the belief at the segment start inferred at collection
         (``params0``), held in standardised coordinates and mapped onto ``params``."""
-        mu0, w_std0, action_std0 = heads(params0)
-        h = obs.shape[0] - seg
+        import jax
+        import jax.numpy as jnp
+
+        from coherent_jax.exploration import coherent_exact as E
+        from coherent_jax.exploration import coherent_filter as F
+        from coherent_jax.exploration import coherent_joint as J
+
+        mu0, w_std0, action_std0 = self.heads(params0)
+        h = obs.shape[0] - self.seg
         belief = F.prior_belief(mu0, w_std0)
         if h:
             first = jnp.zeros(h, bool).at[0].set(True)
-            x0 = trunk(params0, obs[:h])
+            x0 = self.trunk(params0, obs[:h])
             _, belief, _ = E.chained_marginals(
                 belief, x0, a[:h], first, mu0, w_std0, action_std0, beta, E.block_size(h)
             )
         z_mean = jax.lax.stop_gradient((belief.mean - mu0) / w_std0)
         z_cov = jax.lax.stop_gradient(belief.cov / (w_std0[:, :, None] * w_std0[:, None, :]))
-        mu, w_std, action_std = heads(params)
+        mu, w_std, action_std = self.heads(params)
         start = F.Belief(mu + w_std * z_mean, w_std[:, :, None] * z_cov * w_std[:, None, :])
-        first = jnp.zeros(seg, bool).at[0].set(h == 0)
+        first = jnp.zeros(self.seg, bool).at[0].set(h == 0)
         logp, _, _ = J.segment_marginals_joint(
-            start, trunk(params, obs[h:]), a[h:], first, mu, w_std, action_std, beta
+            start, self.trunk(params, obs[h:]), a[h:], first, mu, w_std, action_std, beta
         )
         return logp
 
-    def value_and_grad(fn):
-        def loss(params, obs, a, adv, beta, params0):
-            return jnp.sum(adv * fn(params, obs, a, beta, params0))
 
-        @jax.jit
-        def run(params, obs, a, adv, beta, params0):
-            logp = fn(params, obs, a, beta, params0)
-            return logp, jax.grad(loss)(params, obs, a, adv, beta, params0)
+def _value_and_grad(fn):
+    """``fn``'s log p and the gradient of the advantage-weighted loss ``sum(adv * log p)``, jitted."""
+    import jax
+    import jax.numpy as jnp
 
-        return run
+    def loss(params, obs, a, adv, beta, params0):
+        return jnp.sum(adv * fn(params, obs, a, beta, params0))
 
-    forms = {
-        m: value_and_grad(f) for m, f in zip(MODES, (stored_mode, exact_mode, episode_mode), strict=True)
+    @jax.jit
+    def run(params, obs, a, adv, beta, params0):
+        logp = fn(params, obs, a, beta, params0)
+        return logp, jax.grad(loss)(params, obs, a, adv, beta, params0)
+
+    return run
+
+
+def _case(settings: dict[str, Any], forms: _Forms, history: int, beta: float):
+    """One (history, beta) case in float64: the collection parameters, the parameters after a
+    move (as after an update), the observations, an episode sampled from the process, advantages."""
+    import jax
+    import jax.numpy as jnp
+
+    p, q, seg = forms.p, forms.q, forms.seg
+    rng = np.random.default_rng([settings["seed"], history, int(beta * 1e6)])
+    num_steps = history + seg
+    obs = np.cumsum(rng.normal(size=(num_steps, settings["obs_size"])), axis=0) * 0.1
+    init = forms.strategy(0).init(jax.random.PRNGKey(settings["seed"]), settings["obs_size"])
+    params0 = {
+        "trunk": jax.tree.map(lambda v: np.asarray(v, np.float64), init["trunk"]),
+        "mu": rng.normal(size=(p, q + 1)) * 0.1,
+        "log_w_std": np.full((p, q + 1), math.log(settings["w_std"])),
     }
-    refs = {
-        "episode": value_and_grad(lambda prm, o, a, b, _: whole_episode(prm, o, a, b)),
-        "segment": value_and_grad(lambda prm, o, a, b, _: restarted(prm, o, a, b)),
+    x = np.asarray(forms.trunk(jax.tree.map(jnp.asarray, params0), jnp.asarray(obs)))
+    a = sample_episode(rng, x, params0["mu"], settings["w_std"], settings["action_std"], beta)
+    adv = rng.normal(size=seg)
+    # Evaluated away from the collection parameters, as after an update.
+    params = jax.tree.map(lambda v, r=rng: v + settings["move"] * r.normal(size=np.shape(v)), params0)
+    return params, obs, a, adv, params0
+
+
+def _flat(g) -> np.ndarray:
+    import jax
+
+    return np.concatenate([np.ravel(np.asarray(v, np.float64)) for v in jax.tree.leaves(g)])
+
+
+def _cos(u, v) -> float:
+    return float(u @ v / (np.linalg.norm(u) * np.linalg.norm(v)))
+
+
+def _compare(mode: str, beta: float, history: int, logp, grad, ref_out: dict) -> dict[str, Any]:
+    """A mode's row: cosine, relative error and value error against each reference; whether
+    it equals the one it must equal (`MUST_EQUAL`) within `MIN_COS` and `MAX_REL_ERR`."""
+    row = {"mode": mode, "beta": beta, "history": history, "must_equal": MUST_EQUAL.get(mode)}
+    for name, (ref_logp, ref_grad) in ref_out.items():
+        g, r = _flat(grad), _flat(ref_grad)
+        row[f"cos_{name}"] = _cos(g, r)
+        row[f"rel_err_{name}"] = float(np.linalg.norm(g - r) / np.linalg.norm(r))
+        row[f"value_err_{name}"] = float(np.max(np.abs(np.asarray(logp, np.float64) - ref_logp)))
+    ok = True
+    if mode in MUST_EQUAL:
+        ref = MUST_EQUAL[mode]
+        c, rel = row[f"cos_{ref}"], row[f"rel_err_{ref}"]
+        ok = bool(np.isfinite(c) and np.isfinite(rel) and c >= MIN_COS and rel <= MAX_REL_ERR)
+    row["ok"] = ok
+    return row
+
+
+def _run(settings: dict[str, Any], log: Callable[[str], None]) -> dict[str, Any]:
+    """Every (history, beta, mode): the mode's gradient (in ``dtype``) against the float64
+    references; writes the JSON and returns it (``passed``: every must-equal row held)."""
+    import jax
+    import jax.numpy as jnp
+
+    dtype = jnp.float64 if settings["dtype"] == "float64" else jnp.float32
+    forms = _Forms(settings)
+    modes = {
+        m: _value_and_grad(f)
+        for m, f in zip(MODES, (forms.stored_mode, forms.exact_mode, forms.episode_mode), strict=True)
     }
-    flat = lambda g: np.concatenate([np.ravel(np.asarray(v, np.float64)) for v in jax.tree.leaves(g)])  # noqa: E731
-
-    def cos(u, v):
-        return float(u @ v / (np.linalg.norm(u) * np.linalg.norm(v)))
-
+    refs = {"episode": _value_and_grad(forms.whole_episode), "segment": _value_and_grad(forms.restarted)}
     passed, rows = True, []
     for history in settings["histories"]:
         for beta in settings["betas"]:
-            rng = np.random.default_rng([settings["seed"], history, int(beta * 1e6)])
-            num_steps = history + seg
-            obs = np.cumsum(rng.normal(size=(num_steps, settings["obs_size"])), axis=0) * 0.1
-            init = strategy(0).init(jax.random.PRNGKey(settings["seed"]), settings["obs_size"])
-            params0 = {
-                "trunk": jax.tree.map(lambda v: np.asarray(v, np.float64), init["trunk"]),
-                "mu": rng.normal(size=(p, q + 1)) * 0.1,
-                "log_w_std": np.full((p, q + 1), math.log(settings["w_std"])),
-            }
-            x = np.asarray(trunk(jax.tree.map(jnp.asarray, params0), jnp.asarray(obs)))
-            a = sample_episode(rng, x, params0["mu"], settings["w_std"], settings["action_std"], beta)
-            adv = rng.normal(size=seg)
-            # Evaluated away from the collection parameters, as after an update.
-            params = jax.tree.map(lambda v, r=rng: v + settings["move"] * r.normal(size=np.shape(v)), params0)
+            params, obs, a, adv, params0 = _case(settings, forms, history, beta)
             args64 = jax.tree.map(jnp.asarray, (params, obs, a, adv))
             ref_out = {k: f(*args64, beta, jax.tree.map(jnp.asarray, params0)) for k, f in refs.items()}
             args = jax.tree.map(lambda v: jnp.asarray(v, dtype), (params, obs, a, adv, params0))
             for mode in MODES:
-                logp, grad = forms[mode](*args[:4], jnp.asarray(beta, dtype), args[4])
-                row = {"mode": mode, "beta": beta, "history": history, "must_equal": MUST_EQUAL.get(mode)}
-                for name, (ref_logp, ref_grad) in ref_out.items():
-                    g, r = flat(grad), flat(ref_grad)
-                    row[f"cos_{name}"] = cos(g, r)
-                    row[f"rel_err_{name}"] = float(np.linalg.norm(g - r) / np.linalg.norm(r))
-                    row[f"value_err_{name}"] = float(np.max(np.abs(np.asarray(logp, np.float64) - ref_logp)))
-                ok = True
-                if mode in MUST_EQUAL:
-                    ref = MUST_EQUAL[mode]
-                    c, rel = row[f"cos_{ref}"], row[f"rel_err_{ref}"]
-                    ok = bool(np.isfinite(c) and np.isfinite(rel) and c >= MIN_COS and rel <= MAX_REL_ERR)
-                    passed = passed and ok
-                row["ok"] = ok
+                logp, grad = modes[mode](*args[:4], jnp.asarray(beta, dtype), args[4])
+                row = _compare(mode, beta, history, logp, grad, ref_out)
+                passed = passed and row["ok"]
                 rows.append(row)
                 log(
                     f"mode={mode:7s} beta={beta:<5g} history={history:<4d} "
@@ -289,7 +343,7 @@ def _run(settings: dict[str, Any], log: Callable[[str], None]) -> dict[str, Any]
                     + (
                         ""
                         if mode not in MUST_EQUAL
-                        else f"  must equal {MUST_EQUAL[mode]}: {'ok' if ok else 'FAIL'}"
+                        else f"  must equal {MUST_EQUAL[mode]}: {'ok' if row['ok'] else 'FAIL'}"
                     )
                 )
     result = {

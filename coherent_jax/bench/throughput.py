@@ -119,17 +119,48 @@ def _brax_ppo(cfg: Config, iterations: int, log, between_epochs: Callable[[int],
     that Brax's epochs and our iterations alternate under the same machine load.
     Brax's epoch time is its own ``training/walltime``, which excludes this callback.
     """
-    import functools
-
     import jax
-    from brax.training.agents.ppo import networks as brax_networks
     from brax.training.agents.ppo import train as brax_train
-    from flax import linen
 
     from coherent_jax.envs.registry import brax_counterpart, make_brax_env
 
     steps = cfg.steps_per_iteration
     epochs = iterations + 2
+    network_factory, settings = _brax_settings(cfg, epochs)
+    epoch_s: list[float] = []
+    sps: list[float] = []
+    walltime = [0.0]
+
+    def progress(step, metrics):
+        if "training/walltime" in metrics:
+            epoch_s.append(float(metrics["training/walltime"]) - walltime[0])
+            walltime[0] = float(metrics["training/walltime"])
+            sps.append(float(metrics["training/sps"]))
+            log(
+                f"[bench]   brax ppo epoch {len(epoch_s)}/{epochs}: {epoch_s[-1]:.2f} s "
+                f"({sps[-1]:,.0f} steps/s)"
+            )
+            if between_epochs is not None and 2 <= len(epoch_s) < epochs:
+                between_epochs(len(epoch_s) - 2)
+
+    log(f"[bench] brax ppo: {epochs} epochs of one training step ({steps} env steps), compiling in the first")
+    # Brax's trainer runs Brax environments: a Gymnasium task is timed on its Brax re-creation.
+    env = make_brax_env(brax_counterpart(cfg.env))
+    t0 = time.perf_counter()
+    brax_train.train(environment=env, network_factory=network_factory, progress_fn=progress, **settings)
+    wall_s = time.perf_counter() - t0
+    jax.clear_caches()
+    return _brax_result(cfg, settings, epoch_s, sps, wall_s)
+
+
+def _brax_settings(cfg: Config, epochs: int) -> tuple[Callable, dict[str, Any]]:
+    """Brax PPO's network factory and ``train`` settings matching ``cfg`` (``epochs`` epochs of one step)."""
+    import functools
+
+    from brax.training.agents.ppo import networks as brax_networks
+    from flax import linen
+
+    steps = cfg.steps_per_iteration
     activation = {"tanh": linen.tanh, "relu": linen.relu, "elu": linen.elu, "swish": linen.swish}
     network_factory = functools.partial(
         brax_networks.make_ppo_networks,
@@ -163,29 +194,14 @@ def _brax_ppo(cfg: Config, iterations: int, log, between_epochs: Callable[[int],
         run_evals=False,
         seed=cfg.seed,
     )
-    epoch_s: list[float] = []
-    sps: list[float] = []
-    walltime = [0.0]
+    return network_factory, settings
 
-    def progress(step, metrics):
-        if "training/walltime" in metrics:
-            epoch_s.append(float(metrics["training/walltime"]) - walltime[0])
-            walltime[0] = float(metrics["training/walltime"])
-            sps.append(float(metrics["training/sps"]))
-            log(
-                f"[bench]   brax ppo epoch {len(epoch_s)}/{epochs}: {epoch_s[-1]:.2f} s "
-                f"({sps[-1]:,.0f} steps/s)"
-            )
-            if between_epochs is not None and 2 <= len(epoch_s) < epochs:
-                between_epochs(len(epoch_s) - 2)
 
-    log(f"[bench] brax ppo: {epochs} epochs of one training step ({steps} env steps), compiling in the first")
-    # Brax's trainer runs Brax environments: a Gymnasium task is timed on its Brax re-creation.
-    env = make_brax_env(brax_counterpart(cfg.env))
-    t0 = time.perf_counter()
-    brax_train.train(environment=env, network_factory=network_factory, progress_fn=progress, **settings)
-    wall_s = time.perf_counter() - t0
-    jax.clear_caches()
+def _brax_result(
+    cfg: Config, settings: dict[str, Any], epoch_s: list[float], sps: list[float], wall_s: float
+) -> dict:
+    """Brax PPO's row: the steady epochs' median (epochs 3 on), compile and setup apart, what differs."""
+    steps = cfg.steps_per_iteration
     steady = epoch_s[2:]
     median = statistics.median(steady)
     return {
@@ -230,13 +246,67 @@ def run(items: Sequence[str], log: Callable[[str], None] = measure.print_log) ->
     bench, cfg, config_items = parse(items)
     import jax
 
-    from coherent_jax.agents import make_trainer
-    from coherent_jax.envs.vec_env import VecEnv
-
     info, t_start = measure.start("throughput", log)
     skipped = {n: "not in rows=" for n in ROWS if n not in bench["rows"]}
     rows_wanted = list(bench["rows"])
     steps = cfg.steps_per_iteration
+    rows = _compile_rows(cfg, config_items, rows_wanted, log)
+    for name, row in rows.items():
+        log(f"[bench] warm-up call, {name} ...")
+        t0 = time.perf_counter()
+        row["args"] = jax.block_until_ready(row["call"](row["args"]))
+        row["warmup_s"] = time.perf_counter() - t0
+        row["times"] = []
+    names = list(rows)
+
+    def timed_round(i: int) -> None:
+        order = names if i % 2 == 0 else names[::-1]
+        for name in order:
+            row = rows[name]
+            if name in ("sac", "coherent_sac") and i >= bench["sac_iterations"]:
+                continue
+            t0 = time.perf_counter()
+            row["args"] = jax.block_until_ready(row["call"](row["args"]))
+            row["times"].append(time.perf_counter() - t0)
+        log(
+            f"[bench] round {i + 1}/{bench['iterations']}: "
+            + ", ".join(f"{n} {rows[n]['times'][-1]:.3f} s" for n in order if len(rows[n]["times"]) > i)
+        )
+
+    rss_ours = measure.peak_rss_bytes()  # our rows compiled and warm, before Brax
+    brax_result = None
+    if "brax_ppo" in rows_wanted:  # our rounds run between Brax's warm epochs
+        load_brax = measure.load_average()
+        brax_result = _brax_ppo(cfg, bench["iterations"], log, between_epochs=timed_round)
+        brax_result["load_average_start"] = load_brax
+    else:
+        for i in range(bench["iterations"]):
+            timed_round(i)
+    results = _row_results(rows, steps)
+    rows.clear()
+    if brax_result is not None:
+        results["brax_ppo"] = brax_result
+    figures = {
+        "env_steps_per_iteration": steps,
+        "rows": results,
+        "skipped": skipped,
+        "ratios": _ratios(results),
+        "targets": {"ppo_over_brax_ppo": 1.0, "training_over_raw_env": 0.6},
+        "peak_rss_bytes_after_ours": rss_ours,
+        "peak_rss_bytes_end": measure.peak_rss_bytes(),
+    }
+    settings = {"config": to_dict(cfg), **bench}
+    return measure.finish("throughput", info, t_start, settings, figures, bench["out"], log)
+
+
+def _compile_rows(cfg: Config, config_items: list[str], rows_wanted: list[str], log) -> dict[str, dict]:
+    """The raw env rollout and every trainer row's iteration, compiled: per row its call,
+    arguments, compile time and XLA memory (and config)."""
+    import jax
+
+    from coherent_jax.agents import make_trainer
+    from coherent_jax.envs.vec_env import VecEnv
+
     shape = f"{cfg.env}, {cfg.num_envs} envs x {cfg.unroll_length} steps"
     env = VecEnv(cfg.env, cfg.num_envs, cfg.episode_length, cfg.physics, cfg.physics_threads)
     rows: dict[str, dict] = {}
@@ -270,38 +340,11 @@ def run(items: Sequence[str], log: Callable[[str], None] = measure.print_log) ->
             "memory": mem,
             "config": to_dict(run_cfg),
         }
+    return rows
 
-    for name, row in rows.items():
-        log(f"[bench] warm-up call, {name} ...")
-        t0 = time.perf_counter()
-        row["args"] = jax.block_until_ready(row["call"](row["args"]))
-        row["warmup_s"] = time.perf_counter() - t0
-        row["times"] = []
-    names = list(rows)
 
-    def timed_round(i: int) -> None:
-        order = names if i % 2 == 0 else names[::-1]
-        for name in order:
-            row = rows[name]
-            if name in ("sac", "coherent_sac") and i >= bench["sac_iterations"]:
-                continue
-            t0 = time.perf_counter()
-            row["args"] = jax.block_until_ready(row["call"](row["args"]))
-            row["times"].append(time.perf_counter() - t0)
-        log(
-            f"[bench] round {i + 1}/{bench['iterations']}: "
-            + ", ".join(f"{n} {rows[n]['times'][-1]:.3f} s" for n in order if len(rows[n]["times"]) > i)
-        )
-
-    rss_ours = measure.peak_rss_bytes()  # our rows compiled and warm, before Brax
-    brax_result = None
-    if "brax_ppo" in rows_wanted:  # our rounds run between Brax's warm epochs
-        load_brax = measure.load_average()
-        brax_result = _brax_ppo(cfg, bench["iterations"], log, between_epochs=timed_round)
-        brax_result["load_average_start"] = load_brax
-    else:
-        for i in range(bench["iterations"]):
-            timed_round(i)
+def _row_results(rows: dict[str, dict], steps: int) -> dict[str, Any]:
+    """Each timed row's figures: the median and best iteration, env steps/s, compile and memory."""
     results: dict[str, Any] = {}
     for name, row in rows.items():
         median = statistics.median(row["times"])
@@ -316,10 +359,11 @@ def run(items: Sequence[str], log: Callable[[str], None] = measure.print_log) ->
             "env_steps_per_s_best": steps / min(row["times"]),
             **({"config": row["config"]} if "config" in row else {}),
         }
-    rows.clear()
-    if brax_result is not None:
-        results["brax_ppo"] = brax_result
+    return results
 
+
+def _ratios(results: dict[str, Any]) -> dict[str, float]:
+    """Each row's rate over the raw env's, and the pairs the suite compares."""
     raw = results["raw_env"]["env_steps_per_s"]
     ratios = {
         f"{name}_over_raw_env": results[name]["env_steps_per_s"] / raw
@@ -334,17 +378,7 @@ def run(items: Sequence[str], log: Callable[[str], None] = measure.print_log) ->
     ):
         if a in results and b in results:
             ratios[f"{a}_over_{b}"] = results[a]["env_steps_per_s"] / results[b]["env_steps_per_s"]
-    figures = {
-        "env_steps_per_iteration": steps,
-        "rows": results,
-        "skipped": skipped,
-        "ratios": ratios,
-        "targets": {"ppo_over_brax_ppo": 1.0, "training_over_raw_env": 0.6},
-        "peak_rss_bytes_after_ours": rss_ours,
-        "peak_rss_bytes_end": measure.peak_rss_bytes(),
-    }
-    settings = {"config": to_dict(cfg), **bench}
-    return measure.finish("throughput", info, t_start, settings, figures, bench["out"], log)
+    return ratios
 
 
 _ROW_LABELS = {

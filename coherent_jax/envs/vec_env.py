@@ -30,7 +30,7 @@ from coherent_jax.envs.registry import (
     make_brax_env,
     resolve_physics,
 )
-from coherent_jax.points import any_point
+from coherent_jax.sweep_axis import any_point
 
 
 @struct.dataclass

@@ -36,7 +36,7 @@ import numpy as np
 from coherent_jax.exploration.action import ActionNoise, gaussian_log_prob
 from coherent_jax.exploration.base import ActOutput, OffPolicyBehaviour
 from coherent_jax.networks import squash
-from coherent_jax.points import any_point
+from coherent_jax.sweep_axis import any_point
 
 
 def spectrum_scales(length: int, exponent: float) -> np.ndarray:

@@ -39,7 +39,7 @@ from coherent_jax.exploration.action import gaussian_entropy, gaussian_log_prob
 from coherent_jax.exploration.adaptive import SigmaRule, adapt_sigma, policy_distance
 from coherent_jax.exploration.base import ActOutput, OffPolicyBehaviour, OnPolicyStrategy, SegmentLogProb
 from coherent_jax.networks import MeanHead, squash
-from coherent_jax.points import all_points, any_point
+from coherent_jax.sweep_axis import all_points, any_point
 
 
 def _noisy_paths(flat: dict, skip) -> list:

@@ -28,8 +28,9 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from coherent_jax.agents.trainer import Trainer
 from coherent_jax.config import ConfigError
-from coherent_jax.points import POINT_AXIS, vmap_points
+from coherent_jax.sweep_axis import POINT_AXIS, vmap_points
 
 ENV_AXIS = "envs"
 # Fields of a train state whose arrays carry one row per env (leading axis num_envs).
@@ -106,7 +107,7 @@ def device_count_of(array: jax.Array) -> int:
     return len(array.sharding.device_set)
 
 
-def init_state(trainer: Any, init_key: jax.Array, num_devices: int, num_envs: int):
+def init_state(trainer: Trainer, init_key: jax.Array, num_devices: int, num_envs: int):
     """The initial train state, on one device or already sharded over ``num_devices``.
 
     Returns:
@@ -129,7 +130,7 @@ def shard_state(state: Any, num_devices: int, num_envs: int):
     """
     if num_devices == 1:
         return state, None
-    from coherent_jax.distributed import place
+    from coherent_jax.multihost import place
 
     check_env_split(num_envs, num_devices)
     shardings = env_state_shardings(state, make_mesh(num_devices, ENV_AXIS), num_envs)
@@ -141,7 +142,7 @@ def point_device_count(num_points: int, available: int) -> int:
     return max(d for d in range(1, available + 1) if num_points % d == 0)
 
 
-def init_points(trainer: Any, init_keys: jax.Array, hparams: Any, num_devices: int):
+def init_points(trainer: Trainer, init_keys: jax.Array, hparams: Any, num_devices: int):
     """The stacked initial states of a sweep's points, ``vmap(trainer.init)``, split over the devices.
 
     Returns:
@@ -159,13 +160,13 @@ def shard_points(states: Any, num_devices: int):
     """Stacked sweep states (e.g. restored from a checkpoint) placed as `init_points` places new ones."""
     if num_devices == 1:
         return states, None
-    from coherent_jax.distributed import place
+    from coherent_jax.multihost import place
 
     shardings = point_shardings(states, make_mesh(num_devices, POINT_AXIS))
     return place(states, shardings), shardings
 
 
-def compile_iteration(trainer: Any, state: Any, shardings: Any = None, points: bool = False):
+def compile_iteration(trainer: Trainer, state: Any, shardings: Any = None, points: bool = False):
     """``iteration(state) -> (state, metrics)`` compiled; the state's buffers are donated.
 
     With ``points`` the state is a sweep's stack of states and the iteration is
@@ -188,19 +189,19 @@ def check_devices(cfg: Any, split_envs: bool = True) -> bool:
 
     Returns whether this process writes the outputs (process 0 of a distributed run).
     """
-    from coherent_jax import distributed
+    from coherent_jax import multihost
 
     maybe_initialize_distributed(cfg.distributed)
     num_devices = resolve_num_devices(cfg.num_devices)
     if split_envs:
         check_env_split(cfg.num_envs, num_devices)
-        distributed.check_device_split(num_devices)
-    return distributed.is_writer()
+        multihost.check_device_split(num_devices)
+    return multihost.is_writer()
 
 
 def maybe_initialize_distributed(enabled: bool) -> None:
-    """`coherent_jax.distributed.initialize` once, before any other JAX call, when ``enabled``."""
+    """`coherent_jax.multihost.initialize` once, before any other JAX call, when ``enabled``."""
     if enabled:
-        from coherent_jax import distributed
+        from coherent_jax import multihost
 
-        distributed.initialize()
+        multihost.initialize()

@@ -1,4 +1,4 @@
-"""Branching once for a whole sweep: conditions reduced over its vmapped points.
+"""A sweep's points axis: `vmap` over it, and conditions reduced over it to branch once.
 
 A sweep runs its grid points as one program, ``vmap(trainer.iteration, axis_name=
 POINT_AXIS)``. Under `jax.vmap` a `jax.lax.cond` whose predicate may differ between

@@ -1,4 +1,6 @@
-"""Processes against devices: ``python -m coherent_jax.bench_distributed [key=value ...]``.
+"""The ``processes`` suite: ``python -m coherent_jax.bench processes [key=value ...]``.
+
+Processes against devices.
 
 Trains the same run twice on this machine, each as a fresh ``python -m
 coherent_jax.train``: once as one process with N host devices
@@ -11,7 +13,7 @@ steps/s (its ``summary.json``: iterations only, compile and evaluation excluded)
 
 Keys: ``processes`` (N, default 2), ``repeats`` (pairs of runs, alternating which
 goes first, default 1; the median is reported), ``out`` (default
-``bench_results/distributed.json``), and any `coherent_jax.train` key (defaults:
+``bench_results/processes.json``), and any `coherent_jax.train` key (defaults:
 pointmass, 128 envs x 32 steps, 16 iterations, no evaluation or checkpoint). The
 JSON also records the load average before and after, for figures taken on a
 shared machine.
@@ -27,12 +29,12 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 from coherent_jax import cli
-from coherent_jax.config import ConfigError
+from coherent_jax.bench import measure
 from coherent_jax.runs import atomic_write
 
 DEFAULTS = [
@@ -51,10 +53,10 @@ KEYS = {
     "repeats": cli.Key(
         1, cli.int_at_least(1), "an integer >= 1", "pairs of runs, alternating which goes first"
     ),
-    "out": cli.Key("bench_results/distributed.json", cli.output_file, "a writable file path", "the JSON"),
+    "out": cli.Key("bench_results/processes.json", cli.output_file, "a writable file path", "the JSON"),
 }
-# Set per launch by the benchmark.
-FIXED = {"run_dir": None, "distributed": None, "resume": None}
+# Set per launch by the suite.
+FIXED: dict[str, str | None] = {"run_dir": None, "distributed": None, "resume": None}
 
 
 def _free_port() -> int:
@@ -93,15 +95,21 @@ def _launch(args: list[str], run_dir: Path, processes: int, devices: int) -> dic
     return json.loads((run_dir / "summary.json").read_text())
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    try:
-        parsed = cli.parse_command(
-            argv, KEYS, command="bench_distributed", fixed=FIXED, config_defaults=DEFAULTS
-        )
-    except ConfigError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return cli.EXIT_BAD_INPUT
+# The suite starts training commands of its own: it reads every training key other
+# suites ignore (a budget, evaluation, checkpoints), with `DEFAULTS` as its defaults.
+IGNORED_KEYS: tuple[str, ...] = ()
+
+
+def parse(items: Sequence[str]) -> cli.Parsed:
+    """The suite's settings and the training config; `ConfigError` in one line for bad input."""
+    return cli.parse_command(
+        items, KEYS, command="the processes suite", fixed=FIXED, config_defaults=DEFAULTS
+    )
+
+
+def run(items: Sequence[str], log: Callable[[str], None] = measure.print_log) -> dict[str, Any]:
+    """Trains the pairs of runs, writes the JSON to ``out`` atomically, returns it."""
+    parsed = parse(items)
     settings, cfg = parsed.settings, parsed.config
     # The user's items replace the defaults they name (the training command refuses a key twice).
     given = {cli.split_item(item)[0] for item in parsed.config_items}
@@ -127,6 +135,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "steps_per_iteration": cfg.steps_per_iteration,
         "iterations": cfg.num_iterations,
         "train_args": train_args,
+        "processes": n,
         f"one_process_x_{n}_devices_env_steps_per_s": one,
         f"{n}_processes_x_1_device_env_steps_per_s": many,
         "processes_over_one_process": round(many / one, 3),
@@ -138,11 +147,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     out = Path(settings["out"])
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write(out, (json.dumps(result, indent=2) + "\n").encode())
-    print(f"1 process x {n} devices: {one:10.0f} env steps/s")
-    print(f"{n} processes x 1 device: {many:10.0f} env steps/s  ({many / one:.2f}x)")
-    print(f"load average {result['load_average_before']} -> {result['load_average_after']}; written to {out}")
-    return 0
+    log(f"[bench] wrote {out}")
+    return result
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+def format_table(result: dict[str, Any]) -> str:
+    """The two layouts' training env steps/s and the load around the measurement."""
+    n = result["processes"]
+    one = result[f"one_process_x_{n}_devices_env_steps_per_s"]
+    many = result[f"{n}_processes_x_1_device_env_steps_per_s"]
+    return "\n".join(
+        [
+            f"1 process x {n} devices: {one:10.0f} env steps/s",
+            f"{n} processes x 1 device: {many:10.0f} env steps/s  ({many / one:.2f}x)",
+            f"load average {result['load_average_before']} -> {result['load_average_after']}",
+        ]
+    )

@@ -2,7 +2,7 @@
 
 ``distributed=true`` runs one process per host (or per device group): the same
 command everywhere, process 0 being JAX's coordinator and the only one that writes.
-This module holds what that needs beyond `coherent_jax.parallel`'s sharding:
+This module holds what that needs beyond the device sharding of `coherent_jax.sharding`:
 
 * **Start-up** (`initialize`): the CPU backend's cross-process collectives are
   switched to gloo (JAX's CPU default has none), the coordinator, process count and
@@ -40,6 +40,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from coherent_jax.config import ConfigError
+from coherent_jax.exit_codes import EXIT_PEER_FAILED
 
 # Seconds a process waits for all processes to join the coordinator, and after which
 # a peer that stopped sending heartbeats (hung, or its host lost) counts as dead.
@@ -50,8 +51,6 @@ DEFAULT_HEARTBEAT_TIMEOUT_S = 30
 # Set by the supervisor in its child: the file descriptor of the terminal's stderr,
 # for the child's own messages (its fd 2 carries the runtime's native log).
 WORKER_ENV = "COHERENT_JAX_WORKER_STDERR"
-# Exit status of a process stopped because another process of the run failed.
-EXIT_PEER_FAILED = 4
 # The line a worker writes to the runtime log before leaving on a failed collective.
 _COLLECTIVE_FAILED = "coherent_jax: collective failed: "
 # A line of the runtime's native (glog / absl) log: severity, date, time, thread, file:line.

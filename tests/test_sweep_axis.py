@@ -1,4 +1,4 @@
-"""A sweep's conds branch once for all its points (`coherent_jax.points`), and the
+"""A sweep's conds branch once for all its points (`coherent_jax.sweep_axis`), and the
 points still compute what each would alone."""
 
 import jax
@@ -8,7 +8,7 @@ import pytest
 
 from coherent_jax.agents.onpolicy import OnPolicyTrainer
 from coherent_jax.config import parse_overrides
-from coherent_jax.points import all_points, any_point, vmap_points
+from coherent_jax.sweep_axis import all_points, any_point, vmap_points
 
 TINY = [
     "env=pointmass",
