@@ -35,8 +35,8 @@ from coherent_jax.config import Config, ConfigError
 from coherent_jax.divergence import DivergenceError
 from coherent_jax.exit_codes import EXIT_BAD_INPUT, EXIT_DIVERGED, EXIT_OK, signal_status
 from coherent_jax.loop import PREFIX, StopRequest, run_loop
-from coherent_jax.quiet import quiet_imports
 from coherent_jax.loop_state import Job, Outcome
+from coherent_jax.quiet import quiet_imports
 from coherent_jax.runs import Checkpoint, CheckpointError, prepare_output_dir, record_versions, split_resume
 
 
