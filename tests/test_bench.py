@@ -152,7 +152,7 @@ def run_cli(args, cwd):
         (["coherent", "env=cheetah"], "'env'"),
         (["coherent", "explore=action"], "'explore'"),
         (["coherent", "policy_hidden=[64,"], "'policy_hidden'"),
-        (["sac", "sac.warmup_steps=5"], "'warmup_steps'"),
+        (["sac", "sac.warmup_steps=5"], "'sac.warmup_steps'"),
         (["physics", "envs=[3]", "variants=[mjx_2dev]"], "'envs'"),
     ],
 )

@@ -15,7 +15,7 @@ strategy's adaptation) with ``explore=action`` (SAC) and ``explore=coherent``
 - peak memory of each compiled iteration (XLA's ``memory_analysis()``), the
   replay buffer included.
 
-Settings are every training key (``algo`` is sac, ``explore`` and ``warmup_steps``
+Settings are every training key (``algo`` is sac, ``explore`` and ``sac.warmup_steps``
 are set by the suite) plus `KEYS`. Results go to a JSON file
 (default ``bench_results/sac.json``), written atomically.
 """
