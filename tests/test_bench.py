@@ -79,7 +79,7 @@ def test_coherent_suite_writes_every_figure(tmp_path):
         for key in ("iteration_s_median", "env_steps_per_s", "compile_s"):
             assert _positive(chain[name][key]), (name, key)
         cfg = data["settings"]["config"]
-        assert 1 <= chain[name]["policy_steps"] <= cfg["num_epochs"] * cfg["num_minibatches"]
+        assert 1 <= chain[name]["policy_steps"] <= cfg["ppo"]["num_epochs"] * cfg["ppo"]["num_minibatches"]
     assert _positive(chain["ratio_coherent_over_action"])
 
     table = coherent.format_table(data)

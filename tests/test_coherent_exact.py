@@ -287,7 +287,7 @@ def test_gradient_bench_passes_for_exact_forms_and_exposes_stored(tmp_path, caps
     from coherent_jax.bench.__main__ import main
 
     out = tmp_path / "gradient.json"
-    small = ["q=8", "p=1", "obs_size=3", "segment=8", "w_std=0.3", "coherent.action_std=0.1", f"out={out}"]
+    small = ["q=8", "p=1", "obs_size=3", "segment=8", "w_std=0.3", "action_std=0.1", f"out={out}"]
     assert main(["gradient", "betas=[0,0.1]", "histories=[0,16]", *small]) == 0
     rows = json.loads(out.read_text())["rows"]
     assert {r["mode"]: r["must_equal"] for r in rows} == {

@@ -434,9 +434,9 @@ def format_table(result: dict) -> str:
     hidden = ",".join(map(str, cfg["policy_hidden"]))
     lines = [
         f"coherent bench: {cfg['env']}, {cfg['num_envs']} envs x {cfg['unroll_length']} steps, "
-        f"{cfg['algo']} {cfg['num_epochs']} epochs x {cfg['num_minibatches']} minibatches, "
-        f"policy [{hidden}], beta={cfg['beta']}"
-        + (f", coherent_inference={cfg['coherent_inference']}" if "coherent_inference" in cfg else ""),
+        f"{cfg['algo']} {cfg['ppo']['num_epochs']} epochs x {cfg['ppo']['num_minibatches']} minibatches, "
+        f"policy [{hidden}], coherent.beta={cfg['coherent']['beta']}, "
+        f"coherent.inference={cfg['coherent']['inference']}",
         measure.machine_line(result),
         "",
         f"1. PPO iteration (median of {len(tr['action']['iteration_s'])}, interleaved)",

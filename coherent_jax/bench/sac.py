@@ -145,7 +145,8 @@ def format_table(result: dict) -> str:
     lines = [
         f"sac bench: {cfg['env']}, {cfg['num_envs']} envs x {cfg['unroll_length']} steps = "
         f"{tr['env_steps_per_iteration']} env steps and {tr['updates_per_iteration']} updates "
-        f"(batch {cfg['batch_size']}) per iteration, networks [{hidden}], beta={cfg['beta']}",
+        f"(batch {cfg['sac']['batch_size']}) per iteration, networks [{hidden}], "
+        f"coherent.beta={cfg['coherent']['beta']}",
         measure.machine_line(result),
         f"median of {len(tr['action']['iteration_s'])} interleaved iterations",
         "",

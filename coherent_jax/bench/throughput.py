@@ -398,8 +398,9 @@ def format_table(result: dict) -> str:
     hidden = ",".join(map(str, cfg["policy_hidden"]))
     lines = [
         f"throughput bench: {cfg['env']}, {cfg['num_envs']} envs x {cfg['unroll_length']} steps "
-        f"({result['env_steps_per_iteration']} env steps per iteration), PPO {cfg['num_epochs']} epochs x "
-        f"{cfg['num_minibatches']} minibatches, policy/value [{hidden}] {cfg['activation']}",
+        f"({result['env_steps_per_iteration']} env steps per iteration), "
+        f"PPO {cfg['ppo']['num_epochs']} epochs x {cfg['ppo']['num_minibatches']} minibatches, "
+        f"policy/value [{hidden}] {cfg['activation']}",
         measure.machine_line(result),
         "",
         f"  {'row':<27}{'compile s':>10}{'iter s':>9}{'env steps/s':>13}{'x raw':>7}{'best':>9}"
