@@ -148,20 +148,28 @@ def layered_base(base: Any, algo: str | None, preset: str | None) -> Any:
     return base
 
 
-def _flat(values: dict[str, Any]) -> str:
-    """``key=value`` items of a layer, a group's fields dotted (``ppo.clip_eps=0.2``)."""
+def _flat(values: dict[str, Any], same: Any = None) -> str:
+    """``key=value`` items of a layer, a group's fields dotted (``ppo.clip_eps=0.2``); an item for
+    which ``same(key, value)`` is true is left out."""
     items: dict[str, Any] = {}
     for k, v in values.items():
         items.update({f"{k}.{g}": w for g, w in v.items()} if isinstance(v, dict) else {k: v})
+    items = {k: v for k, v in items.items() if same is None or not same(k, v)}
     shown = {k: str(v).lower() if isinstance(v, bool) else v for k, v in items.items()}
     return " ".join(f"{k}={v:.6g}" if isinstance(v, float) else f"{k}={v}" for k, v in shown.items()).replace(
         ", ", ","
     )
 
 
-def help_lines() -> list[str]:
-    """What ``--help`` says about the algorithm defaults and every preset, per algorithm."""
-    lines = [f"algo={algo} changes these defaults: {_flat(values)}" for algo, values in ALGO_DEFAULTS.items()]
+def help_lines(same_as_default: Any = None) -> list[str]:
+    """What ``--help`` says about the algorithm defaults and every preset, per algorithm.
+
+    ``same_as_default(key, value)``: whether an algorithm's default equals the base default
+    (it changes nothing, so it is not listed as a change)."""
+    lines = [
+        f"algo={algo} changes these defaults: {_flat(values, same_as_default)}"
+        for algo, values in ALGO_DEFAULTS.items()
+    ]
     for name, per_algo in PRESETS.items():
         lines.append(f"preset={name}: {PRESET_DESCRIPTIONS[name]}; over the algo's defaults it sets")
         lines += [f"  with algo={algo}: {_flat(values)}" for algo, values in per_algo.items()]

@@ -5,6 +5,7 @@ optimiser (``vf_lr``, ``vf_iters``), ``max_grad_norm=0`` and SAC's ``update_afte
 import dataclasses
 import json
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -377,3 +378,18 @@ def test_steps_after_an_early_stop_are_skipped_and_change_nothing(monkeypatch):
     for key, value in skipped[1].items():
         assert np.isfinite(value) == np.isfinite(computed[1][key]), key
         assert np.allclose(value, computed[1][key], rtol=1e-5, atol=1e-6, equal_nan=True), key
+
+
+def test_help_names_only_defaults_an_algorithm_changes():
+    """``[algo=sac: V]`` beside an option and the ``changes these defaults`` line list only
+    values that differ from the option's default (SAC's lr equals PPO's: not a change)."""
+    text = help_text()
+    changes = 0
+    for line in text.splitlines():
+        m = re.match(r"  (\S+)=(\S+)\s.*\[algo=(\w+): ([^\]]+)\]", line)
+        if m:
+            changes += 1
+            assert m.group(2) != m.group(4), line
+    assert changes >= 5
+    sac = next(ln for ln in text.splitlines() if ln.startswith("algo=sac changes these defaults:"))
+    assert "num_envs=8" in sac and " lr=" not in sac

@@ -148,15 +148,25 @@ def _shown(value: Any) -> str:
     return str(value).lower() if isinstance(value, bool) else str(value)
 
 
+def _is_default(key: str, value: Any) -> bool:
+    """Whether dotted `key`'s default in `Config` equals `value`."""
+    obj = Config()
+    for part in key.split("."):
+        obj = getattr(obj, part)
+    return obj == value
+
+
 def _algo_changes() -> dict[str, dict[str, Any]]:
-    """key -> {algo: the default that algorithm sets} (`presets.ALGO_DEFAULTS`), keys dotted."""
+    """key -> {algo: the default that algorithm sets} (`presets.ALGO_DEFAULTS`), keys dotted;
+    a default the algorithm leaves as it is is not a change."""
     out: dict[str, dict[str, Any]] = {}
     for algo, values in ALGO_DEFAULTS.items():
         for k, v in values.items():
             for key, value in (
                 {f"{k}.{g}": w for g, w in v.items()} if isinstance(v, dict) else {k: v}
             ).items():
-                out.setdefault(key, {})[algo] = value
+                if not _is_default(key, value):
+                    out.setdefault(key, {})[algo] = value
     return out
 
 
@@ -165,7 +175,7 @@ def help_text() -> str:
     a default another algorithm changes says so (``[algo=sac: 8]``)."""
     changes = _algo_changes()
     legacy = {new: old for old, new in LEGACY_KEYS.items()}
-    lines = ["usage: python -m coherent_jax.train [key=value ...]", "", *help_lines()]
+    lines = ["usage: python -m coherent_jax.train [key=value ...]", "", *help_lines(_is_default)]
     lines.append(f"sweepable (a list runs a grid with coherent_jax.sweep): {', '.join(SWEEPABLE)}")
     lines.append(
         "a group's key is dotted (ppo.clip_eps=0.1); the flat keys of before (clip_eps=0.1) "
