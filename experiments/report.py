@@ -49,9 +49,9 @@ reproduce = importlib.util.module_from_spec(_spec)
 sys.modules.setdefault("reproduce", reproduce)
 _spec.loader.exec_module(reproduce)
 import curves  # noqa: E402  (beside reproduce.py, which put experiments/ on sys.path)
+from stats import REPS, aggregate, auc, interval, normalised, probability_of_improvement  # noqa: E402,F401
 
 METRIC = "eval/episode_return"
-REPS = 2000
 BASELINES = ("action", "noisynet", "psne")
 
 
@@ -86,33 +86,9 @@ def cell_runs(cell: reproduce.Cell, results: Path) -> list[plot.Run]:
     return curves.load_runs(results, cell.suite, cell.name, METRIC)
 
 
-def auc(run: plot.Run) -> float:
-    """Mean evaluation return over training (trapezoid over env steps)."""
-    if run.steps.size < 2:
-        return float(run.values[-1])
-    return float(np.trapezoid(run.values, run.steps) / (run.steps[-1] - run.steps[0]))
-
-
-def interval(values: np.ndarray, reps: int = REPS, seed: int = 0) -> tuple[float, float, float]:
-    mean, low, high = plot.mean_and_interval(np.asarray(values, np.float64)[:, None], reps, seed)
-    return float(mean[0]), float(low[0]), float(high[0])
-
-
-def probability_of_improvement(
-    x: np.ndarray, y: np.ndarray, reps: int = REPS, seed: int = 0
-) -> dict[str, float]:
-    """P(X > Y) over runs x [n, tasks] and y [m, tasks] (rliable's metric), stratified-bootstrap 95% CI."""
-    from rliable import metrics
-
-    point, low, high = plot.stratified_bootstrap(
-        [x, y], lambda a, b: np.array([metrics.probability_of_improvement(a, b)]), reps, seed
-    )
-    return {"p": float(point[0]), "low": float(low[0]), "high": float(high[0])}
-
-
 # Suites whose comparisons are claims of the thesis; the others' (sparse: tasks the
 # thesis did not run) are our own questions, which hold or do not.
-THESIS_SUITES = ("thesis", "ablations")
+THESIS_SUITES = ("thesis", "ablations", "protocol")
 
 
 def verdict(poi: dict[str, float], suite: str = "thesis") -> str:
@@ -124,58 +100,17 @@ def verdict(poi: dict[str, float], suite: str = "thesis") -> str:
     return "inconclusive"
 
 
-def normalised(scores: dict[str, dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
-    """strategy -> task -> per-seed scores  =>  strategy -> [seeds, tasks], min-max per task.
-
-    Only the tasks every strategy has finished count, so that strategies are compared on
-    the same tasks while a suite is incomplete (a task one strategy lacks is left out
-    for all; none in common: nothing)."""
-    tasks = sorted(set.intersection(*(set(by_task) for by_task in scores.values()))) if scores else []
-    if not tasks:
-        return {}
-    out = {}
-    for name, by_task in scores.items():
-        by_task = {t: by_task[t] for t in tasks}
-        n = min(len(v) for v in by_task.values())
-        cols = []
-        for t in tasks:
-            every = np.concatenate([s[t] for s in scores.values() if t in s])
-            lo, hi = float(every.min()), float(every.max())
-            cols.append((by_task[t][:n] - lo) / (hi - lo) if hi > lo else np.full(n, 0.5))
-        out[name] = np.stack(cols, axis=1)
-    return out
-
-
-def aggregate(norm: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
-    """IQM and optimality gap (rliable's metrics) of each strategy's [runs, tasks] scores, 95% CIs."""
-    from rliable import metrics
-
-    out = {}
-    for k in sorted(norm):
-        point, low, high = plot.stratified_bootstrap(
-            [norm[k]],
-            lambda x: np.array([metrics.aggregate_iqm(x), metrics.aggregate_optimality_gap(x)]),
-            REPS,
-            0,
-        )
-        out[k] = {
-            "iqm": float(point[0]),
-            "iqm_low": float(low[0]),
-            "iqm_high": float(high[0]),
-            "gap": float(point[1]),
-            "gap_low": float(low[1]),
-            "gap_high": float(high[1]),
-        }
-    return out
-
-
-def aggregate_table(algo: str, what: str, table: dict[str, dict[str, np.ndarray]], norm) -> list[str]:
-    """RESULTS.md lines: IQM and optimality gap of every strategy on the tasks all have finished."""
+def aggregate_table(
+    algo: str, what: str, table: dict[str, dict[str, np.ndarray]], norm, title: str = ""
+) -> list[str]:
+    """RESULTS.md lines: IQM and optimality gap of every strategy on the tasks all have finished;
+    `title` names the group of cells compared (a suite with several, `label_groups`)."""
     agg = aggregate(norm)
     common = sorted(set.intersection(*(set(by_task) for by_task in table.values())))
     left_out = sorted({t for by_task in table.values() for t in by_task} - set(common))
     lines = [
-        f"**{algo}, {what}**, normalised per task over {len(common)} task(s) ({', '.join(common)}"
+        f"**{algo}, {what}{', ' + title if title else ''}**, "
+        f"normalised per task over {len(common)} task(s) ({', '.join(common)}"
         + (f"; {', '.join(left_out)} left out until every strategy has finished it" if left_out else "")
         + "):",
         "",
@@ -193,15 +128,21 @@ def aggregate_table(algo: str, what: str, table: dict[str, dict[str, np.ndarray]
 def _label(cell: reproduce.Cell, run: plot.Run, suite: str | None = None) -> str:
     """The strategy (``coherent``, ``psne``, ``coherent-mc``...); the cells and grid points
     that vary beta by their beta, and so, in the ablations, the thesis's coherent cell
-    (the default beta, which every other ablation keeps)."""
+    (the default beta, which every other ablation keeps). In the protocol suite a cell's
+    ``-thesis`` (the preset) is dropped, and the thesis suite's coherent cell it is read
+    beside is ``coherent-exact`` (the chain cut at every 64-step segment)."""
     name = cell.name.split("/", 2)[2]
+    if suite == "protocol":
+        if cell.suite == "thesis":
+            return "coherent-exact"
+        name = name.replace("-thesis", "", 1)
     if name.startswith("coherent-beta") or (suite == "ablations" and name == "coherent"):
         return f"beta={float(run.settings['coherent.beta']):g}"
     return name
 
 
 def build(
-    results: Path, out: Path, suites: Sequence[str] = ("thesis", "ablations", "beyond", "sparse")
+    results: Path, out: Path, suites: Sequence[str] = ("thesis", "ablations", "beyond", "sparse", "protocol")
 ) -> str:
     """RESULTS.md's text: per suite its curves, cell table, provenance and aggregates, then the
     verdicts on the claims, the compute spent and the cells not finished."""
@@ -240,7 +181,9 @@ def suite_section(
     """One suite's section (its claims appended to `claims`) and the wall times of its own cells."""
     lines = [f"## Suite `{suite}`", ""]
     runs = {c.name: cell_runs(c, results) for c in done}
-    lines += curve_figures(suite, done, runs, results / "figures", out)
+    for title, members in cell_groups(suite, done, runs):
+        name = suite + (f"-{title.split()[0]}" if title else "")
+        lines += curve_figures(name, members, runs, results / "figures", out)
     table, finals, aucs, walls = cell_table(suite, done, runs, results)
     lines += table
     lines += provenance_lines([c for c in done if c.suite == suite], results)
@@ -248,11 +191,50 @@ def suite_section(
         lines += sparse_lines(done, results)
     for algo in sorted(finals):
         for what, per_label in (("final return", finals[algo]), ("area under curve", aucs[algo])):
-            norm = normalised(per_label)
-            if len(norm) >= 2:
-                lines += aggregate_table(algo, what, per_label, norm)
+            for title, labels in label_groups(suite, per_label):
+                group = {k: per_label[k] for k in labels}
+                norm = normalised(group)
+                if len(norm) >= 2:
+                    lines += aggregate_table(algo, what, group, norm, title)
             claims += suite_claims(suite, algo, what, per_label)
     return lines, walls
+
+
+# The protocol suite's three questions, each compared within its own cells: the thesis's
+# strategies under its protocol, the beta ablation (HalfCheetah, its coherent cell at the
+# default beta among them) and the chain length at the library's defaults.
+CHAIN_LABELS = ("coherent-exact", "coherent-episode", "coherent-stored")
+
+
+def label_groups(suite: str, labels) -> list[tuple[str, list[str]]]:
+    """(title, labels) of each group of a suite's labels compared among themselves; one
+    untitled group of every label but in the protocol suite."""
+    labels = sorted(labels)
+    if suite != "protocol":
+        return [("", labels)]
+    betas = [k for k in labels if k.startswith("beta=")]
+    groups = [
+        ("", [k for k in labels if k in (*BASELINES, "coherent")]),
+        ("beta ablation", betas + (["coherent"] if betas and "coherent" in labels else [])),
+        ("chain length", [k for k in labels if k in CHAIN_LABELS]),
+    ]
+    return [(t, g) for t, g in groups if g]
+
+
+def cell_groups(
+    suite: str, done: list[reproduce.Cell], runs: dict[str, list[plot.Run]]
+) -> list[tuple[str, list[reproduce.Cell]]]:
+    """(title, cells) per `label_groups` group, for its figures: a group's cells are those
+    with its labels on the tasks its own labels (not one it shares) have run."""
+    label = {c.name: _label(c, runs[c.name][0], suite) for c in done if runs[c.name]}
+    groups = label_groups(suite, set(label.values()))
+    out = []
+    for i, (title, labels) in enumerate(groups):
+        shared = {k for j, (_, g) in enumerate(groups) if j != i for k in g}
+        own = {c.setting("env") for c in done if label.get(c.name) in set(labels) - shared}
+        members = [c for c in done if label.get(c.name) in labels and (not own or c.setting("env") in own)]
+        out.append((title, members))
+    return out
 
 
 def curve_figures(
@@ -439,9 +421,25 @@ def _reference_cells(suite: str, done: list[reproduce.Cell], results: Path) -> l
 
         def keep(c: reproduce.Cell) -> bool:
             return (c.setting("env"), c.setting("algo")) in runs
+    elif suite == "protocol":
+        return _chain_references(done, results)
     else:
         return []
     return [c for c in reproduce.thesis_cells() if keep(c) and reproduce.cell_state(c, results) == "done"]
+
+
+def _chain_references(done: list[reproduce.Cell], results: Path) -> list[reproduce.Cell]:
+    """The protocol suite's chain-length cells (`coherent.gradient=episode`, ``stored``, at the
+    library's defaults) are read beside the ``exact`` cells of their task, the thesis suite's
+    PPO coherent cells, and HalfCheetah's stored one of the ablations suite."""
+    tasks = {c.setting("env") for c in done if c.name.endswith(("/coherent-episode", "/coherent-stored"))}
+    stored = f"{reproduce.ABLATION_TASK}/ppo/coherent-stored"
+    candidates = [
+        *(c for c in reproduce.thesis_cells() if c.name in {f"{t}/ppo/coherent" for t in tasks}),
+        *(c for c in reproduce.ablation_cells() if c.name == stored),
+    ]
+    keep = [c for c in candidates if c.setting("env") in tasks]
+    return [c for c in keep if reproduce.cell_state(c, results) == "done"]
 
 
 def _pairs(suite: str, norm: dict) -> list[tuple[str, str]]:
@@ -454,6 +452,12 @@ def _pairs(suite: str, norm: dict) -> list[tuple[str, str]]:
         ]
         # The chain: intermediate beta vs step-based (1) and trajectory-based (0) exploration.
         pairs += [(f"beta={b}", f"beta={e}") for b in ("0.01", "0.1", "0.5") for e in ("1", "0")]
+        return [p for p in pairs if p[0] in norm and p[1] in norm]
+    if suite == "protocol":
+        pairs = [("coherent", b) for b in BASELINES]
+        # beta 0.01 is the coherent cell; each intermediate beta against both ends of the chain
+        pairs += [(b, e) for b in ("coherent", "beta=0.1", "beta=0.5") for e in ("beta=1", "beta=0")]
+        pairs += [("coherent-episode", "coherent-exact"), ("coherent-episode", "coherent-stored")]
         return [p for p in pairs if p[0] in norm and p[1] in norm]
     # beyond: only the newer strategies; the thesis suite's own comparisons are its verdicts.
     newer = reproduce.BEYOND_STRATEGIES
@@ -471,7 +475,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument(
         "--suites",
         nargs="+",
-        default=["thesis", "ablations", "beyond", "sparse"],
+        default=["thesis", "ablations", "beyond", "sparse", "protocol"],
         choices=list(reproduce.SUITES),
     )
     args = parser.parse_args(argv)

@@ -9,6 +9,7 @@ import os
 import shutil
 import subprocess
 import sys
+import types
 from pathlib import Path
 
 import numpy as np
@@ -261,6 +262,43 @@ def test_report_reads_ablations_and_beyond_beside_the_thesis_cells(tmp_path):
     labels = dict.fromkeys(["coherent", "action", "noisynet", "psne", "gsde", "pink"], 0)
     assert report._pairs("beyond", labels) == [("coherent", "gsde"), ("coherent", "pink")]
     assert report.verdict({"p": 0.8, "low": 0.6, "high": 0.9}, "beyond") == "holds"
+
+
+def test_report_reads_the_protocol_suite_as_three_comparisons(tmp_path):
+    """Protocol cells lose their ``-thesis`` tag; the strategies, the beta ablation (with the
+    coherent cell as beta 0.01) and the chain length (read beside the thesis suite's exact
+    and the ablations' stored cells) are aggregated and claimed each among themselves."""
+    report = _report()
+    run = types.SimpleNamespace(settings={"coherent.beta": 0.5})
+    label = {c.name: report._label(c, run, "protocol") for c in reproduce.protocol_cells()}
+    assert label["hopper/ppo/psne-thesis"] == "psne"
+    assert label["walker2d/a2c/coherent-thesis"] == "coherent"
+    assert label["halfcheetah/a2c/coherent-thesis-beta0.5"] == "beta=0.5"
+    assert label["hopper/ppo/coherent-episode"] == "coherent-episode"
+    exact = reproduce.select("thesis", ["hopper/ppo/coherent"])[0]
+    assert report._label(exact, run, "protocol") == "coherent-exact"
+    assert report._label(exact, run, "thesis") == "coherent"
+    labels = ["action", "coherent", "psne", "beta=0", "beta=1", "coherent-episode", "coherent-exact"]
+    assert report.label_groups("protocol", labels) == [
+        ("", ["action", "coherent", "psne"]),
+        ("beta ablation", ["beta=0", "beta=1", "coherent"]),
+        ("chain length", ["coherent-episode", "coherent-exact"]),
+    ]
+    assert report.label_groups("thesis", ["psne", "action"]) == [("", ["action", "psne"])]
+    pairs = report._pairs("protocol", dict.fromkeys(labels, 0))
+    assert pairs == [
+        ("coherent", "action"),
+        ("coherent", "psne"),
+        ("coherent", "beta=1"),
+        ("coherent", "beta=0"),
+        ("coherent-episode", "coherent-exact"),
+    ]
+    # The chain-length cells' references: only once one of them is done, finished ones only.
+    assert report._reference_cells("protocol", [], tmp_path) == []
+    for name in ("hopper/ppo/coherent", "halfcheetah/ppo/coherent"):
+        _fake_sweep(reproduce.select("thesis", [name])[0], tmp_path, finished=True)
+    episode = reproduce.select("protocol", ["hopper/ppo/coherent-episode"])
+    assert [c.name for c in report._reference_cells("protocol", episode, tmp_path)] == ["hopper/ppo/coherent"]
 
 
 def test_report_aggregates_only_the_tasks_every_strategy_has_finished():
