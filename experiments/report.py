@@ -22,6 +22,9 @@ writes ``experiments/RESULTS.md`` with its figures in ``experiments/results/figu
 
 The ablations are read beside the thesis suite's action and coherent cells of their task,
 and `beyond` (gSDE, pink) beside every thesis strategy on the same tasks and algorithms.
+The `protocol` suite (``preset=thesis``) is three comparisons, each aggregated among its
+own cells: the thesis's strategies, the beta ablation, and the chain length at the
+library's defaults (``episode`` and ``stored`` beside the thesis suite's ``exact`` cells).
 
 Missing cells are listed, never silently left out.
 """
