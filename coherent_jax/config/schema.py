@@ -34,7 +34,7 @@ from coherent_jax.config.groups import (
     PsneOptions,
     SACOptions,
 )
-from coherent_jax.envs.registry import DEFAULT_THREADS, NATIVE_TASKS, PHYSICS, TASKS
+from coherent_jax.envs.registry import DEFAULT_THREADS, NATIVE_TASKS, PHYSICS, TASKS, USER_TASK_FORM
 from coherent_jax.presets import NO_PRESET, PRESETS
 from coherent_jax.strategies import ALGOS, EXPLORES
 
@@ -50,7 +50,8 @@ class Config:
     """Everything that defines a training run (see ``--help``)."""
 
     # --- what to run
-    env: str = field("halfcheetah", "task name: " + ", ".join(TASKS), group="run", choices=tuple(TASKS))
+    # Checked first by `validate` (a MODULE:NAME task is not a fixed choice).
+    env: str = field("halfcheetah", "task name: " + ", ".join(TASKS) + ", or " + USER_TASK_FORM, group="run")
     algo: str = field("ppo", "algorithm: " + ", ".join(ALGOS), group="run", choices=ALGOS)
     explore: str = field(
         "action", "exploration strategy: " + ", ".join(EXPLORES), group="run", choices=EXPLORES
