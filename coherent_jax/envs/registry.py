@@ -276,9 +276,9 @@ def resolve_physics(task: str, physics: str) -> str:
     """The backend a task runs on: ``mjx`` or ``native`` (own-pipeline tasks keep theirs).
 
     Gymnasium's tasks and the user's own (``MODULE:NAME``) run on native MuJoCo with ``auto``
-    and ``native``, and their own model on MJX with ``mjx`` (`coherent_jax.envs.mjx_physics`) except where MJX cannot
-    run it (refused with the reason). Brax's re-creations and Playground's tasks: ``auto`` picks
-    native MuJoCo on a CPU for those that have it (faster there, see
+    and ``native``, and their own model on MJX with ``mjx`` (`coherent_jax.envs.mjx_physics`)
+    except where MJX cannot run it (refused with the reason). Brax's re-creations and
+    Playground's tasks: ``auto`` picks native MuJoCo on a CPU for those that have it (faster there, see
     ``python -m coherent_jax.bench physics``) and MJX on accelerators. Raises
     `PhysicsError` with a one-line message otherwise. Only ``auto`` on such a task asks
     JAX for its backend; everything else is decided from the registry.

@@ -104,7 +104,7 @@ def _definition(name: str) -> MjcfTask:
         except Exception as exc:
             fail(f"{attr}() raised {_first_line(exc)}")
     if not isinstance(task, MjcfTask):
-        fail(f"{attr} is a {type(task).__name__}, not an MjcfTask or a function returning one")
+        fail(f"{attr} is of type {type(task).__name__}, not an MjcfTask or a function returning one")
     return task
 
 
@@ -149,7 +149,8 @@ def _checked_model(name: str, task: MjcfTask) -> NativeModel:
     try:
         loaded = load_model(os.path.abspath(path), task.frame_skip)
     except ValueError as exc:
-        _fail(name, f"MJCF file {path!r} does not compile ({'; '.join(str(exc).split(chr(10)))})")
+        lines = (line.strip() for line in str(exc).splitlines())
+        _fail(name, f"MJCF file {path!r} does not compile ({'; '.join(line for line in lines if line)})")
     model = loaded.model
     if model.nu < 1:
         _fail(name, f"MJCF file {path!r} has no actuators (the agent acts through them)")
@@ -173,7 +174,8 @@ def _sample_states(name: str, native: NativeTask, loaded: NativeModel):
     except Exception as exc:
         _fail(name, f"reset_noise raised {_first_line(exc)}")
     if np.shape(qpos) != (model.nq,) or np.shape(qvel) != (model.nv,):
-        _fail(name, f"reset_noise returns shapes {np.shape(qpos)}, {np.shape(qvel)}; expected ({model.nq},), ({model.nv},)")
+        got, expected = f"{np.shape(qpos)}, {np.shape(qvel)}", f"({model.nq},), ({model.nv},)"
+        _fail(name, f"reset_noise returns shapes {got}; expected {expected}")
     data = mujoco.MjData(model)
     data.qpos[:], data.qvel[:] = np.asarray(qpos), np.asarray(qvel)
     mujoco.mj_forward(model, data)
@@ -204,8 +206,11 @@ def _check_formulas(name: str, task: MjcfTask, native: NativeTask, loaded: Nativ
         obs = _run(name, "observe", task.observe, kin)
         if obs.ndim != 1 or obs.size < 1:
             _fail(name, f"observe returns shape {obs.shape} per env; expected a vector [obs_size]")
-        if not np.issubdtype(obs.dtype, np.number) or not np.all(np.isfinite(obs)):
-            _fail(name, f"observe returns non-finite values {when}: {obs.tolist()}")
+        if not np.issubdtype(obs.dtype, np.number):
+            _fail(name, f"observe returns {obs.dtype} values; expected numbers")
+        if not np.all(np.isfinite(obs)):
+            bad = int(np.sum(~np.isfinite(obs)))
+            _fail(name, f"observe returns {bad} non-finite values of {obs.size} {when}")
     dt = loaded.dt
     reward = _run(name, "reward", lambda k0, k1, c: task.reward(k0, k1, c, dt), before, after, ctrl)
     if reward.shape != ():
@@ -218,7 +223,8 @@ def _check_formulas(name: str, task: MjcfTask, native: NativeTask, loaded: Nativ
             done.dtype == np.bool_ or (np.issubdtype(done.dtype, np.number) and done in (0, 1))
         )
         if not boolean_like:
-            _fail(name, f"terminate returns {done.dtype} {done.tolist()!r}; expected a boolean scalar per env")
+            got = f"shape {done.shape}" if done.shape else f"the value {done.tolist()!r}"
+            _fail(name, f"terminate returns {done.dtype} of {got} per env; expected a boolean scalar per env")
 
 
 def _native_task(task: MjcfTask, fields: tuple[str, ...], path: str) -> NativeTask:
