@@ -12,11 +12,10 @@ import dataclasses
 from typing import Any
 
 from coherent_jax import limits
-from coherent_jax.config.schema import FIELDS, Config, get_value
+from coherent_jax.config.schema import ENV_ALLOWED, FIELDS, Config, get_value
 from coherent_jax.envs.registry import (
     NATIVE_TASKS,
     TASKS,
-    USER_TASK_FORM,
     PhysicsError,
     TaskDefinitionError,
     TaskSpec,
@@ -72,7 +71,7 @@ def task_spec(env: str) -> TaskSpec:
     """The registry's entry of ``env``: a registered name, or a user's ``MODULE:NAME``, which
     is imported and checked here (loading JAX) so that a bad definition is refused before
     anything is written."""
-    check(env in TASKS or is_user_task(env), "env", env, ", ".join(TASKS) + ", or " + USER_TASK_FORM)
+    check(env in TASKS or is_user_task(env), "env", env, ENV_ALLOWED)
     try:
         return check_task(env)
     except TaskDefinitionError as exc:
