@@ -18,6 +18,7 @@ obs_reads_unnamed_field = dataclasses.replace(reacher, fields=(), observe=lambda
 reward_vector = dataclasses.replace(reacher, reward=lambda k0, k1, ctrl, dt: -jnp.square(ctrl))
 reward_nan = dataclasses.replace(reacher, reward=lambda k0, k1, ctrl, dt: jnp.nan * k1.qpos[0])
 terminate_half = dataclasses.replace(reacher, terminate=lambda k: 0.5 + 0.0 * k.qpos[0])
+reset_short = dataclasses.replace(reacher, reset_noise=lambda key, q, nv: (q[:2], jnp.zeros(nv)))
 terminate_vector = dataclasses.replace(reacher, terminate=lambda k: k.qpos > 10.0)
 
 

@@ -24,6 +24,7 @@ BAD = [
     ("bad_user_tasks:unknown_field", "['qacc'] are not Kinematics fields"),
     ("bad_user_tasks:missing_mjcf", "no_such_model.xml' not found"),
     ("bad_user_tasks:invalid_mjcf", "does not compile"),
+    ("bad_user_tasks:reset_short", "reset_noise returns shapes ((2,), (4,))"),
     ("bad_user_tasks:obs_matrix", "observe returns shape (5, 3) per env"),
     ("bad_user_tasks:obs_nan", "observe returns 4 non-finite values"),
     ("bad_user_tasks:obs_reads_unnamed_field", "observe fails under jax.jit/vmap"),
@@ -61,9 +62,13 @@ def test_the_example_takes_its_own_time_limit_and_both_engines():
         assert parse_overrides([f"env={EXAMPLE}", f"physics={physics}"]).physics == physics
 
 
-def _cli(args, cwd, pythonpath=()):
+def _cli(args, cwd, pythonpath=(), cache=True):
+    """``python ARGS`` in `cwd`; without `cache` the test run's compilation cache is not used
+    (XLA logs a line on stderr for each program it loads from there)."""
     env = child_env()
     env["PYTHONPATH"] = os.pathsep.join([*pythonpath, env["PYTHONPATH"]])
+    if not cache:
+        env.pop("JAX_COMPILATION_CACHE_DIR", None)
     return subprocess.run(
         [sys.executable, *args], cwd=cwd, capture_output=True, text=True, env=env, timeout=900
     )
@@ -75,6 +80,7 @@ def test_bad_definition_from_the_command_line_exits_2_writing_nothing(tmp_path, 
         ["-m", "coherent_jax.train", f"env={name}", f"run_dir={tmp_path / 'run'}"],
         tmp_path,
         [str(ROOT / "tests")],
+        cache=False,
     )
     assert proc.returncode == 2, proc.stderr
     lines = proc.stderr.strip().splitlines()

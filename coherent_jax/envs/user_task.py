@@ -169,13 +169,15 @@ def _sample_states(name: str, native: NativeTask, loaded: NativeModel):
     import mujoco
 
     model = loaded.model
-    try:
-        qpos, qvel = native.reset_noise(jax.random.PRNGKey(0), jnp.asarray(loaded.init_q), model.nv)[:2]
-    except Exception as exc:
-        _fail(name, f"reset_noise raised {_first_line(exc)}")
-    if np.shape(qpos) != (model.nq,) or np.shape(qvel) != (model.nv,):
-        got, expected = f"{np.shape(qpos)}, {np.shape(qvel)}", f"({model.nq},), ({model.nv},)"
-        _fail(name, f"reset_noise returns shapes {got}; expected {expected}")
+    init_q, keys = jnp.asarray(loaded.init_q), jax.random.PRNGKey(0)[None]
+    drawn = _run(name, "reset_noise", lambda key: native.reset_noise(key, init_q, model.nv), keys, pair=True)
+    shapes = tuple(np.shape(x) for x in drawn) if isinstance(drawn, tuple) else np.shape(drawn)
+    if shapes != ((model.nq,), (model.nv,)):
+        _fail(
+            name,
+            f"reset_noise returns shapes {shapes}; expected (qpos, qvel): (({model.nq},), ({model.nv},))",
+        )
+    qpos, qvel = drawn
     data = mujoco.MjData(model)
     data.qpos[:], data.qvel[:] = np.asarray(qpos), np.asarray(qvel)
     mujoco.mj_forward(model, data)
@@ -188,12 +190,15 @@ def _sample_states(name: str, native: NativeTask, loaded: NativeModel):
     return before, _fields_of(data, native.fields), ctrl[None]
 
 
-def _run(name: str, what: str, fn: Callable, *args) -> np.ndarray:
-    """``fn`` vmapped over one env and jitted, as the engines run it; its per-env output."""
+def _run(name: str, what: str, fn: Callable, *args, pair: bool = False) -> Any:
+    """``fn`` vmapped over one env and jitted, as the engines run it; its per-env output, a
+    NumPy array (with `pair`: a tuple of them)."""
     try:
         out = jax.jit(jax.vmap(fn))(*args)
     except Exception as exc:
         _fail(name, f"{what} fails under jax.jit/vmap ({_first_line(exc)})")
+    if pair and isinstance(out, tuple) and all(isinstance(x, jax.Array) for x in out):
+        return tuple(np.asarray(x)[0] for x in out)
     if not isinstance(out, jax.Array):
         _fail(name, f"{what} returns a {type(out).__name__}; expected a JAX array")
     return np.asarray(out)[0]
@@ -206,8 +211,8 @@ def _check_formulas(name: str, task: MjcfTask, native: NativeTask, loaded: Nativ
         obs = _run(name, "observe", task.observe, kin)
         if obs.ndim != 1 or obs.size < 1:
             _fail(name, f"observe returns shape {obs.shape} per env; expected a vector [obs_size]")
-        if not np.issubdtype(obs.dtype, np.number):
-            _fail(name, f"observe returns {obs.dtype} values; expected numbers")
+        if not np.issubdtype(obs.dtype, np.floating):
+            _fail(name, f"observe returns {obs.dtype} values; expected floats")
         if not np.all(np.isfinite(obs)):
             bad = int(np.sum(~np.isfinite(obs)))
             _fail(name, f"observe returns {bad} non-finite values of {obs.size} {when}")
