@@ -111,9 +111,9 @@ def parse_eval_args(argv: Sequence[str]) -> tuple[Path, EvalConfig]:
 
 def gymnasium_id(env: str) -> str:
     """The Gymnasium id of task ``env``; raises `ConfigError` naming the tasks that have one."""
-    from coherent_jax.envs.registry import TASKS
+    from coherent_jax.envs.registry import TASKS, check_task
 
-    if not TASKS[env].gymnasium_id:
+    if not check_task(env).gymnasium_id:
         having = ", ".join(name for name, spec in TASKS.items() if spec.gymnasium_id)
         raise ConfigError(
             f"invalid value for 'engine': gymnasium with env={env}, which has no Gymnasium id "
@@ -276,9 +276,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         cfg = load_config(run_dir)
         if (run_dir / CHECKPOINT).is_file() or not (run_dir / PARAMS).is_file():
             decode_checkpoint(run_dir / CHECKPOINT, cfg)  # refuses a missing or broken one
-        from coherent_jax.envs.registry import TASKS
+        from coherent_jax.envs.registry import check_task
 
-        if opts.video and TASKS[cfg.env].backend == "jax":
+        if opts.video and check_task(cfg.env).backend == "jax":
             raise ConfigError(
                 f"invalid value for 'video': true with env={cfg.env} "
                 "(allowed: false; this task has no MuJoCo model to render)"

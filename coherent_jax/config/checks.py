@@ -12,8 +12,17 @@ import dataclasses
 from typing import Any
 
 from coherent_jax import limits
-from coherent_jax.config.schema import FIELDS, Config, get_value
-from coherent_jax.envs.registry import NATIVE_TASKS, TASKS, PhysicsError, resolve_physics
+from coherent_jax.config.schema import ENV_ALLOWED, FIELDS, Config, get_value
+from coherent_jax.envs.registry import (
+    NATIVE_TASKS,
+    TASKS,
+    PhysicsError,
+    TaskDefinitionError,
+    TaskSpec,
+    check_task,
+    is_user_task,
+    resolve_physics,
+)
 from coherent_jax.presets import NO_PRESET
 from coherent_jax.strategies import ON_POLICY, REFUSED, SUPPORTED_ALGOS
 
@@ -45,9 +54,9 @@ def validate(cfg: Config) -> Config:
     """Checks ranges, choices and the cross-field rules; returns `cfg` with the task's time
     limit for ``episode_length=0`` and ``""`` for no preset. Raises `ConfigError` naming the
     first bad key."""
-    check(cfg.env in TASKS, "env", cfg.env, ", ".join(TASKS))
+    spec = task_spec(cfg.env)
     if cfg.episode_length == 0:  # the task's registered time limit, written into the resolved config
-        cfg = dataclasses.replace(cfg, episode_length=TASKS[cfg.env].episode_length)
+        cfg = dataclasses.replace(cfg, episode_length=spec.episode_length)
     _declared(cfg)
     cfg = dataclasses.replace(cfg, preset="") if cfg.preset in NO_PRESET else cfg
     for rule in CROSS_CHECKS:
@@ -56,6 +65,17 @@ def validate(cfg: Config) -> Config:
     if overflow is not None:
         check(False, *overflow)
     return cfg
+
+
+def task_spec(env: str) -> TaskSpec:
+    """The registry's entry of ``env``: a registered name, or a user's ``MODULE:NAME``, which
+    is imported and checked here (loading JAX) so that a bad definition is refused before
+    anything is written."""
+    check(env in TASKS or is_user_task(env), "env", env, ENV_ALLOWED)
+    try:
+        return check_task(env)
+    except TaskDefinitionError as exc:
+        raise ConfigError(f"invalid value for 'env': {exc}") from None
 
 
 # ------------------------------------------------------------------ cross-field checks
@@ -115,7 +135,7 @@ def sac_sizes(cfg: Config) -> None:
 def physics_runs_task(cfg: Config) -> None:
     """``physics=native`` needs a native task, ``physics=mjx`` a task MJX can run."""
     check(
-        cfg.physics != "native" or cfg.env in NATIVE_TASKS,
+        cfg.physics != "native" or cfg.env in NATIVE_TASKS or is_user_task(cfg.env),
         "env",
         cfg.env,
         "with physics=native: " + ", ".join(NATIVE_TASKS),

@@ -4,7 +4,8 @@ A field declares everything about itself in its metadata: the one-line help
 (``--help``), the allowed values (``choices``) or range (``check``: a predicate and the
 text of what it allows), the help section of a top-level field (``group``), for a
 sweepable scalar a `Sweepable`, and for a field that moved into a group the flat key it
-had before (``old``: ``clip_eps`` is now ``ppo.clip_eps``). `coherent_jax.config.checks`
+had before (``old``: ``clip_eps`` is now ``ppo.clip_eps``), and the text of the allowed values
+where they are no fixed list (``allowed``: the env's). `coherent_jax.config.checks`
 validates from these declarations. No JAX here.
 """
 
@@ -69,6 +70,7 @@ def field(
     choices: tuple[Any, ...] | None = None,
     sweep: Sweepable | None = None,
     old: str | None = None,
+    allowed: str | None = None,
 ) -> Any:
     """A config field with its help and declarations (see the module's docstring)."""
     metadata: dict[str, Any] = {"help": help}
@@ -78,6 +80,7 @@ def field(
         ("choices", choices),
         ("sweep", sweep),
         ("old", old),
+        ("allowed", allowed),
     ):
         if value is not None:
             metadata[name] = value

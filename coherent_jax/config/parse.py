@@ -115,6 +115,8 @@ def parse_overrides(overrides: Sequence[str], base: Config | None = None) -> Con
         expected = _type_name(field.type) if field is not None else "a valid value"
         if field is not None and "choices" in field.metadata:
             expected = ", ".join(str(c) for c in field.metadata["choices"] if c)
+        elif field is not None and "allowed" in field.metadata:
+            expected = field.metadata["allowed"]
         msg = str(exc).splitlines()[0]
         raise ConfigError(f"invalid value for {key!r}: {msg} (allowed: {expected})") from None
     return validate(cfg)

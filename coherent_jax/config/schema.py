@@ -34,11 +34,13 @@ from coherent_jax.config.groups import (
     PsneOptions,
     SACOptions,
 )
-from coherent_jax.envs.registry import DEFAULT_THREADS, NATIVE_TASKS, PHYSICS, TASKS
+from coherent_jax.envs.registry import DEFAULT_THREADS, NATIVE_TASKS, PHYSICS, TASKS, USER_TASK_FORM
 from coherent_jax.presets import NO_PRESET, PRESETS
 from coherent_jax.strategies import ALGOS, EXPLORES
 
 ACTIVATIONS = ("tanh", "relu", "elu", "swish")
+# The registry's tasks or a user's (checked by `coherent_jax.config.checks.task_spec`).
+ENV_ALLOWED = ", ".join(TASKS) + ", or " + USER_TASK_FORM
 
 
 def _group(cls: type, help: str) -> Any:
@@ -50,7 +52,8 @@ class Config:
     """Everything that defines a training run (see ``--help``)."""
 
     # --- what to run
-    env: str = field("halfcheetah", "task name: " + ", ".join(TASKS), group="run", choices=tuple(TASKS))
+    # Checked first by `validate` (a MODULE:NAME task is not a fixed choice).
+    env: str = field("halfcheetah", "task name: " + ENV_ALLOWED, group="run", allowed=ENV_ALLOWED)
     algo: str = field("ppo", "algorithm: " + ", ".join(ALGOS), group="run", choices=ALGOS)
     explore: str = field(
         "action", "exploration strategy: " + ", ".join(EXPLORES), group="run", choices=EXPLORES

@@ -5,7 +5,7 @@ slower than MuJoCo's own C engine (``docs/benchmarks.md``). This module steps Mu
 models with the C engine instead: all envs of a call at once, on a thread pool
 (``mujoco.batch.Batch``), reached from JAX through ``jax.pure_callback``, so the
 training iteration stays one jitted function. A task (`NativeTask`) names the MjData
-fields it reads and gives its formulas in JAX; three families run here:
+fields it reads and gives its formulas in JAX; these run here:
 
 * Gymnasium's MuJoCo v5 tasks (`coherent_jax.envs.gym_v5`), the standard ones, with
   Gymnasium's own MJCF, integrator and solver;
@@ -16,6 +16,7 @@ fields it reads and gives its formulas in JAX; three families run here:
   the formulas of Brax's env classes (`coherent_jax.envs.brax_native`);
 * two of MuJoCo Playground's DeepMind Control tasks (``dmc-ball_in_cup``,
   ``dmc-finger_turn_hard``; `coherent_jax.envs.dmc_native`), the ones MJX runs slowest.
+* the user's own tasks, ``env=MODULE:NAME`` (`coherent_jax.envs.user_task`).
 
 Which task runs on which engine is the registry's (`coherent_jax.envs.registry.resolve_physics`).
 
@@ -41,7 +42,7 @@ from flax import struct
 from coherent_jax.envs.brax_native import BRAX_NATIVE
 from coherent_jax.envs.dmc_native import DMC_NATIVE
 from coherent_jax.envs.gym_v5 import GYM_TASKS
-from coherent_jax.envs.registry import DEFAULT_THREADS, SHORT_NAMES, resolve_physics
+from coherent_jax.envs.registry import DEFAULT_THREADS, SHORT_NAMES, is_user_task, resolve_physics
 from coherent_jax.envs.task import (
     POST_CONSTRAINT_FIELDS,
     Kinematics,
@@ -69,11 +70,21 @@ NATIVE_TASKS: dict[str, NativeTask] = {
 }
 
 
-def mujoco_model(task: str) -> NativeModel:
-    """(``MjModel``, n_frames, dt, init_q) of native task `task`; cached, callers must not modify it."""
+def native_task(task: str) -> NativeTask:
+    """The `NativeTask` of registry name `task`, or of a user's ``MODULE:NAME`` (imported and
+    checked by `coherent_jax.envs.user_task`); raises naming the supported tasks otherwise."""
+    if is_user_task(task):
+        from coherent_jax.envs.user_task import load_user_task
+
+        return load_user_task(task).native
     if task not in NATIVE_TASKS:
         resolve_physics(task, "native")  # raises naming the supported tasks
-    return NATIVE_TASKS[task].load()
+    return NATIVE_TASKS[task]
+
+
+def mujoco_model(task: str) -> NativeModel:
+    """(``MjModel``, n_frames, dt, init_q) of native task `task`; cached, callers must not modify it."""
+    return native_task(task).load()
 
 
 class _Host:
@@ -205,9 +216,9 @@ class NativePhysics(TaskPhysics):
     state_type = NativeState
 
     def __init__(self, task: str, nthread: int = DEFAULT_THREADS):
-        model, self.n_frames, self.dt, init_q = mujoco_model(task)  # raises for a task it cannot run
+        self.spec = native_task(task)  # raises for a task it cannot run
+        model, self.n_frames, self.dt, init_q = self.spec.load()
         self.task = task
-        self.spec = NATIVE_TASKS[task]
         self.host = _Host(
             model,
             self.n_frames,

@@ -14,6 +14,8 @@ DeepMind Control Suite, a test task.
   Playground's MJX ports (``playground`` on PyPI, imported only when such a task is
   built): dm_control's tasks with rewards in [0, 1] per step, 1000-step episodes and
   no terminations, several of them sparse, where exploration matters most.
+* A task of the user's own, ``env=MODULE:NAME``: an MJCF file and JAX formulas
+  (`coherent_jax.envs.user_task`), run like Gymnasium's tasks on native MuJoCo or MJX.
 """
 
 from __future__ import annotations
@@ -224,10 +226,33 @@ class UnknownTaskError(ValueError):
     """Raised for a task name that is not in the registry."""
 
 
+class TaskDefinitionError(ValueError):
+    """A task of the user's (``env=MODULE:NAME``) that cannot be loaded or breaks the contract;
+    the message names the task and the problem (`coherent_jax.envs.user_task`)."""
+
+
+# ``env=MODULE:NAME``: attribute NAME of the importable module MODULE is a task of the user's
+# (`coherent_jax.envs.user_task`), imported only when the task is built or checked.
+_USER_TASK = re.compile(r"[A-Za-z_]\w*(\.[A-Za-z_]\w*)*:[A-Za-z_]\w*")
+USER_TASK_FORM = "MODULE:NAME (a task of your own, docs/tasks.md)"
+
+
+def is_user_task(name: str) -> bool:
+    """Whether `name` has the form ``MODULE:NAME`` (``examples.reacher_task:reacher``)."""
+    return isinstance(name, str) and _USER_TASK.fullmatch(name) is not None
+
+
 def check_task(name: str) -> TaskSpec:
-    """Returns the spec of `name`, or raises naming the valid tasks of both families."""
+    """Returns the spec of `name`, or raises naming the valid tasks of both families.
+
+    A ``MODULE:NAME`` task is imported and checked here (JAX and MuJoCo are loaded then);
+    a bad one raises `TaskDefinitionError`."""
+    if is_user_task(name):
+        from coherent_jax.envs.user_task import load_user_task
+
+        return load_user_task(name).spec
     if name not in TASKS:
-        raise UnknownTaskError(f"unknown env {name!r}; valid envs: {', '.join(TASKS)}")
+        raise UnknownTaskError(f"unknown env {name!r}; valid envs: {', '.join(TASKS)}, or {USER_TASK_FORM}")
     return TASKS[name]
 
 
@@ -250,10 +275,10 @@ class PhysicsError(ValueError):
 def resolve_physics(task: str, physics: str) -> str:
     """The backend a task runs on: ``mjx`` or ``native`` (own-pipeline tasks keep theirs).
 
-    Gymnasium's tasks run on native MuJoCo with ``auto`` and ``native``, and their own
-    model on MJX with ``mjx`` (`coherent_jax.envs.mjx_physics`) except where MJX cannot
-    run it (refused with the reason). Brax's re-creations and Playground's tasks: ``auto`` picks
-    native MuJoCo on a CPU for those that have it (faster there, see
+    Gymnasium's tasks and the user's own (``MODULE:NAME``) run on native MuJoCo with ``auto``
+    and ``native``, and their own model on MJX with ``mjx`` (`coherent_jax.envs.mjx_physics`)
+    except where MJX cannot run it (refused with the reason). Brax's re-creations and
+    Playground's tasks: ``auto`` picks native MuJoCo on a CPU for those that have it (faster there, see
     ``python -m coherent_jax.bench physics``) and MJX on accelerators. Raises
     `PhysicsError` with a one-line message otherwise. Only ``auto`` on such a task asks
     JAX for its backend; everything else is decided from the registry.

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from coherent_jax.envs.mjx_physics import MjxPhysics
-from coherent_jax.envs.native import NATIVE_TASKS, NativePhysics, mujoco_model
+from coherent_jax.envs.native import NativePhysics, mujoco_model, native_task
 from coherent_jax.envs.registry import (
     DEFAULT_THREADS,
     check_task,
@@ -90,9 +90,9 @@ class VecEnv:
     ``physics`` chooses the engine (`coherent_jax.envs.registry.resolve_physics`):
     ``native`` (MuJoCo's C engine on a thread pool through a callback, `NativePhysics`:
     Gymnasium's tasks always, six of Brax's re-creations and two of Playground's DeepMind
-    Control tasks with their MJX env's model, reward and termination), ``mjx`` (Brax's or
-    Playground's MJX env, vmapped; for Gymnasium's tasks their own model and formulas on
-    MJX, `MjxPhysics`) or ``auto`` (native on CPU
+    Control tasks with their MJX env's model, reward and termination; the user's own
+    ``MODULE:NAME``), ``mjx`` (Brax's or Playground's MJX env, vmapped; for Gymnasium's
+    and the user's tasks their own model and formulas on MJX, `MjxPhysics`) or ``auto`` (native on CPU
     where the task has it, else MJX); ``physics_threads`` is native MuJoCo's thread
     count (0 = every core). ``episode_length`` defaults to the task's own time limit.
     """
@@ -119,7 +119,7 @@ class VecEnv:
             if self.physics == "native":
                 self.env = NativePhysics(task, physics_threads)
             else:
-                self.env = MjxPhysics(task, NATIVE_TASKS[task], mujoco_model(task))
+                self.env = MjxPhysics(task, native_task(task), mujoco_model(task))
             self.observation_size, self.action_size = self.env.observation_size, self.env.action_size
             self._batch_reset, self._batch_step = self.env.reset, self.env.step
         else:
