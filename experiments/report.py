@@ -17,11 +17,12 @@ writes ``experiments/RESULTS.md`` with its figures in ``experiments/results/figu
 * for each claim of the thesis, a verdict: *reproduced* when the 95% interval of the
   probability of improvement lies above 0.5, *not reproduced* when it lies below,
   *inconclusive* otherwise (on the sparse tasks, which the thesis did not run, and for
-  coherent against gSDE and pink, which it did not compare, the comparison *holds* or
+  coherent against gSDE, pink and Lattice, which it did not compare, the comparison *holds* or
   *does not hold*).
 
 The ablations are read beside the thesis suite's action and coherent cells of their task,
-and `beyond` (gSDE, pink) beside every thesis strategy on the same tasks and algorithms.
+and `beyond` (gSDE, pink at exponents 1 and 0.5, Lattice) beside every thesis strategy on the
+same tasks and algorithms.
 
 Missing cells are listed, never silently left out.
 """
@@ -423,7 +424,7 @@ def _reference_cells(suite: str, done: list[reproduce.Cell], results: Path) -> l
     """The thesis suite's finished cells a suite is read beside. The ablations: the action
     and coherent cells of their task and algorithms, the defaults each ablation varies one
     component of (coherent: beta 0.01, analytic integration, the exact gradient). `beyond`:
-    every thesis strategy on each task and algorithm gSDE or pink has run, at the same
+    every thesis strategy on each task and algorithm a newer strategy has run, at the same
     settings, so that the newer strategies are compared with all four."""
     if suite == "ablations":
         algos = {c.setting("algo") for c in done}
@@ -456,7 +457,7 @@ def _pairs(suite: str, norm: dict) -> list[tuple[str, str]]:
         pairs += [(f"beta={b}", f"beta={e}") for b in ("0.01", "0.1", "0.5") for e in ("1", "0")]
         return [p for p in pairs if p[0] in norm and p[1] in norm]
     # beyond: only the newer strategies; the thesis suite's own comparisons are its verdicts.
-    newer = reproduce.BEYOND_STRATEGIES
+    newer = reproduce.BEYOND_LABELS
     candidates = newer if suite == "beyond" else (*BASELINES, *newer)
     others = [b for b in candidates if b in norm]
     if suite == "sparse":  # coherent at each beta of its grid against every baseline
