@@ -3,16 +3,16 @@
 Lattice generalises gSDE (`gsde.py`). The policy's last latent layer x = f_theta(s)
 (the trunk output, d features) feeds the linear mean head, mean = W' x + b with the
 head's kernel W [d, p]. Two random matrices, held for ``resample_every`` steps and
-redrawn at each episode start (paper §3, Figure 1C), perturb it:
+redrawn at each episode start (paper, Figure 1C), perturb it:
 
     latent noise   P_x [d, d],  (P_x)_ij ~ N(0, sigma_x,ij^2),  x~ = x + alpha P_x' x
     action noise   P_a [d, p],  (P_a)_ij ~ N(0, sigma_a,ij^2)
-    a = W' x~ + b + P_a' x = mean(s) + alpha W' (P_x' x) + P_a' x              (paper §3)
+    a = W' x~ + b + P_a' x = mean(s) + alpha W' (P_x' x) + P_a' x        (paper, Methods)
 
 The latent perturbation propagates through the last layer, so the action noise is
 correlated across action dimensions; with alpha = 0 it is gSDE's noise. Given the
 state, the P are Gaussian and the noise is linear in them, so the action is Gaussian
-with the full covariance (paper §3, "a multivariate Gaussian with a full covariance")
+with the full covariance (paper, Methods: "a multivariate Gaussian with a full covariance")
 
     Sigma(x) = alpha^2 W' diag(sigma_x^2' x^2) W + diag(sigma_a^2' x^2) + std_reg^2 I
 
@@ -21,8 +21,8 @@ Cholesky factor gives the log-probability and the entropy the on-policy losses u
 
 What follows the reference implementation (amathislab/lattice,
 ``src/models/distributions.py``, ``LatticeStateDependentNoiseDistribution`` with its
-defaults ``full_std=True``, ``learn_features=False``; the equation numbers of the
-paper are not cited because only the reference code could be checked here):
+defaults ``full_std=True``, ``learn_features=False``; the paper's equation numbers
+are not cited: each formula was checked against the reference code, not the paper's text):
 
 * the stds: one learned log-std per entry ("full std", [d, d + p]: P_x's then P_a's),
   clipped to [log 1e-3, log 10] (``std_clip`` as the reference's policies pass it;
