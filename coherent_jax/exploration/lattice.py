@@ -96,9 +96,9 @@ def mvn_log_prob_entropy(x: chex.Array, mean: chex.Array, cov: chex.Array) -> tu
     log p = -|L^-1 (x - mean)|^2 / 2 - sum log L_ii - p log(2 pi) / 2,
     H = sum log L_ii + p (1 + log(2 pi)) / 2.
 
-    The factor and its reverse pass are `linalg.whiten`'s (batched small matrices: JAX's
-    own triangular solve and its reverse pass, matrix by matrix on CPU, took twice as long
-    for the loss's minibatches of 6 x 6 matrices); ``cov`` is symmetric by construction.
+    The factor and its reverse pass are `linalg.whiten`'s, vectorised across the batch of
+    small matrices (JAX's own triangular solve and its reverse pass run matrix by matrix on
+    CPU); ``cov`` is symmetric by construction, as `whiten` requires.
     """
     resid = x - mean
     white, log_diag, _ = whiten(cov, resid, jnp.zeros((*resid.shape, 0), resid.dtype))
@@ -109,8 +109,9 @@ def mvn_log_prob_entropy(x: chex.Array, mean: chex.Array, cov: chex.Array) -> tu
 
 
 def lattice_noise(x: chex.Array, kernel: chex.Array, z: chex.Array, alpha: float, action_noise: bool):
-    """alpha W' (Z_x' x) + Z_a' x for features x [n, d], a standardised draw z [n, d, d (+ p)]
-    (already multiplied by its stds) and the head's kernel W [d, p]: a - mean(s) of the module docstring."""
+    """alpha W' (P_x' x) + P_a' x, a - mean(s) of the module docstring, for features x [n, d],
+    the noise matrices z [n, d, d (+ p)] (P_x, then P_a if ``action_noise``: the standard-normal
+    draw times its stds) and the head's kernel W [d, p]."""
     d = x.shape[-1]
     noise = alpha * jnp.einsum("nd,nde->ne", x, z[..., :d]) @ kernel
     if action_noise:
