@@ -62,6 +62,7 @@ STRATEGIES: tuple[Strategy, ...] = (
     Strategy("psne", "psne:ParameterNoise", "psne:PsneBehaviour"),
     Strategy("gsde", "gsde:GeneralizedSDE", "gsde:GsdeBehaviour"),
     Strategy("pink", "pink:PinkNoise", "pink:PinkBehaviour"),
+    Strategy("lattice", "lattice:Lattice", "lattice:LatticeBehaviour"),
 )
 BY_NAME: Mapping[str, Strategy] = {s.name: s for s in STRATEGIES}
 

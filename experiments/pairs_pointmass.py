@@ -63,6 +63,7 @@ STRATEGIES = [
     ("psne", ["explore=psne"], []),
     ("gsde", ["explore=gsde"], []),
     ("pink", ["explore=pink"], []),
+    ("lattice", ["explore=lattice"], []),
 ]
 
 

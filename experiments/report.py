@@ -17,14 +17,15 @@ writes ``experiments/RESULTS.md`` with its figures in ``experiments/results/figu
 * for each claim of the thesis, a verdict: *reproduced* when the 95% interval of the
   probability of improvement lies above 0.5, *not reproduced* when it lies below,
   *inconclusive* otherwise (on the sparse tasks, which the thesis did not run, and for
-  coherent against gSDE and pink, which it did not compare, the comparison *holds* or
+  coherent against gSDE, pink and Lattice, which it did not compare, the comparison *holds* or
   *does not hold*).
 
 The ablations are read beside the thesis suite's action and coherent cells of their task,
-and `beyond` (gSDE, pink) beside every thesis strategy on the same tasks and algorithms.
-The `protocol` suite (``preset=thesis``) is three comparisons, each aggregated among its
-own cells: the thesis's strategies, the beta ablation, and the chain length at the
-library's defaults (``episode`` and ``stored`` beside the thesis suite's ``exact`` cells).
+and `beyond` (gSDE, pink at exponents 1 and 0.5, Lattice) beside every thesis strategy on the
+same tasks and algorithms. The `protocol` suite (``preset=thesis``) is three comparisons,
+each aggregated among its own cells: the thesis's strategies, the beta ablation, and the
+chain length at the library's defaults (``episode`` and ``stored`` beside the thesis
+suite's ``exact`` cells).
 
 Missing cells are listed, never silently left out.
 """
@@ -408,7 +409,7 @@ def _reference_cells(suite: str, done: list[reproduce.Cell], results: Path) -> l
     """The thesis suite's finished cells a suite is read beside. The ablations: the action
     and coherent cells of their task and algorithms, the defaults each ablation varies one
     component of (coherent: beta 0.01, analytic integration, the exact gradient). `beyond`:
-    every thesis strategy on each task and algorithm gSDE or pink has run, at the same
+    every thesis strategy on each task and algorithm a newer strategy has run, at the same
     settings, so that the newer strategies are compared with all four."""
     if suite == "ablations":
         algos = {c.setting("algo") for c in done}
@@ -463,7 +464,7 @@ def _pairs(suite: str, norm: dict) -> list[tuple[str, str]]:
         pairs += [("coherent-episode", "coherent-exact"), ("coherent-episode", "coherent-stored")]
         return [p for p in pairs if p[0] in norm and p[1] in norm]
     # beyond: only the newer strategies; the thesis suite's own comparisons are its verdicts.
-    newer = reproduce.BEYOND_STRATEGIES
+    newer = reproduce.BEYOND_LABELS
     candidates = newer if suite == "beyond" else (*BASELINES, *newer)
     others = [b for b in candidates if b in norm]
     if suite == "sparse":  # coherent at each beta of its grid against every baseline

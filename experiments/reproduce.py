@@ -75,7 +75,16 @@ RESULTS = ROOT / "experiments" / "results"
 THESIS_TASKS = ("halfcheetah", "walker2d", "hopper")
 ONPOLICY_STRATEGIES = ("action", "coherent", "noisynet", "psne")
 SAC_STRATEGIES = ("action", "coherent", "psne")
-BEYOND_STRATEGIES = ("gsde", "pink")
+# `beyond`: newer strategies beside the thesis's on the same tasks, each cell named by its
+# label in the report (`report._label`: the cell name's last part).
+BEYOND_STRATEGIES = ("gsde", "pink", "lattice")
+# Coloured noise for on-policy algorithms (Hollenstein, Martius, Piater, AAAI 2024): an
+# exponent near 0.5 rather than pink's 1 suits PPO; its cells are tagged with it.
+PINK_ONPOLICY_EXPONENT = 0.5
+PINK_ONPOLICY_TAG = f"exp{PINK_ONPOLICY_EXPONENT:g}"
+BEYOND_SAC_STRATEGIES = ("gsde", "pink", "lattice")
+# The report's labels of the beyond cells, the strategies the thesis's are compared with.
+BEYOND_LABELS = (*BEYOND_STRATEGIES, f"pink-{PINK_ONPOLICY_TAG}")
 ABLATION_TASK = "halfcheetah"
 ABLATION_BETAS = (0.0, 0.01, 0.1, 0.5, 1.0)
 DEFAULT_BETA = 0.01  # coherent_jax.config.Config.beta: the thesis cells' chain coefficient
@@ -91,7 +100,7 @@ SPARSE_TASKS = (
     "dmc-ball_in_cup",
     "dmc-finger_turn_hard",
 )
-SPARSE_STRATEGIES = ("action", "noisynet", "psne", "gsde", "pink")
+SPARSE_STRATEGIES = ("action", "noisynet", "psne", "gsde", "pink", "lattice")
 SPARSE_BETAS = (0.0, 0.01, 0.1)
 SPARSE_STEPS = 1_000_000
 
@@ -198,12 +207,25 @@ def ablation_cells() -> list[Cell]:
 
 
 def beyond_cells() -> list[Cell]:
-    return [
-        _cell("beyond", task, algo, s, seeds=SEEDS)
-        for task in THESIS_TASKS
-        for algo in ("ppo", "a2c")
-        for s in BEYOND_STRATEGIES
-    ]
+    """Per task: A2C and PPO with each of `BEYOND_STRATEGIES` and with coloured noise at the
+    on-policy exponent, then SAC (the thesis suite's SAC budget) with `BEYOND_SAC_STRATEGIES`."""
+    cells = []
+    for task in THESIS_TASKS:
+        for algo in ("ppo", "a2c"):
+            cells += [_cell("beyond", task, algo, s, seeds=SEEDS) for s in BEYOND_STRATEGIES]
+            cells.append(
+                _cell(
+                    "beyond",
+                    task,
+                    algo,
+                    "pink",
+                    f"pink.exponent={PINK_ONPOLICY_EXPONENT:g}",
+                    seeds=SEEDS,
+                    tag=PINK_ONPOLICY_TAG,
+                )
+            )
+        cells += [_cell("beyond", task, "sac", s, seeds=SEEDS) for s in BEYOND_SAC_STRATEGIES]
+    return cells
 
 
 def sparse_cells() -> list[Cell]:

@@ -35,6 +35,12 @@ BAD = [
     (["algo=sac", "explore=coherent", "coherent.integration=mc", "coherent.layers=all"], "'coherent.layers'"),
     (["gsde.resample_every=0"], "'gsde.resample_every'"),
     (["pink.exponent=-1"], "'pink.exponent'"),
+    (["lattice.resample_every=0"], "'lattice.resample_every'"),
+    (["lattice.init_std=20"], "'lattice.init_std'"),
+    (["lattice.alpha=-1"], "'lattice.alpha'"),
+    (["lattice.std_reg=-0.1"], "'lattice.std_reg'"),
+    (["lattice.action_noise=maybe"], "'lattice.action_noise'"),
+    (["explore=lattice", "lattice.action_noise=false", "lattice.alpha=0"], "'lattice.alpha'"),
     (["noisynet.sigma0=0"], "'noisynet.sigma0'"),
     (["lr"], "'lr'"),
     # YAML syntax errors in a value
@@ -157,7 +163,7 @@ def test_help_prints_options_grouped_and_every_field_declares_its_group():
     from coherent_jax.config import FIELDS, GROUPS, SECTIONS, SWEEPABLE, help_text
 
     assert all(f.metadata.get("group") in SECTIONS for k, f in FIELDS.items() if "." not in k)
-    assert GROUPS == ("ppo", "sac", "coherent", "noisynet", "psne", "gsde", "pink")
+    assert GROUPS == ("ppo", "sac", "coherent", "noisynet", "psne", "gsde", "pink", "lattice")
     text = help_text()
     titles = [*SECTIONS, *(f"{g}.*" for g in GROUPS)]
     headers = [text.index(f"\n{t}") for t in titles]

@@ -100,6 +100,18 @@ def test_sac_defaults_are_recorded_resolved_in_config_yaml(tmp_path):
     assert load_config(tmp_path) == cfg
 
 
+def test_a_later_group_leaves_the_flat_layout_of_before_unchanged():
+    """lattice.* (no flat keys of before) enters the flat layout, and so checkpoint
+    fingerprints, only where a setting differs from its default."""
+    from coherent_jax.runs import config_fingerprint
+
+    plain = parse_overrides(["env=hopper", "explore=lattice"])
+    assert "lattice" not in flat_dict(plain) and "lattice" not in flat_dict(parse_overrides([]))
+    changed = parse_overrides(["env=hopper", "explore=lattice", "lattice.alpha=0.5"])
+    assert flat_dict(changed)["lattice"] == {"alpha": 0.5}
+    assert config_fingerprint(changed) != config_fingerprint(plain)
+
+
 def test_stored_results_exist():
     assert len(STORED) > 100  # the reproduction's runs, every one with flat keys
 

@@ -53,6 +53,8 @@ PAIRS = [
     ("a2c", ["explore=gsde"], []),
     ("ppo", ["explore=pink"], []),
     ("a2c", ["explore=pink"], []),
+    ("ppo", ["explore=lattice"], []),
+    ("a2c", ["explore=lattice"], []),
 ]
 
 
@@ -122,7 +124,7 @@ SAC_BASE = [
     "progress=false",
 ]
 SAC_ITERATIONS = 80
-SAC_PAIRS = [["explore=psne"], ["explore=gsde"], ["explore=pink"]]
+SAC_PAIRS = [["explore=psne"], ["explore=gsde"], ["explore=pink"], ["explore=lattice"]]
 
 
 @pytest.mark.slow

@@ -58,6 +58,31 @@ def test_every_cell_is_a_valid_config_with_its_tasks_settings_for_every_strategy
     assert "halfcheetah" not in reproduce.ONPOLICY_TASK_SETTINGS  # the ablations' and done cells' defaults
 
 
+def test_beyond_adds_lattice_onpolicy_pink_and_sac_cells_and_keeps_the_others():
+    """Lattice and pink at the on-policy exponent 0.5 (a cell name of its own) for A2C and PPO,
+    gSDE, pink and Lattice for SAC at the thesis suite's SAC budget; the first cells keep
+    their specification (and so their stored results)."""
+    cells = {c.name: c for c in reproduce.beyond_cells()}
+    thesis_sac = reproduce.select("thesis", ["hopper/sac/action"])[0]
+    for task in reproduce.THESIS_TASKS:
+        for algo in ("ppo", "a2c"):
+            assert cells[f"{task}/{algo}/lattice"].setting("explore") == "lattice"
+            pink = cells[f"{task}/{algo}/pink-exp0.5"]
+            assert (pink.setting("explore"), pink.setting("pink.exponent")) == ("pink", "0.5")
+            assert cells[f"{task}/{algo}/pink"].setting("pink.exponent") is None
+        for explore in ("gsde", "pink", "lattice"):
+            sac = cells[f"{task}/sac/{explore}"]
+            assert sac.overrides[3:] == thesis_sac.overrides[3:]  # total_steps and SAC's settings
+    assert cells["halfcheetah/ppo/gsde"].overrides == (
+        "env=halfcheetah",
+        "algo=ppo",
+        "explore=gsde",
+        "total_steps=1000000",
+    )
+    assert len(cells) == len(reproduce.THESIS_TASKS) * (2 * 4 + 3)
+    assert "pink-exp0.5" in reproduce.BEYOND_LABELS and "lattice" in reproduce.SPARSE_STRATEGIES
+
+
 def test_sparse_suite_runs_every_strategy_on_four_sparse_control_tasks():
     from coherent_jax.config import EXPLORES, SUPPORTED_ALGOS
     from coherent_jax.envs.registry import DMC_SPARSE_TASKS
@@ -261,6 +286,13 @@ def test_report_reads_ablations_and_beyond_beside_the_thesis_cells(tmp_path):
     # Their verdicts: coherent against the newer strategies, not the thesis suite's again.
     labels = dict.fromkeys(["coherent", "action", "noisynet", "psne", "gsde", "pink"], 0)
     assert report._pairs("beyond", labels) == [("coherent", "gsde"), ("coherent", "pink")]
+    labels.update({"lattice": 0, "pink-exp0.5": 0})
+    assert report._pairs("beyond", labels) == [
+        ("coherent", "gsde"),
+        ("coherent", "pink"),
+        ("coherent", "lattice"),
+        ("coherent", "pink-exp0.5"),
+    ]
     assert report.verdict({"p": 0.8, "low": 0.6, "high": 0.9}, "beyond") == "holds"
 
 

@@ -345,6 +345,8 @@ NEW_STRATEGIES = [
     ["explore=psne"],
     ["explore=gsde", "gsde.resample_every=3"],
     ["explore=pink", "episode_length=7"],
+    ["explore=lattice", "lattice.resample_every=3", "lattice.std_reg=0.05"],
+    ["explore=lattice", "lattice.action_noise=false", "lattice.weight_grad=false"],
 ]
 
 

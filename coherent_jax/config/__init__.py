@@ -3,7 +3,7 @@
 The configuration is one dataclass (`Config`, `coherent_jax.config.schema`): the
 settings every run reads at the top level, an algorithm's or a strategy's own in a
 group (``ppo.*``, ``sac.*``, ``coherent.*``, ``noisynet.*``, ``psne.*``, ``gsde.*``,
-``pink.*``; `coherent_jax.config.groups`). Every field declares its help, its range or
+``pink.*``, ``lattice.*``; `coherent_jax.config.groups`). Every field declares its help, its range or
 choices and, for a sweepable scalar, a `Sweepable` saying which (algo, explore) pairs
 hold it in the train state (`coherent_jax.config.declare`); validation is derived from
 these declarations plus a few named cross-field checks (`coherent_jax.config.checks`).
@@ -24,6 +24,7 @@ from coherent_jax.config.groups import (
     COHERENT_LAYERS,
     CoherentOptions,
     GsdeOptions,
+    LatticeOptions,
     NoisyNetOptions,
     PinkOptions,
     PPOOptions,
@@ -76,6 +77,7 @@ __all__ = [
     "Config",
     "ConfigError",
     "GsdeOptions",
+    "LatticeOptions",
     "NoisyNetOptions",
     "PPOOptions",
     "PinkOptions",

@@ -205,6 +205,17 @@ def pink_needs_episodes(cfg: Config) -> None:
         )
 
 
+def lattice_has_noise(cfg: Config) -> None:
+    """Lattice without its action noise needs its latent noise (alpha > 0)."""
+    if cfg.explore == "lattice" and not cfg.lattice.action_noise:
+        check(
+            cfg.lattice.alpha > 0,
+            "lattice.alpha",
+            cfg.lattice.alpha,
+            "a number > 0 with lattice.action_noise=false (no noise otherwise)",
+        )
+
+
 CROSS_CHECKS = (
     strategy_runs_with_algo,
     minibatches_split_envs,
@@ -213,4 +224,5 @@ CROSS_CHECKS = (
     physics_runs_task,
     coherent_ablations,
     pink_needs_episodes,
+    lattice_has_noise,
 )

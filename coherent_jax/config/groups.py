@@ -257,3 +257,38 @@ class PinkOptions(Group):
         check=(lambda v: number(v) and 0 <= v <= 4, "a number in [0, 4] (0 white, 1 pink, 2 red)"),
         old="pink_exponent",
     )
+
+
+@dataclasses.dataclass
+class LatticeOptions(Group):
+    """Lattice's settings, ``lattice.<key>=value`` (`coherent_jax.exploration.lattice`)."""
+
+    resample_every: int = field(
+        4,
+        "steps between redraws of the noise matrices P_x and P_a (also redrawn at each episode start)",
+        check=COUNT,
+    )
+    init_std: float = field(
+        0.5,
+        "initial std s of the noise matrices' entries, each s / sqrt(d) for d latent features "
+        "(learned; clipped to [0.001, 10])",
+        check=(lambda v: number(v) and 1e-3 <= v <= 10.0, "a number in [0.001, 10] (the stds' clip range)"),
+    )
+    alpha: float = field(
+        1.0,
+        "weight of the latent noise P_x beside the action noise P_a (0: gSDE's noise alone)",
+        check=NON_NEGATIVE,
+    )
+    action_noise: bool = field(
+        True, "independent action noise P_a x beside the latent noise (false: latent noise alone)"
+    )
+    weight_grad: bool = field(
+        True,
+        "the covariance's last-layer weights W carry the loss's gradient (true, as the reference code); "
+        "false detaches them, so the covariance trains the stds alone",
+    )
+    std_reg: float = field(
+        0.0,
+        "std of white noise added to every action dimension (on-policy; a floor on the covariance)",
+        check=NON_NEGATIVE,
+    )

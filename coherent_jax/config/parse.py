@@ -71,10 +71,20 @@ def to_dict(cfg: Config) -> dict[str, Any]:
     return dataclasses.asdict(cfg)
 
 
+# Groups added after the flat layout (no flat keys of before): their settings enter it only
+# where they differ from the group's defaults, so that every config of before keeps its
+# checkpoint fingerprint.
+LATER_GROUPS = ("lattice",)
+
+
 def flat_dict(cfg: Config) -> dict[str, Any]:
     """The config in the flat layout of before the groups (what checkpoint fingerprints hash):
-    the moved settings at the top level under their old keys, ``coherent``'s ablations nested."""
+    the moved settings at the top level under their old keys, ``coherent``'s ablations nested,
+    a `LATER_GROUPS` setting only where it is not its default."""
     out = to_dict(cfg)
+    for group in LATER_GROUPS:
+        default = dataclasses.asdict(type(getattr(cfg, group))())
+        out[group] = {k: v for k, v in out[group].items() if v != default[k]}
     for old, new in LEGACY_KEYS.items():
         group, name = new.split(".", 1)
         out[old] = out[group].pop(name)

@@ -3,7 +3,7 @@
 Settings every run reads (the task, the budget, the env count, the learning rate,
 the networks, the output...) are top-level fields; an algorithm's or a strategy's own
 settings are a group (`coherent_jax.config.groups`: ``ppo.*``, ``sac.*``,
-``coherent.*``, ``noisynet.*``, ``psne.*``, ``gsde.*``, ``pink.*``). Every field
+``coherent.*``, ``noisynet.*``, ``psne.*``, ``gsde.*``, ``pink.*``, ``lattice.*``). Every field
 declares its help, range or choices (`coherent_jax.config.declare`). No JAX here.
 """
 
@@ -28,6 +28,7 @@ from coherent_jax.config.declare import (
 from coherent_jax.config.groups import (
     CoherentOptions,
     GsdeOptions,
+    LatticeOptions,
     NoisyNetOptions,
     PinkOptions,
     PPOOptions,
@@ -163,6 +164,7 @@ class Config:
     psne: PsneOptions = _group(PsneOptions, "explore=psne, and coherent with sac")
     gsde: GsdeOptions = _group(GsdeOptions, "explore=gsde")
     pink: PinkOptions = _group(PinkOptions, "explore=pink")
+    lattice: LatticeOptions = _group(LatticeOptions, "explore=lattice")
 
     # --- derived (not settable)
     @property
