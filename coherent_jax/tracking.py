@@ -21,10 +21,11 @@ bit-identically, so rows logged again for those steps carry the values already l
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import secrets
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -111,12 +112,13 @@ class WandbRun:
         """One metrics row at ``step`` (the iteration); None values (no evaluation) are left out."""
         self._run.log({k: v for k, v in row.items() if v is not None}, step=int(step))
 
-    def video(self, path: Path, step: int, key: str = "eval/video") -> None:
-        """An evaluation video (MP4 or GIF) at ``step``."""
+    def video(self, path: Path, step: int | None, key: str = "eval/video") -> None:
+        """An evaluation video (MP4 or GIF) at ``step`` (None: W&B's next step, after every row
+        already logged, which a resumed W&B run requires of a late addition)."""
         import wandb
 
         fmt = "gif" if Path(path).suffix == ".gif" else "mp4"
-        self._run.log({key: wandb.Video(str(path), format=fmt)}, step=int(step))
+        self._run.log({key: wandb.Video(str(path), format=fmt)}, step=None if step is None else int(step))
 
     def finish(self, summary: Mapping[str, Any] | None = None) -> None:
         """Writes ``summary`` (the run's ``summary.json``) as the W&B summary and closes the run."""
@@ -124,3 +126,35 @@ class WandbRun:
             for key, value in summary.items():
                 self._run.summary[key] = value
         self._run.finish()
+
+
+class Mirrors:
+    """The W&B runs of a run's points (empty without ``wandb=true``) and their final summaries.
+
+    ``runs[j]`` mirrors point j (a single run: one); the loop logs each point's rows to it
+    (`coherent_jax.loop.sink_metrics`). The caller sets ``summaries`` once it has written
+    them; `mirrored` then finishes each run with its own.
+    """
+
+    def __init__(self, runs: list[WandbRun]) -> None:
+        self.runs = runs
+        self.summaries: Sequence[Mapping[str, Any]] | None = None
+
+
+@contextlib.contextmanager
+def mirrored(
+    points: Sequence[tuple[Path, Mapping[str, Any], str]], group: str | None = None
+) -> Iterator[Mirrors]:
+    """Opens one `WandbRun` per (directory, config, name) of `points`, and finishes them all on exit.
+
+    Finished with their summaries when the caller set them (the run completed), else
+    without (stopped, diverged: a resume continues the same W&B runs). Nothing is opened
+    for no points, so a run without ``wandb=true`` never imports ``wandb``.
+    """
+    mirrors = Mirrors([WandbRun.open(d, config, name, group) for d, config, name in points])
+    try:
+        yield mirrors
+    finally:
+        summaries = mirrors.summaries or [None] * len(mirrors.runs)
+        for run, summary in zip(mirrors.runs, summaries, strict=True):
+            run.finish(summary)
