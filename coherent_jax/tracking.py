@@ -155,6 +155,5 @@ def mirrored(
     try:
         yield mirrors
     finally:
-        summaries = mirrors.summaries or [None] * len(mirrors.runs)
-        for run, summary in zip(mirrors.runs, summaries, strict=True):
-            run.finish(summary)
+        for j, run in enumerate(mirrors.runs):
+            run.finish(mirrors.summaries[j] if mirrors.summaries else None)

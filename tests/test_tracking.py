@@ -47,3 +47,98 @@ def test_missing_package_is_one_line_with_the_install_command(monkeypatch):
     monkeypatch.setattr(tracking, "available", lambda: False)
     with pytest.raises(tracking.TrackingError, match=r'^wandb=true needs .*pip install -e "\.\[wandb\]"$'):
         tracking.require()
+
+
+TINY = [
+    "env=pointmass",
+    "num_envs=8",
+    "unroll_length=16",
+    "episode_length=40",
+    "eval_every=2",
+    "eval_episodes=4",
+    "policy_hidden=[16,16]",
+    "value_hidden=[16,16]",
+    "ppo.num_epochs=2",
+    "ppo.num_minibatches=2",
+    "progress=false",
+    "tensorboard=false",
+    "checkpoint_every=1",
+    "wandb=true",
+]
+
+
+def _rows(run_dir):
+    """metrics.jsonl's rows as W&B holds them: None (not finite) left out."""
+    rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    return [{k: v for k, v in r.items() if v is not None} for r in rows]
+
+
+def _history(record):
+    return [{k: v for k, v in h.items() if not k.startswith("_")} for h in record["history"]]
+
+
+@pytest.mark.slow
+def test_a_run_mirrors_its_config_rows_and_summary_and_a_resume_continues_the_same_run(tmp_path, monkeypatch):
+    import yaml
+
+    from coherent_jax.train import main
+
+    monkeypatch.delenv("WANDB_MODE", raising=False)
+    run = tmp_path / "run"
+    assert main([*TINY, "total_steps=256", f"run_dir={run}"]) == 0  # 2 iterations
+    first_rows = _rows(run)
+    first_summary = json.loads((run / "summary.json").read_text())
+    assert main([f"resume={run}", "total_steps=384"]) == 0  # extended: iteration 3
+    identity = json.loads((run / tracking.RUN_FILE).read_text())
+    assert identity["name"] == "run" and identity["group"] is None
+
+    first, second = (read_run(p) for p in offline_runs(run))
+    assert first["id"] == second["id"] == identity["id"]
+    config = yaml.safe_load((run / "config.yaml").read_text())
+    assert second["config"] == config and first["config"] == {**config, "total_steps": 256}
+    assert config["wandb"] is True
+    assert _history(first) == first_rows and [h["_step"] for h in first["history"]] == [1, 2]
+    assert _history(second) == _rows(run)[2:] and [h["_step"] for h in second["history"]] == [3]
+    assert first_rows == _rows(run)[:2]
+    assert {k: first["summary"][k] for k in first_summary} == first_summary
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["resumed_from"] == 2 and {k: second["summary"][k] for k in summary} == summary
+
+
+@pytest.mark.slow
+def test_a_sweep_gives_one_run_per_point_grouped_by_the_sweep(tmp_path, monkeypatch):
+    import yaml
+
+    from coherent_jax.sweep import main
+
+    monkeypatch.delenv("WANDB_MODE", raising=False)
+    out = tmp_path / "sweep"
+    assert main([*TINY, "total_steps=256", "seeds=2", "ppo.clip_eps=[0.1,0.3]", f"run_dir={out}"]) == 0
+    points = sorted(d for d in out.iterdir() if d.is_dir() and d.name.startswith("p"))
+    assert len(points) == 4
+    records = []
+    for point in points:
+        (path,) = offline_runs(point)
+        records.append(read_run(path))
+        rec = records[-1]
+        assert rec["group"] == "sweep" and rec["name"] == point.name
+        assert rec["config"] == yaml.safe_load((point / "config.yaml").read_text())
+        assert _history(rec) == _rows(point)
+        summary = json.loads((point / "summary.json").read_text())
+        assert {k: rec["summary"][k] for k in summary} == summary
+    assert len({r["id"] for r in records}) == 4
+    assert [r["config"]["ppo"]["clip_eps"] for r in records] == [0.1, 0.1, 0.3, 0.3]
+
+
+@pytest.mark.parametrize("command", ["train", "sweep"])
+def test_wandb_without_the_package_is_one_line_exit_2_and_nothing_written(
+    tmp_path, monkeypatch, capsys, command
+):
+    import importlib
+
+    main = importlib.import_module(f"coherent_jax.{command}").main
+    monkeypatch.setattr(tracking, "available", lambda: False)
+    assert main([*TINY, f"run_dir={tmp_path / 'run'}"]) == 2
+    err = capsys.readouterr().err
+    assert err == f"error: {tracking.INSTALL_HINT}\n"
+    assert list(tmp_path.iterdir()) == []

@@ -126,7 +126,9 @@ def override_items(overrides: Mapping[str, Any]) -> list[str]:
     A nested mapping is a group's keys (``{"ppo": {"clip_eps": 0.2}}`` is
     ``ppo.clip_eps=0.2``); values are bools, numbers, strings, paths, lists of them or
     None. A string YAML would read as something else (``"true"``, ``""``) is quoted, so
-    it stays a string. Raises `ConfigError` naming a key or value of another kind.
+    it stays a string; an empty string where that is the default (``run_dir``, ``resume``,
+    ``preset``) is left out, as not given. Raises `ConfigError` naming a key or value of
+    another kind.
     """
     import json
     import os
@@ -157,6 +159,8 @@ def override_items(overrides: Mapping[str, Any]) -> list[str]:
             raise ConfigError(f"invalid key {key!r}: not a string (allowed: config keys, e.g. 'lr')")
         if isinstance(value, Mapping):
             items += override_items({f"{key}.{k}" if isinstance(k, str) else k: v for k, v in value.items()})
+        elif value == "" and key in FIELDS and FIELDS[key].default == "":
+            continue  # the default ``run_dir``, ``resume``, ``preset``: as if not given
         else:
             items.append(f"{key}={text(key, value)}")
     return items
