@@ -8,6 +8,7 @@ tests to check what a run logged without the network.
 
 import json
 import struct
+import time
 from pathlib import Path
 
 _BLOCK = 32 * 1024
@@ -31,14 +32,34 @@ def _raw_records(data: bytes):
             chunks = []
 
 
-def read_run(path: Path) -> dict:
-    """The run's id, group and name, its config, its history rows and its final summary."""
+def _records(path: Path, timeout_s: float):
+    """The records of a finished run. ``run.finish()`` returns before W&B's service has
+    written the run's records (the last run of a process may reach its file only when the
+    process ends), so this waits, up to `timeout_s`, for the ``exit`` record closing it."""
     from wandb.proto import wandb_internal_pb2 as pb
 
+    deadline = time.monotonic() + timeout_s
+    while True:
+        records = []
+        try:
+            for raw in _raw_records(Path(path).read_bytes()):
+                rec = pb.Record()
+                rec.ParseFromString(raw)
+                records.append(rec)
+        except Exception:  # noqa: BLE001 - a record being written: read again
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.1)
+            continue
+        if any(r.WhichOneof("record_type") == "exit" for r in records) or time.monotonic() > deadline:
+            return records
+        time.sleep(0.1)
+
+
+def read_run(path: Path, timeout_s: float = 60.0) -> dict:
+    """The run's id, group and name, its config, its history rows and its final summary."""
     out = {"id": None, "group": None, "name": None, "config": {}, "history": [], "summary": {}}
-    for raw in _raw_records(Path(path).read_bytes()):
-        rec = pb.Record()
-        rec.ParseFromString(raw)
+    for rec in _records(path, timeout_s):
         kind = rec.WhichOneof("record_type")
         if kind == "run":
             out.update(id=rec.run.run_id, group=rec.run.run_group, name=rec.run.display_name)
