@@ -183,8 +183,10 @@ class TrainCommand:
     def write_inputs(self, run_dir: Path, plan: Config, resumed: bool) -> None:
         if not resumed:
             write_config(run_dir, plan)
-        elif plan.total_steps != load_config(run_dir).total_steps:
-            write_config(run_dir, plan)  # an extended budget is the run's own from now on
+        else:
+            stored = load_config(run_dir)
+            if (plan.total_steps, plan.wandb) != (stored.total_steps, stored.wandb):
+                write_config(run_dir, plan)  # an extended budget, or W&B turned on or off: the run's own now
 
     def dir_line(self, run_dir: Path, plan: Config) -> str:
         return f"run dir {run_dir}"

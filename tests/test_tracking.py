@@ -32,7 +32,7 @@ def test_rows_config_summary_and_resume_reach_the_local_run_files(tmp_path, monk
     run.log({"env_steps": 256.0, "train/loss": 0.25, "eval/return": -3.5}, step=4)
     run.finish({"final_eval_return": -3.5, "env_steps": 256})
 
-    first, second = (read_run(p) for p in offline_runs(tmp_path))
+    first, second = (read_run(p) for p in offline_runs(tmp_path, expected=2))
     assert first["id"] == second["id"] == identity["id"]
     assert first["group"] == "sweep-x" and first["name"] == "point"
     assert first["config"] == config
@@ -92,7 +92,7 @@ def test_a_run_mirrors_its_config_rows_and_summary_and_a_resume_continues_the_sa
     identity = json.loads((run / tracking.RUN_FILE).read_text())
     assert identity["name"] == "run" and identity["group"] is None
 
-    first, second = (read_run(p) for p in offline_runs(run))
+    first, second = (read_run(p) for p in offline_runs(run, expected=2))
     assert first["id"] == second["id"] == identity["id"]
     config = yaml.safe_load((run / "config.yaml").read_text())
     assert second["config"] == config and first["config"] == {**config, "total_steps": 256}
@@ -142,3 +142,34 @@ def test_wandb_without_the_package_is_one_line_exit_2_and_nothing_written(
     err = capsys.readouterr().err
     assert err == f"error: {tracking.INSTALL_HINT}\n"
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.slow
+def test_evaluate_adds_its_video_to_the_runs_wandb_run(tmp_path, monkeypatch):
+    import subprocess
+    import sys
+
+    from helpers import child_env
+    from test_evaluate import make_zero_run
+
+    monkeypatch.delenv("WANDB_MODE", raising=False)
+    run = make_zero_run(
+        tmp_path / "run",
+        ["env=inverted_pendulum", "num_envs=1", "ppo.num_minibatches=1", "episode_length=10", "wandb=true"],
+    )
+    video = tmp_path / "out.gif"
+    proc = subprocess.run(
+        [sys.executable, "-m", "coherent_jax.evaluate", str(run), "episodes=1", "video=true"]
+        + [f"video_path={video}", "width=32", "height=24"],
+        env=child_env(),
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+    )
+    assert proc.returncode == 0, proc.stderr
+    (path,) = offline_runs(run)
+    record = read_run(path)
+    assert record["id"] == json.loads((run / tracking.RUN_FILE).read_text())["id"]
+    (row,) = [h for h in record["history"] if "eval/video/_type" in h]
+    assert row["eval/video/_type"] == "video-file" and row["eval/video/path"].endswith(".gif")
+    assert (path.parent / "files" / row["eval/video/path"]).read_bytes() == video.read_bytes()

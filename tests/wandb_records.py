@@ -78,6 +78,15 @@ def read_run(path: Path, timeout_s: float = 60.0) -> dict:
     return out
 
 
-def offline_runs(run_dir: Path) -> list[Path]:
-    """The transaction logs of ``run_dir``'s offline W&B runs, oldest first."""
-    return sorted(Path(run_dir).glob("wandb/offline-run-*/run-*.wandb"))
+def offline_runs(run_dir: Path, expected: int = 1, timeout_s: float = 60.0) -> list[Path]:
+    """The transaction logs of ``run_dir``'s offline W&B runs, oldest first.
+
+    W&B's service writes them, and may create one after the process that logged it ended:
+    this waits, up to `timeout_s`, until there are at least `expected`.
+    """
+    deadline = time.monotonic() + timeout_s
+    while True:
+        found = sorted(Path(run_dir).glob("wandb/offline-run-*/run-*.wandb"))
+        if len(found) >= expected or time.monotonic() > deadline:
+            return found
+        time.sleep(0.1)
