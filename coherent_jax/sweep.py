@@ -57,7 +57,6 @@ from coherent_jax.config import (
     modern_items,
     parse_overrides,
     sweepable,
-    to_dict,
     validate,
     with_values,
 )
@@ -69,6 +68,7 @@ from coherent_jax.runs import (
     Checkpoint,
     atomic_write,
     resume_point,
+    stored_config,
     write_config,
 )
 from coherent_jax.sweep_table import aggregate, fmt, format_table, to_csv
@@ -283,7 +283,8 @@ def _mirror_points(plan: SweepPlan, job: Job) -> list[tuple[Path, dict[str, Any]
     if not (plan.base.wandb and job.point_dirs):  # a process that writes nothing mirrors nothing
         return []
     return [
-        (d, to_dict(_point_config(p, d)), p.name) for p, d in zip(plan.points, job.point_dirs, strict=True)
+        (d, stored_config(_point_config(p, d)), p.name)
+        for p, d in zip(plan.points, job.point_dirs, strict=True)
     ]
 
 

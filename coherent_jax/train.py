@@ -39,7 +39,6 @@ signal number when stopped by SIGINT/SIGTERM (resumable).
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import sys
 import time
@@ -49,7 +48,7 @@ from pathlib import Path
 from typing import Any
 
 from coherent_jax import launch, multihost, rundir, tracking
-from coherent_jax.config import Config, help_text, parse_overrides, to_dict
+from coherent_jax.config import Config, help_text, parse_overrides
 from coherent_jax.loop import PREFIX, StopRequest, to_float, write_params
 from coherent_jax.loop_state import Job, Outcome
 from coherent_jax.memory import check_memory
@@ -60,6 +59,7 @@ from coherent_jax.runs import (
     load_config,
     resume_config,
     resume_point,
+    stored_config,
     write_config,
 )
 
@@ -145,7 +145,7 @@ def _mirror_points(cfg: Config, run_dir: Path | None) -> list[tuple[Path, dict[s
     (directory, the config as ``config.yaml`` records it, name)."""
     if not (cfg.wandb and run_dir):
         return []
-    return [(run_dir, to_dict(dataclasses.replace(cfg, resume="")), run_dir.name)]
+    return [(run_dir, stored_config(cfg), run_dir.name)]
 
 
 class TrainCommand:
