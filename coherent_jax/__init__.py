@@ -21,3 +21,31 @@ def _limit_loaded_blas() -> None:
 _limit_loaded_blas()
 
 __version__ = "0.1.0"
+
+# The Python API (docs/api.md), imported on first use: ``import coherent_jax`` stays free of
+# JAX, which only training and the policy need. ``train`` is the module `coherent_jax.train`,
+# callable as `coherent_jax.api.train` (the command line and the function share the name).
+_LAZY = {
+    "Config": "coherent_jax.config",
+    "ConfigError": "coherent_jax.config",
+    "load_policy": "coherent_jax.api",
+    "TrainResult": "coherent_jax.api",
+    "PolicyFunction": "coherent_jax.api",
+}
+__all__ = ["__version__", "train", *_LAZY]
+
+
+def __getattr__(name: str):
+    import importlib
+
+    if name == "train":
+        return importlib.import_module("coherent_jax.train")  # binds the attribute itself
+    if name not in _LAZY:
+        raise AttributeError(f"module 'coherent_jax' has no attribute {name!r}")
+    value = getattr(importlib.import_module(_LAZY[name]), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *__all__})

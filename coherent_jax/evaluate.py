@@ -11,7 +11,8 @@ are printed. With ``video=true`` it also renders the first episode
 ``RUN_DIR/videos/eval-it<iteration>-s<seed>.mp4`` (``.gif`` without ffmpeg) unless
 ``video_path`` is given (``video_path`` without ``video=true`` is refused); the physics
 states come from inside the jitted evaluation, so the video shows exactly the episodes
-whose returns are printed. `pointmass` has no MuJoCo model and refuses ``video=true``.
+whose returns are printed; a run trained with ``wandb=true`` also logs the video to its
+W&B run (`coherent_jax.tracking`). `pointmass` has no MuJoCo model and refuses ``video=true``.
 A sweep's root directory is refused with the list of its points.
 
 ``engine=gymnasium`` also runs the policy in Gymnasium itself,
@@ -32,7 +33,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from coherent_jax import cli, limits, rundir, video
+from coherent_jax import cli, limits, rundir, tracking, video
 from coherent_jax.config import ConfigError
 from coherent_jax.exit_codes import EXIT_BAD_INPUT
 from coherent_jax.runs import CHECKPOINT, CheckpointError, decode_checkpoint, load_config
@@ -248,6 +249,10 @@ def evaluate_run(run_dir: Path, opts: EvalConfig) -> dict[str, Any]:
         path = Path(opts.video_path) if opts.video_path else run_dir / "videos" / name
         video.write_video(path, frames, fps=1.0 / eval_env.dt)
         result.update({"video": str(path), "frames": len(frames)})
+        if cfg.wandb:  # the run's own W&B run (its id in the run directory) gets the video
+            mirror = tracking.WandbRun.open(run_dir, None, run_dir.name)
+            mirror.video(path, step=None)
+            mirror.finish()
     return result
 
 
@@ -286,7 +291,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         if opts.engine == "gymnasium":
             gymnasium_id(cfg.env)
             check_gymnasium()
-    except (ConfigError, CheckpointError) as exc:
+        if opts.video and cfg.wandb:
+            tracking.require()
+    except (ConfigError, CheckpointError, tracking.TrackingError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     print(f"[coherent_jax] evaluating {run_dir} ({opts.episodes} episodes)", flush=True)

@@ -16,6 +16,11 @@ it runs. The rest happens here, once, in the same order for both:
 4. write the config and ``versions.json`` and drive the loop (`execute`);
 5. turn the summary into the exit status (`exit_status`).
 
+`run` is steps 2-5 raising the bad input (`BAD_INPUT`) and a divergence, for the Python
+API (`coherent_jax.api`); `launch`, the command line's, reports them in one line with
+their exit statuses. A run with ``wandb=true`` needs the ``wandb`` package: checked in
+step 2, before anything is written (`coherent_jax.tracking`).
+
 `drive` and the summary helpers are the part of the run both commands' bodies share:
 the loop under a stop request, the timing fields of a summary, the line that says a
 stopped run can be resumed.
@@ -24,13 +29,14 @@ stopped run can be resumed.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import signal
 import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
-from coherent_jax import cli, multihost, runlock
+from coherent_jax import cli, multihost, runlock, tracking
 from coherent_jax.config import Config, ConfigError
 from coherent_jax.divergence import DivergenceError
 from coherent_jax.exit_codes import EXIT_BAD_INPUT, EXIT_DIVERGED, EXIT_OK, signal_status
@@ -38,6 +44,7 @@ from coherent_jax.loop import PREFIX, StopRequest, run_loop
 from coherent_jax.loop_state import Job, Outcome
 from coherent_jax.quiet import quiet_imports
 from coherent_jax.runs import Checkpoint, CheckpointError, prepare_output_dir, record_versions, split_resume
+from coherent_jax.tracking import TrackingError
 
 
 class Command(Protocol):
@@ -98,39 +105,58 @@ def run_command(
             return signal_status(signal.SIGINT)
 
 
-@contextlib.contextmanager
-def _bad_input():
-    """Turns a `ConfigError` or `CheckpointError` into the one-line refusal."""
-    try:
-        yield
-    except (ConfigError, CheckpointError) as exc:
-        print(f"error: {exc}", file=sys.stderr, flush=True)
-        raise _Refused from None
+# Bad input: reported in one line, exit status 2, nothing written.
+BAD_INPUT = (ConfigError, CheckpointError, TrackingError)
 
 
-class _Refused(Exception):
-    """Bad input, already reported."""
+@dataclasses.dataclass(frozen=True)
+class Launched:
+    """How `run` ended: the exit status, the run directory (None where this process writes
+    none) and the summary (None when nothing ran: a supervised run, a complete one, a stop
+    before the first iteration)."""
+
+    status: int
+    run_dir: Path | None
+    summary: dict[str, Any] | None
 
 
 class _Done(Exception):
     """Nothing to run: the status to exit with (a supervised run's, or 0 for a complete one)."""
 
-    def __init__(self, status: int) -> None:
+    def __init__(self, status: int, run_dir: Path | None = None) -> None:
         self.status = status
+        self.run_dir = run_dir
 
 
 def launch(cmd: Command, argv: list[str], stop: StopRequest) -> int:
-    """``train``'s and ``sweep``'s body: prepare the run, then execute it; returns the exit status."""
+    """``train``'s and ``sweep``'s body: `run`, with bad input and a divergence as one line
+    on stderr and their exit statuses."""
+    try:
+        return run(cmd, argv, stop).status
+    except BAD_INPUT as exc:
+        print(f"error: {exc}", file=sys.stderr, flush=True)
+        return EXIT_BAD_INPUT
+    except DivergenceError as exc:  # a single run; a sweep marks its diverged points instead
+        print(f"error: {exc}", file=sys.stderr, flush=True)
+        return EXIT_DIVERGED
+
+
+def run(cmd: Command, argv: list[str], stop: StopRequest) -> Launched:
+    """Prepares the run of `argv`, then executes it: what the command line and the Python API
+    (`coherent_jax.api.train`) both run.
+
+    Raises one of `BAD_INPUT` (before anything is written, or on restoring a state that
+    does not fit) or `DivergenceError` (a single run that diverged).
+    """
     resume_dir, _ = split_resume(argv)
     try:
-        with _bad_input():
-            plan, run_dir, checkpoint, lock = prepare(cmd, argv)
-    except _Refused:
-        return EXIT_BAD_INPUT
+        plan, run_dir, checkpoint, lock = prepare(cmd, argv)
     except _Done as done:
-        return done.status
+        return Launched(done.status, done.run_dir, None)
     with lock or contextlib.nullcontext():
-        return execute(cmd, plan, run_dir, resume_dir is not None, checkpoint, stop)
+        summary = execute(cmd, plan, run_dir, resume_dir is not None, checkpoint, stop)
+    status = exit_status(summary) if summary is not None else signal_status(stop.signum)
+    return Launched(status, run_dir, summary)
 
 
 def prepare(cmd: Command, argv: list[str]):
@@ -147,6 +173,8 @@ def prepare(cmd: Command, argv: list[str]):
     else:
         plan, run_dir = cmd.resume(resume_dir, rest)
     cfg = cmd.config(plan)
+    if cfg.wandb:
+        tracking.require()
     if multihost.needs_supervisor(cfg.distributed):
         raise _Done(multihost.supervise(cmd.module, argv))
     is_writer = cmd.check(plan)
@@ -163,7 +191,7 @@ def prepare(cmd: Command, argv: list[str]):
         cmd.check_rows(run_dir, plan, checkpoint, finished)
         if finished:
             print(f"{PREFIX} {run_dir} is already complete ({checkpoint.iteration} iterations)")
-            raise _Done(EXIT_OK)
+            raise _Done(EXIT_OK, run_dir)
     run_dir = run_dir if is_writer else None
     return plan, run_dir, checkpoint, runlock.acquire(run_dir, "resume") if run_dir else None
 
@@ -175,25 +203,18 @@ def execute(
     resumed: bool,
     checkpoint: Checkpoint | None,
     stop: StopRequest,
-) -> int:
-    """Writes the run's config and versions, runs it, and returns the exit status (the input checked)."""
+) -> dict[str, Any] | None:
+    """Writes the run's config and versions and runs it (the input checked); returns its summary,
+    None when a signal came before training started."""
     if run_dir:
         cmd.write_inputs(run_dir, plan, resumed)
         record_versions(run_dir, None if not resumed else (checkpoint.iteration if checkpoint else 0))
         print(f"{PREFIX} {cmd.dir_line(run_dir, plan)}", flush=True)
     if stop.signum is not None:
         print(f"{PREFIX} stopped by {stop.name} before training started", flush=True)
-        return signal_status(stop.signum)
+        return None
     quiet_imports()
-    try:
-        summary = cmd.run(plan, run_dir, checkpoint, stop)
-    except CheckpointError as exc:  # a state that does not fit this trainer, found on restoring it
-        print(f"error: {exc}", file=sys.stderr, flush=True)
-        return EXIT_BAD_INPUT
-    except DivergenceError as exc:  # a single run; a sweep marks its diverged points instead
-        print(f"error: {exc}", file=sys.stderr, flush=True)
-        return EXIT_DIVERGED
-    return exit_status(summary)
+    return cmd.run(plan, run_dir, checkpoint, stop)
 
 
 def exit_status(summary: dict[str, Any]) -> int:

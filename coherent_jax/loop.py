@@ -8,7 +8,8 @@ states (``vmap(trainer.iteration)``). Either way it
 * runs the iterations with a progress bar (env steps; one rate: training env steps/s);
 * evaluates every ``eval_every`` iterations and at the end (deterministic episodes);
 * writes one row per iteration to each point's ``metrics.jsonl`` and, with
-  ``tensorboard=true``, to TensorBoard event files in the point's ``tb/``;
+  ``tensorboard=true``, to TensorBoard event files in the point's ``tb/`` (with
+  ``wandb=true`` also to the point's W&B run, `coherent_jax.tracking`);
 * writes ``checkpoint.msgpack`` (the whole state, `coherent_jax.runs`) every
   ``checkpoint_every`` iterations, at the end, and when SIGINT/SIGTERM stops it;
 * continues from a checkpoint (``resume``), recomputing the rows past it, so the
@@ -333,8 +334,8 @@ def guard(run: Session, it: int, metrics: dict[str, Any], finite: Any) -> None:
 
 
 def sink_metrics(run: Session, it: int, metrics: dict[str, Any]) -> None:
-    """Step 5, sink metrics: iteration `it`'s row in each live point's ``metrics.jsonl`` and
-    its finite scalars in TensorBoard (step: env steps)."""
+    """Step 5, sink metrics: iteration `it`'s row in each live point's ``metrics.jsonl`` and W&B
+    run (``wandb=true``; step: the iteration), its finite scalars in TensorBoard (step: env steps)."""
     cfg = run.job.cfg
     env_steps = it * cfg.steps_per_iteration
     time_s = run.elapsed_before + time.perf_counter() - run.t_start
@@ -345,6 +346,8 @@ def sink_metrics(run: Session, it: int, metrics: dict[str, Any]) -> None:
         row.update({k: to_float(v[j]) for k, v in metrics.items()})
         f.write(json.dumps(row) + "\n")
         f.flush()
+        if run.job.trackers:
+            run.job.trackers[j].log(row, it)
         if w is not None:
             for k, v in metrics.items():
                 if math.isfinite(v[j]):

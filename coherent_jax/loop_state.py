@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -27,6 +27,8 @@ class Job:
       hparams: a sweep's stacked hyperparameters (leading axis: points); None for a
         single run, whose state is not vmapped.
       label: how the start-up line names the job.
+      trackers: per point, a W&B run receiving each of its rows (`coherent_jax.tracking.WandbRun`,
+        ``wandb=true``); empty: none.
     """
 
     cfg: Config
@@ -37,6 +39,7 @@ class Job:
     point_dirs: list[Path] | None
     hparams: Any = None
     label: str = ""
+    trackers: Sequence[Any] = ()
 
     @property
     def points(self) -> bool:

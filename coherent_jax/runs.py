@@ -43,10 +43,10 @@ VERSIONS = "versions.json"
 FORMAT = "coherent_jax-checkpoint-1"
 # Fields that may differ between a run and its resumption: they change where and how
 # a run reports, or how long it goes on, never what its iterations compute.
-RESUMABLE_KEYS = ("run_dir", "progress", "resume", "checkpoint_every", "tensorboard", "total_steps")
+RESUMABLE_KEYS = ("run_dir", "progress", "resume", "checkpoint_every", "tensorboard", "wandb", "total_steps")
 # Before total_steps became resumable it was fingerprinted: such checkpoints still
-# resume, at their own budget.
-_LEGACY_RESUMABLE_KEYS = ("run_dir", "progress", "resume", "checkpoint_every", "tensorboard")
+# resume, at their own budget. (``wandb`` came later, never fingerprinted.)
+_LEGACY_RESUMABLE_KEYS = ("run_dir", "progress", "resume", "checkpoint_every", "tensorboard", "wandb")
 VERSIONED_PACKAGES = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "brax", "flax", "optax", "numpy", "chex")
 
 
@@ -434,12 +434,17 @@ def record_versions(run_dir: Path, resumed_at: int | None) -> None:
         print(f"{PREFIX} warning: {', '.join(changed)} differ from the run's; see {name}", flush=True)
 
 
+def stored_config(cfg: Config) -> dict[str, Any]:
+    """The run's resolved config as ``config.yaml`` records it (and W&B logs it): without
+    ``resume``, which says how a session began."""
+    return to_dict(dataclasses.replace(cfg, resume=""))
+
+
 def write_config(run_dir: Path, cfg: Config) -> None:
-    """The run's resolved config as ``config.yaml`` (without ``resume``: it says how a session began)."""
+    """The run's resolved config as ``config.yaml`` (`stored_config`)."""
     from omegaconf import OmegaConf
 
-    stored = dataclasses.replace(cfg, resume="")
-    atomic_write(run_dir / CONFIG, OmegaConf.to_yaml(to_dict(stored)).encode())
+    atomic_write(run_dir / CONFIG, OmegaConf.to_yaml(stored_config(cfg)).encode())
 
 
 def split_resume(argv: list[str]) -> tuple[str | None, list[str]]:

@@ -25,7 +25,8 @@ Outputs, in ``run_dir`` (default ``runs/sweep-<env>-<algo>-<explore>-<time>``): 
 shared ``config.yaml`` and the grid (``grid.json``), ``versions.json``, the
 checkpoint, one directory per point named by its settings holding what a single
 run writes (``config.yaml``, ``metrics.jsonl``, ``tb/``, ``params.msgpack``,
-``summary.json``), and the aggregate over seeds of the final evaluation return per
+``summary.json``; with ``wandb=true`` one W&B run per point, grouped by the sweep's
+directory name, `coherent_jax.tracking`), and the aggregate over seeds of the final evaluation return per
 non-seed point, ``sweep.csv`` and ``sweep.json``, also printed. A bad key or value
 (an unknown key, a list for a shape setting, an empty list, a value out of range,
 an axis the algorithm does not read) is one line on stderr and exit status 2
@@ -43,7 +44,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from coherent_jax import cli, launch, limits, multihost, rundir, sweep_resume
+from coherent_jax import cli, launch, limits, multihost, rundir, sweep_resume, tracking
 from coherent_jax.agents.trainer import Trainer
 from coherent_jax.config import (
     FIELDS,
@@ -67,6 +68,7 @@ from coherent_jax.runs import (
     Checkpoint,
     atomic_write,
     resume_point,
+    stored_config,
     write_config,
 )
 from coherent_jax.sweep_table import aggregate, fmt, format_table, to_csv
@@ -251,16 +253,18 @@ def run_sweep(
     With `resume` (a verified checkpoint of ``out_dir``) the grid continues after it.
     """
     job = sweep_job(plan, out_dir, env, eval_env)
-    out = launch.drive(job, stop, resume)
-    result = sweep_result(plan, out, resume is not None)
-    if launch.report_stopped(out, out_dir):
-        return result
-    write_params(job.trainer, out.state, job.point_dirs, points=True)  # every process: a collective
-    if out_dir is not None:
-        for d, summary in zip(job.point_dirs, result["points"], strict=True):
-            atomic_write(d / "summary.json", json.dumps(summary, indent=2).encode())
-        atomic_write(out_dir / "sweep.csv", to_csv(plan, result["rows"]).encode())
-        atomic_write(out_dir / "sweep.json", json.dumps(result, indent=2).encode())
+    with tracking.mirrored(_mirror_points(plan, job), out_dir.name if out_dir else None) as mirrors:
+        out = launch.drive(dataclasses.replace(job, trackers=mirrors.runs), stop, resume)
+        result = sweep_result(plan, out, resume is not None)
+        if launch.report_stopped(out, out_dir):
+            return result
+        write_params(job.trainer, out.state, job.point_dirs, points=True)  # every process: a collective
+        if out_dir is not None:
+            for d, summary in zip(job.point_dirs, result["points"], strict=True):
+                atomic_write(d / "summary.json", json.dumps(summary, indent=2).encode())
+            atomic_write(out_dir / "sweep.csv", to_csv(plan, result["rows"]).encode())
+            atomic_write(out_dir / "sweep.json", json.dumps(result, indent=2).encode())
+        mirrors.summaries = result["points"]
     print(format_table(plan, result["rows"]), flush=True)
     for name, reason in result["diverged"].items():
         print(f"{PREFIX} point {name} {reason}", flush=True)
@@ -271,6 +275,17 @@ def run_sweep(
         flush=True,
     )
     return result
+
+
+def _mirror_points(plan: SweepPlan, job: Job) -> list[tuple[Path, dict[str, Any], str]]:
+    """With ``wandb=true``, one W&B run per point (directory, its config as its ``config.yaml``
+    holds it, its name); grouped by the caller under the sweep's directory name."""
+    if not (plan.base.wandb and job.point_dirs):  # a process that writes nothing mirrors nothing
+        return []
+    return [
+        (d, stored_config(_point_config(p, d)), p.name)
+        for p, d in zip(plan.points, job.point_dirs, strict=True)
+    ]
 
 
 def sweep_job(plan: SweepPlan, out_dir: Path | None, env=None, eval_env=None) -> Job:

@@ -12,7 +12,12 @@ writes one directory:
   ``checkpoint_every`` iterations, at the end and when stopped by SIGINT/SIGTERM;
   see `coherent_jax.runs`);
 * at the end ``params.msgpack`` (final parameters and observation statistics, flax
-  serialisation) and ``summary.json``.
+  serialisation) and ``summary.json``;
+* with ``wandb=true``, ``wandb-run.json`` (the W&B run's id) and ``wandb/``: the same
+  config, rows and summary in a Weights & Biases run (`coherent_jax.tracking`).
+
+``coherent_jax.train(config)`` (`coherent_jax.api.train`; this module is callable as it)
+runs the same launch path from Python.
 
 ``resume=RUN_DIR`` continues a run from its checkpoint (a run killed at any moment,
 even by SIGKILL, from any working directory, after the directory was moved): the
@@ -37,14 +42,15 @@ from __future__ import annotations
 import json
 import sys
 import time
+import types
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from coherent_jax import launch, multihost, rundir
+from coherent_jax import launch, multihost, rundir, tracking
 from coherent_jax.config import Config, help_text, parse_overrides
 from coherent_jax.loop import PREFIX, StopRequest, to_float, write_params
-from coherent_jax.loop_state import Job
+from coherent_jax.loop_state import Job, Outcome
 from coherent_jax.memory import check_memory
 from coherent_jax.runs import (
     METRICS,
@@ -53,6 +59,7 @@ from coherent_jax.runs import (
     load_config,
     resume_config,
     resume_point,
+    stored_config,
     write_config,
 )
 
@@ -79,19 +86,41 @@ def train(
     """
     from coherent_jax.agents import make_trainer
 
-    job = Job(
-        cfg=cfg,
-        trainer=make_trainer(cfg),
-        seeds=[cfg.seed],
-        names=[run_dir.name if run_dir else "run"],
-        run_dir=run_dir,
-        point_dirs=[run_dir] if run_dir else [],
-        label=f"{cfg.env} {cfg.algo} explore={cfg.explore}",
+    trainer = make_trainer(cfg)
+    with tracking.mirrored(_mirror_points(cfg, run_dir)) as mirrors:
+        job = Job(
+            cfg=cfg,
+            trainer=trainer,
+            seeds=[cfg.seed],
+            names=[run_dir.name if run_dir else "run"],
+            run_dir=run_dir,
+            point_dirs=[run_dir] if run_dir else [],
+            label=f"{cfg.env} {cfg.algo} explore={cfg.explore}",
+            trackers=mirrors.runs,
+        )
+        out = launch.drive(job, stop, resume, progress_fn)
+        summary = run_summary(cfg, out, resume is not None)
+        if launch.report_stopped(out, run_dir):
+            return summary
+        write_params(trainer, out.state, [run_dir] if run_dir else [], points=False)  # every process
+        if run_dir:
+            atomic_write(run_dir / "summary.json", json.dumps(summary, indent=2).encode())
+        mirrors.summaries = [summary]
+    final = summary["final_eval_return"]
+    print(
+        f"{PREFIX} done: eval return {final if final is None else round(final, 1)}, "
+        f"{summary['train_env_steps_per_s']:.0f} env steps/s training, compile {out.compile_s:.1f} s, "
+        f"wall {summary['wall_s']:.0f} s" + (f"; run dir {run_dir}" if run_dir else ""),
+        flush=True,
     )
-    out = launch.drive(job, stop, resume, progress_fn)
+    return summary
+
+
+def run_summary(cfg: Config, out: Outcome, resumed: bool) -> dict[str, Any]:
+    """``summary.json``: the run's settings, final returns, timings and platform."""
     total_steps = out.done * cfg.steps_per_iteration
     last_eval = {k: v[0] for k, v in out.last_eval.items()}
-    summary = {
+    return {
         "env": cfg.env,
         "algo": cfg.algo,
         "explore": cfg.explore,
@@ -105,23 +134,18 @@ def train(
         "wall_s": round(out.wall_s, 2),
         "train_env_steps_per_s": round(total_steps / max(out.loop.train_s, 1e-9), 1),
         **launch.platform(out),
-        "resumed_from": out.start if resume is not None else None,
+        "resumed_from": out.start if resumed else None,
         "stopped_by": out.stopped_by,
         "physics": out.physics,
     }
-    if launch.report_stopped(out, run_dir):
-        return summary
-    write_params(job.trainer, out.state, [run_dir] if run_dir else [], points=False)  # every process
-    if run_dir:
-        atomic_write(run_dir / "summary.json", json.dumps(summary, indent=2).encode())
-    final = summary["final_eval_return"]
-    print(
-        f"{PREFIX} done: eval return {final if final is None else round(final, 1)}, "
-        f"{summary['train_env_steps_per_s']:.0f} env steps/s training, compile {out.compile_s:.1f} s, "
-        f"wall {summary['wall_s']:.0f} s" + (f"; run dir {run_dir}" if run_dir else ""),
-        flush=True,
-    )
-    return summary
+
+
+def _mirror_points(cfg: Config, run_dir: Path | None) -> list[tuple[Path, dict[str, Any], str]]:
+    """The run's W&B mirror with ``wandb=true`` and a run directory (its id lives there), else none:
+    (directory, the config as ``config.yaml`` records it, name)."""
+    if not (cfg.wandb and run_dir):
+        return []
+    return [(run_dir, stored_config(cfg), run_dir.name)]
 
 
 class TrainCommand:
@@ -159,8 +183,10 @@ class TrainCommand:
     def write_inputs(self, run_dir: Path, plan: Config, resumed: bool) -> None:
         if not resumed:
             write_config(run_dir, plan)
-        elif plan.total_steps != load_config(run_dir).total_steps:
-            write_config(run_dir, plan)  # an extended budget is the run's own from now on
+        else:
+            stored = load_config(run_dir)
+            if (plan.total_steps, plan.wandb) != (stored.total_steps, stored.wandb):
+                write_config(run_dir, plan)  # an extended budget, or W&B turned on or off: the run's own now
 
     def dir_line(self, run_dir: Path, plan: Config) -> str:
         return f"run dir {run_dir}"
@@ -178,6 +204,22 @@ def main(argv: Sequence[str] | None = None) -> int:
         lambda args, stop: launch.launch(TrainCommand(), args, stop),
     )
 
+
+class _CallableModule(types.ModuleType):
+    """This module, callable as the Python API's `coherent_jax.api.train`.
+
+    ``coherent_jax.train`` must be both: the command line (``python -m coherent_jax.train``,
+    this module) and ``coherent_jax.train(config)``. Every ``import coherent_jax.train``
+    binds the package's attribute ``train`` to this module, so the module is the function.
+    """
+
+    def __call__(self, config: Any = None) -> Any:
+        from coherent_jax.api import train as run_training
+
+        return run_training(config)
+
+
+sys.modules[__name__].__class__ = _CallableModule
 
 if __name__ == "__main__":
     sys.exit(multihost.run_cli(main))

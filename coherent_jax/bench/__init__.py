@@ -23,4 +23,13 @@ DEFAULT_SUITE = "throughput"  # what ``python -m coherent_jax.bench`` runs with 
 # Training keys the in-process suites do not read (they time iterations: they write no run
 # directory, checkpoint or TensorBoard file, and run no fixed budget): refused, not ignored.
 # A suite that starts training commands of its own names its own (``IGNORED_KEYS``).
-IGNORED = ("run_dir", "resume", "checkpoint_every", "tensorboard", "progress", "total_steps", "eval_every")
+IGNORED = (
+    "run_dir",
+    "resume",
+    "checkpoint_every",
+    "tensorboard",
+    "wandb",
+    "progress",
+    "total_steps",
+    "eval_every",
+)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from omegaconf import OmegaConf
@@ -130,6 +130,68 @@ def parse_overrides(overrides: Sequence[str], base: Config | None = None) -> Con
         msg = str(exc).splitlines()[0]
         raise ConfigError(f"invalid value for {key!r}: {msg} (allowed: {expected})") from None
     return validate(cfg)
+
+
+def override_items(overrides: Mapping[str, Any]) -> list[str]:
+    """``key=value`` strings of a mapping of overrides, as the command line would give them.
+
+    A nested mapping is a group's keys (``{"ppo": {"clip_eps": 0.2}}`` is
+    ``ppo.clip_eps=0.2``); values are bools, numbers, strings, paths, lists of them or
+    None. A string YAML would read as something else (``"true"``, ``""``) is quoted, so
+    it stays a string; an empty string where that is the default (``run_dir``, ``resume``,
+    ``preset``) is left out, as not given. Raises `ConfigError` naming a key or value of
+    another kind.
+    """
+    import json
+    import os
+
+    import yaml
+
+    def text(key: str, value: Any) -> str:
+        if value is None:
+            return "null"
+        if isinstance(value, bool):
+            return str(value).lower()
+        if isinstance(value, int | float):
+            return repr(value)
+        if isinstance(value, str | os.PathLike):
+            value = os.fspath(value)
+            plain = value and yaml.safe_load(value) == value and "," not in value
+            return value if plain else json.dumps(value)
+        if isinstance(value, list | tuple):
+            return "[" + ",".join(text(key, v) for v in value) + "]"
+        raise ConfigError(
+            f"invalid value for {key!r}: {value!r} of type {type(value).__name__} "
+            "(allowed: a bool, number, string, path, list or None)"
+        )
+
+    items: list[str] = []
+    for key, value in overrides.items():
+        if not isinstance(key, str) or not key:
+            raise ConfigError(f"invalid key {key!r}: not a string (allowed: config keys, e.g. 'lr')")
+        if isinstance(value, Mapping):
+            items += override_items({f"{key}.{k}" if isinstance(k, str) else k: v for k, v in value.items()})
+        elif value == "" and key in FIELDS and FIELDS[key].default == "":
+            continue  # the default ``run_dir``, ``resume``, ``preset``: as if not given
+        else:
+            items.append(f"{key}={text(key, value)}")
+    return items
+
+
+def config_from(
+    overrides: Mapping[str, Any] | None = None, base: Config | None = None, **kwargs: Any
+) -> Config:
+    """The validated `Config` of a mapping of overrides and keyword overrides (the latter win).
+
+    The same layers as the command line (`parse_overrides`): the defaults, ``algo``'s
+    defaults, ``preset``'s values, then these overrides; raises `ConfigError` in one line.
+    """
+    if overrides is not None and not isinstance(overrides, Mapping):
+        raise ConfigError(
+            f"invalid config {overrides!r}: a {type(overrides).__name__} "
+            "(allowed: a Config or a mapping of config keys to values)"
+        )
+    return parse_overrides(override_items({**(overrides or {}), **kwargs}), base=base)
 
 
 def _check_yaml(key: str, text: str) -> None:

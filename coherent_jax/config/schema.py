@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Mapping
 from typing import Any
 
 from coherent_jax import limits
@@ -131,6 +132,12 @@ class Config:
         "", "continue the run in this directory from its checkpoint, with its config", group="output"
     )
     tensorboard: bool = field(True, "write TensorBoard event files to <run_dir>/tb", group="output")
+    wandb: bool = field(
+        False,
+        "mirror the run to Weights & Biases, offline unless WANDB_MODE is set "
+        '(pip install -e ".[wandb]"; docs/runs.md)',
+        group="output",
+    )
     # --- physics backend
     physics: str = field(
         "auto",
@@ -165,6 +172,20 @@ class Config:
     gsde: GsdeOptions = _group(GsdeOptions, "explore=gsde")
     pink: PinkOptions = _group(PinkOptions, "explore=pink")
     lattice: LatticeOptions = _group(LatticeOptions, "explore=lattice")
+
+    @classmethod
+    def from_overrides(cls, overrides: Mapping[str, Any] | None = None, /, **kwargs: Any) -> Config:
+        """The resolved, validated config of overrides over the defaults, as the command line builds it.
+
+        ``Config.from_overrides(env="hopper", preset="thesis", **{"ppo.clip_eps": 0.1})``
+        or ``Config.from_overrides({"env": "hopper", "ppo": {"clip_eps": 0.1}})``: the
+        defaults, then ``algo``'s (`coherent_jax.presets.ALGO_DEFAULTS`), then the
+        ``preset``'s values for that algorithm (`coherent_jax.presets.PRESETS`), then the
+        given keys. Raises `ConfigError` in one line naming the bad key or value.
+        """
+        from coherent_jax.config.parse import config_from  # parse builds on this module
+
+        return config_from(overrides, **kwargs)
 
     # --- derived (not settable)
     @property
