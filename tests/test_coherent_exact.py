@@ -10,6 +10,7 @@ small tanh trunk, with respect to the trunk, mu, log w_std and action_std.
 
 import json
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -53,9 +54,64 @@ def _chained_8_from_prior(x, a, first, mu, w_std, action_std, beta):
     return E.chained_marginals(junk, x, a, first, mu, w_std, action_std, beta, 8, from_prior=True)[0]
 
 
+def refiltered_marginals(
+    history_x: chex.Array,
+    history_a: chex.Array,
+    history_first: chex.Array,
+    x: chex.Array,
+    a: chex.Array,
+    first: chex.Array,
+    mu: chex.Array,
+    w_std: chex.Array,
+    action_std: chex.Array,
+    beta: chex.Array,
+    block: int | None = None,
+) -> tuple[chex.Array, chex.Array]:
+    """log p(a_t | a_<t, s_<=t) of a segment, the episode prefix re-inferred from its start.
+
+    The prefix (H steps before the segment) and the segment are one chain of
+    `coherent_exact.chained_marginals` that starts from the prior at the first prefix step (4.33), so
+    the segment's terms are exactly the thesis's marginals (4.37)/(4.49) of an episode
+    filtered from its beginning under the given parameters, and differentiate through
+    the prefix's inputs. The prefix must start at an episode start, or at a step before
+    one: ``history_first`` (and ``first``) reset the chain wherever an episode starts,
+    so steps of earlier episodes in the window only cost time.
+
+    Args:
+      history_x, history_a, history_first: [H, q], [H, p], [H] the steps before the
+        segment; H may be 0.
+      x, a, first: [T, q], [T, p], [T] the segment.
+      mu, w_std, action_std, beta: as `coherent_exact.chained_marginals`.
+      block: steps per block, a divisor of H + T; by default blocks of `coherent_exact.MAX_BLOCK` steps,
+        the front padded with one-step episodes to a whole number of blocks.
+
+    Returns:
+      (logp [T], predictive variances s [T, p]) of the segment's steps.
+    """
+    chex.assert_rank([history_x, history_a, history_first, x, a, first], [2, 2, 1, 2, 2, 1])
+    num_steps = x.shape[0]
+    # The chain starts at the window's first step whatever its flag says (4.33).
+    history_first = jnp.asarray(history_first, bool)
+    first = jnp.asarray(first, bool)
+    if history_x.shape[0]:
+        history_first = history_first.at[0].set(True)
+    else:
+        first = first.at[0].set(True)
+    # Without a given block size, pad the front to whole blocks of MAX_BLOCK steps: each
+    # padding step is an episode of its own (first = True), so it changes nothing after it.
+    pad = 0 if block is not None else -(history_x.shape[0] + num_steps) % E.MAX_BLOCK
+    all_x = jnp.concatenate([jnp.zeros((pad, x.shape[1]), x.dtype), jnp.asarray(history_x, x.dtype), x])
+    all_a = jnp.concatenate([jnp.zeros((pad, a.shape[1]), a.dtype), jnp.asarray(history_a, a.dtype), a])
+    all_first = jnp.concatenate([jnp.ones((pad,), bool), history_first, first])
+    logp, _, pred_var = E.chained_marginals(
+        C.prior_belief(mu, w_std), all_x, all_a, all_first, mu, w_std, action_std, beta, block
+    )
+    return logp[-num_steps:], pred_var[-num_steps:]
+
+
 def _refiltered_20_4(x, a, first, mu, w_std, action_std, beta):
     h = 20
-    return E.refiltered_marginals(
+    return refiltered_marginals(
         x[:h], a[:h], first[:h], x[h:], a[h:], first[h:], mu, w_std, action_std, beta, block=4
     )[0]
 
