@@ -64,7 +64,7 @@ def trajectory(strategy, params, beta, seed, lengths):
     obs = np.cumsum(rng.normal(size=(num_steps, OBS)), axis=0) * 0.3
     first = np.zeros(num_steps, bool)
     first[np.cumsum([0, *lengths[:-1]])] = True
-    x = np.asarray(strategy.trunk.apply(params["trunk"], jnp.asarray(obs)))
+    x = np.asarray(strategy.layer.features(params, jnp.asarray(obs)))
     mu, w_std, action_std = (np.asarray(v) for v in heads(params))
     a = sample_actions(rng, x, mu, w_std, action_std, beta, first)
     return jnp.asarray(obs), jnp.asarray(a), jnp.asarray(first)
@@ -84,7 +84,7 @@ def reference_segment(strategy, params, obs, a, first, start, end, beta):
     """The whole-episode reference's terms for steps [start, end): the episode's chain from
     its own first step (the last reset at or before ``start``)."""
     episode_start = int(np.flatnonzero(np.asarray(first[: start + 1]))[-1])
-    x = strategy.trunk.apply(params["trunk"], obs[episode_start:end])
+    x = strategy.layer.features(params, obs[episode_start:end])
     mu, w_std, action_std = heads(params)
     f = first[episode_start:end]
     return reference_log_marginals(x, a[episode_start:end], f, mu, w_std, action_std, beta)[
@@ -126,7 +126,7 @@ def test_episode_gradient_equals_the_whole_episode_reference_after_an_update(x64
                 np.testing.assert_allclose(g, r, rtol=1e-8, atol=1e-10)
         # It could fail: the chain restarted at the segment start scores other values.
         cut = reference_log_marginals(
-            strat.trunk.apply(params1["trunk"], obs[start : start + 16]),
+            strat.layer.features(params1, obs[start : start + 16]),
             a[start : start + 16],
             jnp.zeros(16, bool),
             *heads(params1),
@@ -201,7 +201,7 @@ def test_exact_without_episode_restart_is_the_thesis_buffer(x64, beta):
             return jnp.sum(adv * strat.log_prob(prm, hp, carry0, obs, a, first).log_prob)
 
         def ref_loss(prm, ref_first=ref_first, strat=strat):
-            x = strat.trunk.apply(prm["trunk"], obs)
+            x = strat.layer.features(prm, obs)
             return jnp.sum(adv * reference_log_marginals(x, a, ref_first, *heads(prm), beta))
 
         np.testing.assert_allclose(loss(params), ref_loss(params), rtol=1e-10)

@@ -245,7 +245,7 @@ def _check_segment_against_reference(strategy, hp, params, carry_start, data, se
             std = jnp.asarray(hp["action_std"], jnp.float64)
             logps = []
             for e in range(first.shape[1]):
-                x = strategy.trunk.apply(prm["trunk"], obs[:, e])
+                x = strategy.layer.features(prm, obs[:, e])
                 logps.append(reference_log_marginals(x, actions[:, e], first[:, e], mu, w_std, std, 0.0))
             logp = jnp.stack(logps, axis=1)
             return jnp.sum(adv * logp), logp
@@ -307,7 +307,8 @@ def test_float32_loss_stays_finite_and_accurate_at_extreme_weight_to_noise_ratio
     (in collection and loss alike); its float32 log-probabilities then stay finite and
     within 0.01 nats of the same computation in float64, at beta = 0, 0.01 and 1.
     """
-    from coherent_jax.exploration.coherent import MAX_W_STD_RATIO, CoherentExploration
+    from coherent_jax.exploration.coherent import CoherentExploration
+    from coherent_jax.exploration.coherent_layer import MAX_W_STD_RATIO
 
     strategy = CoherentExploration(2, (16,), "tanh", 0.0, w_std_init=100.0, action_std=0.01)
     params = strategy.init(jax.random.PRNGKey(0), 5)
@@ -317,7 +318,7 @@ def test_float32_loss_stays_finite_and_accurate_at_extreme_weight_to_noise_ratio
     carry = jax.tree.map(lambda v: v[0], strategy.init_carry(jax.random.PRNGKey(1), params, hp, 1))
     rng = np.random.default_rng(0)
     obs = np.cumsum(rng.normal(size=(128, 5)), axis=0) * 0.2
-    x = np.asarray(strategy.trunk.apply(params["trunk"], jnp.asarray(obs, jnp.float32)), np.float64)
+    x = np.asarray(strategy.layer.features(params, jnp.asarray(obs, jnp.float32)), np.float64)
     xh = np.concatenate([x, np.ones((128, 1))], axis=1)
     w = np.asarray(params["mu"]) + 100.0 * rng.normal(size=(2, 17))
     actions = xh @ w.T + 10.0 * rng.normal(size=(128, 2))

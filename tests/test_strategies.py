@@ -98,7 +98,7 @@ def test_coherent_noise_autocorrelation_is_one_minus_beta(integration):
         "coherent.w_std_init=0.3",
     )
     noise, _, _, params, obs = run_fixed_state(strategy, 256, 200)
-    x = np.asarray(strategy.trunk.apply(params["trunk"], obs[:1]), np.float64)[0]
+    x = np.asarray(strategy.layer.features(params, obs[:1]), np.float64)[0]
     xh = np.append(x, 1.0)
     w_std = np.exp(np.asarray(params["log_w_std"], np.float64))
     v = (w_std**2 * xh**2).sum(axis=1)  # [p]

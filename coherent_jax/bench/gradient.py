@@ -140,7 +140,7 @@ class _Forms:
         return self.strategies[history]
 
     def trunk(self, params, obs):
-        return self.strategy(0).trunk.apply(params["trunk"], obs)
+        return self.strategy(0).layer.features(params, obs)
 
     def heads(self, params):
         import jax.numpy as jnp
