@@ -29,6 +29,7 @@ from references import (
 from coherent_jax.exploration import coherent_exact as E
 from coherent_jax.exploration import coherent_filter as C
 from coherent_jax.exploration import coherent_joint as J
+from coherent_jax.exploration.base import Segment
 
 # ---------------------------------------------------------------- tests
 
@@ -218,9 +219,8 @@ def _collect(trainer, env, params, env_state, carry, key, length):
         return strategy.act(k, params, hp, c, obs, first)
 
     env_state, carry_end, data = unroll(env, act, env_state, carry, key, length)
-    log_prob, carry_end = strategy.score_segment(
-        params, hp, carry, carry_end, data.obs, data.action, data.first, data.log_prob
-    )
+    segment = Segment(data.obs, data.action, data.first, carry, data.extras)
+    log_prob, carry_end = strategy.score_segment(params, hp, segment, carry_end, data.log_prob)
     return env_state, carry_end, data._replace(log_prob=log_prob)
 
 
@@ -323,7 +323,7 @@ def test_float32_loss_stays_finite_and_accurate_at_extreme_weight_to_noise_ratio
     w = np.asarray(params["mu"]) + 100.0 * rng.normal(size=(2, 17))
     actions = xh @ w.T + 10.0 * rng.normal(size=(128, 2))
     first = jnp.zeros(128, bool).at[0].set(True)
-    log_prob = jax.jit(lambda prm, h, o, a: strategy.log_prob(prm, h, carry, o, a, first).log_prob)
+    log_prob = jax.jit(lambda prm, h, o, a: strategy.log_prob(prm, h, Segment(o, a, first, carry)).log_prob)
     for beta in (0.0, 0.01, 1.0):
         hp32 = {**hp, "beta": jnp.asarray(beta, jnp.float32)}
         logp32 = log_prob(params, hp32, jnp.asarray(obs, jnp.float32), jnp.asarray(actions, jnp.float32))

@@ -44,6 +44,7 @@ import numpy as np
 
 from coherent_jax import cli
 from coherent_jax.bench import measure
+from coherent_jax.exploration.base import Segment
 
 MODES = ("stored", "exact", "episode")
 #: which reference each mode is exact for: ``episode`` the whole-episode chain, ``segment``
@@ -193,7 +194,7 @@ class _Forms:
         w_obs = jnp.concatenate([jnp.zeros((pad, obs.shape[1]), obs.dtype), obs])
         w_a = jnp.concatenate([jnp.zeros((pad, p), a.dtype), a])
         hp = {"beta": beta, "action_std": self.heads(params)[2]}
-        return strat.log_prob(params, hp, None, w_obs, w_a, first.at[pad].set(True)).log_prob[-seg:]
+        return strat.log_prob(params, hp, Segment(w_obs, w_a, first.at[pad].set(True))).log_prob[-seg:]
 
     def exact_mode(self, params, obs, a, beta, params0):
         """``coherent.gradient=exact``: the segment scored from the prior, as the trainer does."""

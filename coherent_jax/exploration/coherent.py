@@ -88,7 +88,8 @@ class CoherentExploration(ChainStrategy):
     """Deep Coherent Exploration of the policy's last layer (thesis §4.1-4.2).
 
     Parameters: the trunk f_theta, the last-layer mean ``mu`` [p, q+1] and per-weight
-    ``log_w_std`` [p, q+1] (Lambda^-1/2), and ``log_action_std`` [p] when learned
+    ``log_w_std`` [p, q+1] (Lambda^-1/2) of its policy (`coherent_layer.LastLayer`,
+    ``layer``), and ``log_action_std`` [p] when learned
     (otherwise ``action_std`` is a fixed, sweepable hyperparameter, as in the
     thesis). ``beta`` is a hyperparameter (an array, so it can be swept).
 
@@ -269,15 +270,16 @@ class CoherentExploration(ChainStrategy):
             )
         return segment_marginals_joint(belief0, x, a, first, mu, w_std, action_std, beta, from_prior)
 
-    def score_segment(self, params, hparams, carry0, carry, obs, actions, first, log_prob):
+    def score_segment(self, params, hparams, segment, carry, log_prob):
+        segment.check(batch_rank=1)
         # With the exact gradient the next segment restarts the chain (Algorithm 5, steps 4-5).
         carry = carry._replace(restart=jnp.full_like(carry.restart, self.gradient == "exact"))
         if self.gradient == "episode":  # windows of prefix + segment, scored as the loss scores them
-            return self.batch_log_prob(params, hparams, carry0, obs, actions, first).log_prob, carry
+            return self.batch_log_prob(params, hparams, segment).log_prob, carry
         if self.inference == "filter":
             return log_prob, carry  # scored step by step in `act`
         mu, w_std, action_std = self._head(params, hparams)
-        x = self.layer.features(params, obs)  # [T, n, q]
+        x = self.layer.features(params, segment.obs)  # [T, n, q]
 
         def score(c0, x_e, a_e, f_e):
             f_e = self._segment_first(f_e, c0.restart)
@@ -286,24 +288,27 @@ class CoherentExploration(ChainStrategy):
             )
             return logp, _to_standard(belief, mu, w_std)
 
-        logp, (mean, cov) = jax.vmap(score, in_axes=(0, 1, 1, 1), out_axes=(1, 0))(carry0, x, actions, first)
+        logp, (mean, cov) = jax.vmap(score, in_axes=(0, 1, 1, 1), out_axes=(1, 0))(
+            segment.carry0, x, segment.action, segment.first
+        )
         if self.gradient == "exact":
             return logp, carry  # the next segment starts from the prior: no belief to keep
         return logp, carry._replace(mean=mean, cov=cov)
 
     # ------------------------------------------------------------------ loss
-    def log_prob(self, params, hparams, carry0, obs, actions, first, extras=()):
-        chex.assert_rank([obs, actions, first], [2, 2, 1])
+    def log_prob(self, params, hparams, segment):
+        segment.check()
+        actions = segment.action
         mu, w_std, action_std = self._head(params, hparams)
-        x = self.layer.features(params, obs)
+        x = self.layer.features(params, segment.obs)
         if self.gradient == "episode":
-            return self._window_log_prob(x, actions, first, mu, w_std, action_std, hparams["beta"])
+            return self._window_log_prob(x, actions, segment.first, mu, w_std, action_std, hparams["beta"])
         # The stored belief is a constant of the data (like a stored RNN state); its
         # mapping onto the current mu and w_std is not.
         # With gradient="exact" a segment's chain starts at its first step, so the
         # stored belief is never used and nothing is held constant.
-        carry0 = jax.tree.map(jax.lax.stop_gradient, carry0)
-        first = self._segment_first(first, carry0.restart)
+        carry0 = jax.tree.map(jax.lax.stop_gradient, segment.carry0)
+        first = self._segment_first(segment.first, carry0.restart)
         belief0 = self._segment_belief(carry0, mu, w_std)
         logp, _, pred_var = self._score(belief0, x, actions, first, mu, w_std, action_std, hparams["beta"])
         return SegmentLogProb(logp, predictive_entropy(pred_var))

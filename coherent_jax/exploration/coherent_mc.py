@@ -88,10 +88,11 @@ class CoherentMC(ChainStrategy):
         logp, _ = self._action_log_prob(params, hparams, z, x, action)
         return ActOutput(action, logp, z, extras=z)
 
-    def log_prob(self, params, hparams, carry0, obs, actions, first, extras=()):
-        chex.assert_rank([obs, actions, extras], [2, 2, 3])
-        x = self.layer.features(params, obs)
-        logp, log_std = self._action_log_prob(params, hparams, extras, x, actions)
+    def log_prob(self, params, hparams, segment):
+        segment.check()
+        chex.assert_rank(segment.extras, 3)  # the chain's z [T, p, q+1]
+        x = self.layer.features(params, segment.obs)
+        logp, log_std = self._action_log_prob(params, hparams, segment.extras, x, segment.action)
         return SegmentLogProb(logp, gaussian_entropy(log_std))
 
     def mean_action(self, params, obs):
@@ -180,11 +181,11 @@ class CoherentAllLayers(ChainStrategy):
         log_std = jnp.broadcast_to(jnp.log(action_std), mean.shape)
         return ActOutput(action, gaussian_log_prob(action, mean, log_std), z, extras=z)
 
-    def log_prob(self, params, hparams, carry0, obs, actions, first, extras=()):
-        chex.assert_rank([obs, actions], 2)
-        mean = self._sampled_mean(params, extras, obs)
+    def log_prob(self, params, hparams, segment):
+        segment.check()
+        mean = self._sampled_mean(params, segment.extras, segment.obs)
         log_std = jnp.broadcast_to(jnp.log(self._action_std(params, hparams)), mean.shape)
-        return SegmentLogProb(gaussian_log_prob(actions, mean, log_std), gaussian_entropy(log_std))
+        return SegmentLogProb(gaussian_log_prob(segment.action, mean, log_std), gaussian_entropy(log_std))
 
     def mean_action(self, params, obs):
         flat = obs.reshape(-1, obs.shape[-1])
