@@ -29,7 +29,7 @@ from references import (
 from coherent_jax.exploration import coherent_exact as E
 from coherent_jax.exploration import coherent_filter as C
 from coherent_jax.exploration import coherent_joint as J
-from coherent_jax.exploration.base import Segment
+from coherent_jax.exploration.base import SEGMENT_AXES, Segment
 
 # ---------------------------------------------------------------- tests
 
@@ -235,9 +235,9 @@ def _check_segment_against_reference(strategy, hp, params, carry_start, data, se
         adv = jnp.asarray(np.random.default_rng(seed).normal(size=first.shape))
 
         def loss(prm):
-            seg_lp = jax.vmap(strategy.log_prob, in_axes=(None, None, 0, 1, 1, 1), out_axes=1)(
-                prm, hp, carry_start, obs, actions, jnp.asarray(data.first)
-            )
+            segment = Segment(obs, actions, jnp.asarray(data.first), carry_start)
+            per_segment = jax.vmap(strategy.log_prob, in_axes=(None, None, SEGMENT_AXES), out_axes=1)
+            seg_lp = per_segment(prm, hp, segment)
             return jnp.sum(adv * seg_lp.log_prob), seg_lp.log_prob
 
         def reference(prm):

@@ -44,7 +44,6 @@ import numpy as np
 
 from coherent_jax import cli
 from coherent_jax.bench import measure
-from coherent_jax.exploration.base import Segment
 
 MODES = ("stored", "exact", "episode")
 #: which reference each mode is exact for: ``episode`` the whole-episode chain, ``segment``
@@ -185,6 +184,8 @@ class _Forms:
         `log_prob` of the window of `history_length` prefix steps (padded in front as
         the trainer's empty history is) and the segment; the last T steps."""
         import jax.numpy as jnp
+
+        from coherent_jax.exploration.base import Segment
 
         del params0
         p, seg = self.p, self.seg
