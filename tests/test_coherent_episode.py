@@ -18,6 +18,7 @@ import pytest
 from references import reference_log_marginals, sample_actions
 
 from coherent_jax.agents import losses
+from coherent_jax.exploration.base import Segment
 from coherent_jax.exploration.coherent import CoherentExploration, episode_history_length
 from coherent_jax.rollout import EpisodeHistory, Transition
 
@@ -64,7 +65,7 @@ def trajectory(strategy, params, beta, seed, lengths):
     obs = np.cumsum(rng.normal(size=(num_steps, OBS)), axis=0) * 0.3
     first = np.zeros(num_steps, bool)
     first[np.cumsum([0, *lengths[:-1]])] = True
-    x = np.asarray(strategy.trunk.apply(params["trunk"], jnp.asarray(obs)))
+    x = np.asarray(strategy.layer.features(params, jnp.asarray(obs)))
     mu, w_std, action_std = (np.asarray(v) for v in heads(params))
     a = sample_actions(rng, x, mu, w_std, action_std, beta, first)
     return jnp.asarray(obs), jnp.asarray(a), jnp.asarray(first)
@@ -84,7 +85,7 @@ def reference_segment(strategy, params, obs, a, first, start, end, beta):
     """The whole-episode reference's terms for steps [start, end): the episode's chain from
     its own first step (the last reset at or before ``start``)."""
     episode_start = int(np.flatnonzero(np.asarray(first[: start + 1]))[-1])
-    x = strategy.trunk.apply(params["trunk"], obs[episode_start:end])
+    x = strategy.layer.features(params, obs[episode_start:end])
     mu, w_std, action_std = heads(params)
     f = first[episode_start:end]
     return reference_log_marginals(x, a[episode_start:end], f, mu, w_std, action_std, beta)[
@@ -109,7 +110,7 @@ def test_episode_gradient_equals_the_whole_episode_reference_after_an_update(x64
         w_obs, w_a, w_first = window(obs, a, first, start + 16, strat.history_length + 16)
 
         def loss(prm, w_obs=w_obs, w_a=w_a, w_first=w_first):
-            return jnp.sum(adv * strat.log_prob(prm, hp, None, w_obs, w_a, w_first).log_prob[-16:])
+            return jnp.sum(adv * strat.log_prob(prm, hp, Segment(w_obs, w_a, w_first)).log_prob[-16:])
 
         def ref_loss(prm, start=start):
             return jnp.sum(adv * reference_segment(strat, prm, obs, a, first, start, start + 16, beta))
@@ -117,7 +118,7 @@ def test_episode_gradient_equals_the_whole_episode_reference_after_an_update(x64
         grad0 = jax.grad(loss)(params0)
         params1 = jax.tree.map(lambda p, g: p - 0.05 * g, params0, grad0)  # the update
         for prm in (params0, params1):
-            got = strat.log_prob(prm, hp, None, w_obs, w_a, w_first).log_prob[-16:]
+            got = strat.log_prob(prm, hp, Segment(w_obs, w_a, w_first)).log_prob[-16:]
             want = reference_segment(strat, prm, obs, a, first, start, start + 16, beta)
             np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-10)
             for g, r in zip(
@@ -126,7 +127,7 @@ def test_episode_gradient_equals_the_whole_episode_reference_after_an_update(x64
                 np.testing.assert_allclose(g, r, rtol=1e-8, atol=1e-10)
         # It could fail: the chain restarted at the segment start scores other values.
         cut = reference_log_marginals(
-            strat.trunk.apply(params1["trunk"], obs[start : start + 16]),
+            strat.layer.features(params1, obs[start : start + 16]),
             a[start : start + 16],
             jnp.zeros(16, bool),
             *heads(params1),
@@ -155,14 +156,10 @@ def test_the_trainers_loss_reads_each_segment_with_its_own_history(x64):
         seg = [(o[8 * k : 8 * k + 8], a_[8 * k : 8 * k + 8], f[8 * k : 8 * k + 8]) for o, a_, f in envs]
         stack = lambda i, seg=seg: jnp.stack([s[i] for s in seg], axis=1)  # noqa: E731  [T, 2, ...]
         batch = losses.SegmentBatch(
-            obs=stack(0),
-            action=stack(1),
-            first=stack(2),
-            extras=(),
+            segment=Segment(obs=stack(0), action=stack(1), first=stack(2), carry0=None),
             behaviour_log_prob=None,
             advantages=None,
             targets=None,
-            carry0=None,
             context=history,
         )
         got = losses.segment_log_prob(strat, params, hp, batch).log_prob  # [8, 2]
@@ -198,10 +195,10 @@ def test_exact_without_episode_restart_is_the_thesis_buffer(x64, beta):
     for strat, ref_first in ((through, jnp.zeros(32, bool)), (restarting, first)):
 
         def loss(prm, strat=strat):
-            return jnp.sum(adv * strat.log_prob(prm, hp, carry0, obs, a, first).log_prob)
+            return jnp.sum(adv * strat.log_prob(prm, hp, Segment(obs, a, first, carry0)).log_prob)
 
         def ref_loss(prm, ref_first=ref_first, strat=strat):
-            x = strat.trunk.apply(prm["trunk"], obs)
+            x = strat.layer.features(prm, obs)
             return jnp.sum(adv * reference_log_marginals(x, a, ref_first, *heads(prm), beta))
 
         np.testing.assert_allclose(loss(params), ref_loss(params), rtol=1e-10)
@@ -233,9 +230,8 @@ def _lag_correlations(strategy, beta, num_envs=4000, unroll=8, reset_at=4):
             seg_actions.append(out.action)
             seg_first.append(f)
         seg_obs = jnp.broadcast_to(obs, (unroll,) + obs.shape)
-        _, carry = strategy.score_segment(
-            params, hp, carry0, carry, seg_obs, jnp.stack(seg_actions), jnp.stack(seg_first), None
-        )
+        segment = Segment(seg_obs, jnp.stack(seg_actions), jnp.stack(seg_first), carry0)
+        _, carry = strategy.score_segment(params, hp, segment, carry, None)
     return [
         float(np.mean(zs[t] * zs[t + 1]) / np.sqrt(np.mean(zs[t] ** 2) * np.mean(zs[t + 1] ** 2)))
         for t in range(2 * unroll - 1)

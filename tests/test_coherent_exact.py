@@ -10,6 +10,7 @@ small tanh trunk, with respect to the trunk, mu, log w_std and action_std.
 
 import json
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -28,6 +29,7 @@ from references import (
 from coherent_jax.exploration import coherent_exact as E
 from coherent_jax.exploration import coherent_filter as C
 from coherent_jax.exploration import coherent_joint as J
+from coherent_jax.exploration.base import SEGMENT_AXES, Segment
 
 # ---------------------------------------------------------------- tests
 
@@ -53,9 +55,64 @@ def _chained_8_from_prior(x, a, first, mu, w_std, action_std, beta):
     return E.chained_marginals(junk, x, a, first, mu, w_std, action_std, beta, 8, from_prior=True)[0]
 
 
+def refiltered_marginals(
+    history_x: chex.Array,
+    history_a: chex.Array,
+    history_first: chex.Array,
+    x: chex.Array,
+    a: chex.Array,
+    first: chex.Array,
+    mu: chex.Array,
+    w_std: chex.Array,
+    action_std: chex.Array,
+    beta: chex.Array,
+    block: int | None = None,
+) -> tuple[chex.Array, chex.Array]:
+    """log p(a_t | a_<t, s_<=t) of a segment, the episode prefix re-inferred from its start.
+
+    The prefix (H steps before the segment) and the segment are one chain of
+    `coherent_exact.chained_marginals` that starts from the prior at the first prefix step (4.33), so
+    the segment's terms are exactly the thesis's marginals (4.37)/(4.49) of an episode
+    filtered from its beginning under the given parameters, and differentiate through
+    the prefix's inputs. The prefix must start at an episode start, or at a step before
+    one: ``history_first`` (and ``first``) reset the chain wherever an episode starts,
+    so steps of earlier episodes in the window only cost time.
+
+    Args:
+      history_x, history_a, history_first: [H, q], [H, p], [H] the steps before the
+        segment; H may be 0.
+      x, a, first: [T, q], [T, p], [T] the segment.
+      mu, w_std, action_std, beta: as `coherent_exact.chained_marginals`.
+      block: steps per block, a divisor of H + T; by default blocks of `coherent_exact.MAX_BLOCK` steps,
+        the front padded with one-step episodes to a whole number of blocks.
+
+    Returns:
+      (logp [T], predictive variances s [T, p]) of the segment's steps.
+    """
+    chex.assert_rank([history_x, history_a, history_first, x, a, first], [2, 2, 1, 2, 2, 1])
+    num_steps = x.shape[0]
+    # The chain starts at the window's first step whatever its flag says (4.33).
+    history_first = jnp.asarray(history_first, bool)
+    first = jnp.asarray(first, bool)
+    if history_x.shape[0]:
+        history_first = history_first.at[0].set(True)
+    else:
+        first = first.at[0].set(True)
+    # Without a given block size, pad the front to whole blocks of MAX_BLOCK steps: each
+    # padding step is an episode of its own (first = True), so it changes nothing after it.
+    pad = 0 if block is not None else -(history_x.shape[0] + num_steps) % E.MAX_BLOCK
+    all_x = jnp.concatenate([jnp.zeros((pad, x.shape[1]), x.dtype), jnp.asarray(history_x, x.dtype), x])
+    all_a = jnp.concatenate([jnp.zeros((pad, a.shape[1]), a.dtype), jnp.asarray(history_a, a.dtype), a])
+    all_first = jnp.concatenate([jnp.ones((pad,), bool), history_first, first])
+    logp, _, pred_var = E.chained_marginals(
+        C.prior_belief(mu, w_std), all_x, all_a, all_first, mu, w_std, action_std, beta, block
+    )
+    return logp[-num_steps:], pred_var[-num_steps:]
+
+
 def _refiltered_20_4(x, a, first, mu, w_std, action_std, beta):
     h = 20
-    return E.refiltered_marginals(
+    return refiltered_marginals(
         x[:h], a[:h], first[:h], x[h:], a[h:], first[h:], mu, w_std, action_std, beta, block=4
     )[0]
 
@@ -162,9 +219,8 @@ def _collect(trainer, env, params, env_state, carry, key, length):
         return strategy.act(k, params, hp, c, obs, first)
 
     env_state, carry_end, data = unroll(env, act, env_state, carry, key, length)
-    log_prob, carry_end = strategy.score_segment(
-        params, hp, carry, carry_end, data.obs, data.action, data.first, data.log_prob
-    )
+    segment = Segment(data.obs, data.action, data.first, carry, data.extras)
+    log_prob, carry_end = strategy.score_segment(params, hp, segment, carry_end, data.log_prob)
     return env_state, carry_end, data._replace(log_prob=log_prob)
 
 
@@ -179,9 +235,9 @@ def _check_segment_against_reference(strategy, hp, params, carry_start, data, se
         adv = jnp.asarray(np.random.default_rng(seed).normal(size=first.shape))
 
         def loss(prm):
-            seg_lp = jax.vmap(strategy.log_prob, in_axes=(None, None, 0, 1, 1, 1), out_axes=1)(
-                prm, hp, carry_start, obs, actions, jnp.asarray(data.first)
-            )
+            segment = Segment(obs, actions, jnp.asarray(data.first), carry_start)
+            per_segment = jax.vmap(strategy.log_prob, in_axes=(None, None, SEGMENT_AXES), out_axes=1)
+            seg_lp = per_segment(prm, hp, segment)
             return jnp.sum(adv * seg_lp.log_prob), seg_lp.log_prob
 
         def reference(prm):
@@ -189,7 +245,7 @@ def _check_segment_against_reference(strategy, hp, params, carry_start, data, se
             std = jnp.asarray(hp["action_std"], jnp.float64)
             logps = []
             for e in range(first.shape[1]):
-                x = strategy.trunk.apply(prm["trunk"], obs[:, e])
+                x = strategy.layer.features(prm, obs[:, e])
                 logps.append(reference_log_marginals(x, actions[:, e], first[:, e], mu, w_std, std, 0.0))
             logp = jnp.stack(logps, axis=1)
             return jnp.sum(adv * logp), logp
@@ -251,7 +307,8 @@ def test_float32_loss_stays_finite_and_accurate_at_extreme_weight_to_noise_ratio
     (in collection and loss alike); its float32 log-probabilities then stay finite and
     within 0.01 nats of the same computation in float64, at beta = 0, 0.01 and 1.
     """
-    from coherent_jax.exploration.coherent import MAX_W_STD_RATIO, CoherentExploration
+    from coherent_jax.exploration.coherent import CoherentExploration
+    from coherent_jax.exploration.coherent_layer import MAX_W_STD_RATIO
 
     strategy = CoherentExploration(2, (16,), "tanh", 0.0, w_std_init=100.0, action_std=0.01)
     params = strategy.init(jax.random.PRNGKey(0), 5)
@@ -261,12 +318,12 @@ def test_float32_loss_stays_finite_and_accurate_at_extreme_weight_to_noise_ratio
     carry = jax.tree.map(lambda v: v[0], strategy.init_carry(jax.random.PRNGKey(1), params, hp, 1))
     rng = np.random.default_rng(0)
     obs = np.cumsum(rng.normal(size=(128, 5)), axis=0) * 0.2
-    x = np.asarray(strategy.trunk.apply(params["trunk"], jnp.asarray(obs, jnp.float32)), np.float64)
+    x = np.asarray(strategy.layer.features(params, jnp.asarray(obs, jnp.float32)), np.float64)
     xh = np.concatenate([x, np.ones((128, 1))], axis=1)
     w = np.asarray(params["mu"]) + 100.0 * rng.normal(size=(2, 17))
     actions = xh @ w.T + 10.0 * rng.normal(size=(128, 2))
     first = jnp.zeros(128, bool).at[0].set(True)
-    log_prob = jax.jit(lambda prm, h, o, a: strategy.log_prob(prm, h, carry, o, a, first).log_prob)
+    log_prob = jax.jit(lambda prm, h, o, a: strategy.log_prob(prm, h, Segment(o, a, first, carry)).log_prob)
     for beta in (0.0, 0.01, 1.0):
         hp32 = {**hp, "beta": jnp.asarray(beta, jnp.float32)}
         logp32 = log_prob(params, hp32, jnp.asarray(obs, jnp.float32), jnp.asarray(actions, jnp.float32))

@@ -10,6 +10,7 @@ other test files still run in float32.
 
 import math
 
+import coherent_samplers
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -22,7 +23,7 @@ _LOG_2PI = math.log(2.0 * math.pi)
 
 # One compiled program per input shape and dtype; beta is a traced argument.
 _log_marginals = jax.jit(coherent_filter.log_marginals)
-_log_marginals_from = jax.jit(coherent_filter.log_marginals_from, static_argnames="remat")
+_log_marginals_from = jax.jit(coherent_samplers.log_marginals_from, static_argnames="remat")
 
 
 # ---------------------------------------------------------------- numpy references
@@ -173,7 +174,7 @@ def test_remat_gives_same_values_and_gradients(x64):
     belief0 = coherent_filter.prior_belief(mu, w_std)
 
     def objective(mu, w_std, action_std, x, remat):
-        logp, final = coherent_filter.log_marginals_from(
+        logp, final = coherent_samplers.log_marginals_from(
             belief0, x, problem["a"], problem["first"], mu, w_std, action_std, 0.3, remat=remat
         )
         return jnp.sum(logp) + jnp.sum(final.cov) + jnp.sum(final.mean)
@@ -198,7 +199,7 @@ def test_float32_long_episodes_stay_finite():
 
     def objective(x, mu, w_std, action_std, a, first, beta):
         belief0 = coherent_filter.prior_belief(mu, w_std)
-        logp, final = coherent_filter.log_marginals_from(
+        logp, final = coherent_samplers.log_marginals_from(
             belief0, x, a, first, mu, w_std, action_std, beta, remat=True
         )
         return jnp.sum(logp), (logp, final)
@@ -312,8 +313,10 @@ def test_dtype_follows_inputs(x64):
         )
         assert logp.dtype == dtype
         assert final.mean.dtype == dtype and final.cov.dtype == dtype
-        w = coherent_filter.step_weights(jax.random.key(0), cast["mu"], False, cast["mu"], cast["w_std"], 0.5)
-        a = coherent_filter.sample_action(jax.random.key(1), w, cast["x"][0], cast["action_std"])
+        w = coherent_samplers.step_weights(
+            jax.random.key(0), cast["mu"], False, cast["mu"], cast["w_std"], 0.5
+        )
+        a = coherent_samplers.sample_action(jax.random.key(1), w, cast["x"][0], cast["action_std"])
         assert w.dtype == dtype and a.dtype == dtype
 
 
@@ -360,7 +363,7 @@ def test_chain_is_stationary_with_lag_one_correlation(beta):
     def chain(key):
         def body(w, step):
             step_key, first = step
-            w = coherent_filter.step_weights(step_key, w, first, mu, w_std, beta)
+            w = coherent_samplers.step_weights(step_key, w, first, mu, w_std, beta)
             return w, w
 
         steps = (jax.random.split(key, num_steps), jnp.arange(num_steps) == 0)
@@ -393,20 +396,20 @@ def test_chain_special_cases_are_exact():
     w_std = jnp.array([[0.3, 1.0, 0.6]], jnp.float32)
     w_prev = jnp.array([[1.5, 2.0, -3.0]], jnp.float32)
 
-    np.testing.assert_array_equal(coherent_filter.sample_next_weights(key, w_prev, mu, w_std, 0.0), w_prev)
-    fresh = coherent_filter.sample_initial_weights(key, mu, w_std)
-    np.testing.assert_array_equal(coherent_filter.sample_next_weights(key, w_prev, mu, w_std, 1.0), fresh)
-    np.testing.assert_array_equal(coherent_filter.step_weights(key, w_prev, True, mu, w_std, 0.3), fresh)
+    np.testing.assert_array_equal(coherent_samplers.sample_next_weights(key, w_prev, mu, w_std, 0.0), w_prev)
+    fresh = coherent_samplers.sample_initial_weights(key, mu, w_std)
+    np.testing.assert_array_equal(coherent_samplers.sample_next_weights(key, w_prev, mu, w_std, 1.0), fresh)
+    np.testing.assert_array_equal(coherent_samplers.step_weights(key, w_prev, True, mu, w_std, 0.3), fresh)
     np.testing.assert_array_equal(
-        coherent_filter.step_weights(key, w_prev, False, mu, w_std, 0.3),
-        coherent_filter.sample_next_weights(key, w_prev, mu, w_std, 0.3),
+        coherent_samplers.step_weights(key, w_prev, False, mu, w_std, 0.3),
+        coherent_samplers.sample_next_weights(key, w_prev, mu, w_std, 0.3),
     )
 
     x = jnp.array([0.2, -0.4], jnp.float32)
-    a = coherent_filter.sample_action(key, w_prev, x, jnp.zeros(1, jnp.float32))
+    a = coherent_samplers.sample_action(key, w_prev, x, jnp.zeros(1, jnp.float32))
     np.testing.assert_allclose(a, [1.5 * 0.2 - 2.0 * 0.4 - 3.0], rtol=1e-6)
     # Gradients through the sampler stay finite at the beta = 0 edge of the sqrt.
-    grad = jax.grad(lambda b: jnp.sum(coherent_filter.sample_next_weights(key, w_prev, mu, w_std, b)))
+    grad = jax.grad(lambda b: jnp.sum(coherent_samplers.sample_next_weights(key, w_prev, mu, w_std, b)))
     assert np.isfinite(grad(jnp.float32(0.0)))
 
 
@@ -419,7 +422,7 @@ def test_sample_action_moments():
     action_std = jnp.array([0.1, 0.5], jnp.float32)
     keys = jax.random.split(jax.random.key(4), n)
     a = np.asarray(
-        jax.vmap(coherent_filter.sample_action, in_axes=(0, None, None, None))(keys, w, x, action_std)
+        jax.vmap(coherent_samplers.sample_action, in_axes=(0, None, None, None))(keys, w, x, action_std)
     )
     mean = np.asarray(w) @ np.array([0.3, 0.9, 1.0])
     std = np.asarray(action_std, np.float64)

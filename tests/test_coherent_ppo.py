@@ -8,6 +8,7 @@ import pytest
 from coherent_jax.agents.onpolicy import OnPolicyTrainer
 from coherent_jax.config import parse_overrides
 from coherent_jax.envs import VecEnv
+from coherent_jax.exploration.base import SEGMENT_AXES, Segment
 from coherent_jax.exploration.coherent import CoherentCarry
 from coherent_jax.rollout import unroll
 
@@ -56,12 +57,11 @@ def test_behaviour_log_prob_equals_segment_recompute(short_episode_env, explore,
     @jax.jit
     def collect_and_score(env_state, carry, key):
         env_state, carry_end, data = unroll(short_episode_env, act, env_state, carry, key, 10)
-        log_prob, carry_end = strategy.score_segment(
-            params, hp, carry, carry_end, data.obs, data.action, data.first, data.log_prob
-        )
+        segment = Segment(data.obs, data.action, data.first, carry)
+        log_prob, carry_end = strategy.score_segment(params, hp, segment, carry_end, data.log_prob)
         data = data._replace(log_prob=log_prob)
-        recomputed = jax.vmap(strategy.log_prob, in_axes=(None, None, 0, 1, 1, 1), out_axes=1)(
-            params, hp, carry, data.obs, data.action, data.first
+        recomputed = jax.vmap(strategy.log_prob, in_axes=(None, None, SEGMENT_AXES), out_axes=1)(
+            params, hp, segment
         )
         return env_state, carry_end, data, recomputed
 

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from coherent_jax.agents import losses
+from coherent_jax.exploration.base import Segment
 
 
 def gae_loop(rewards, values, next_values, terminated, truncated, gamma, lam):
@@ -113,17 +114,16 @@ def _onpolicy_setup(dtype=np.float32, clipped=True):
     params = jax.tree.map(lambda x: jnp.asarray(x, dtype), params)
     obs = jax.random.normal(k[2], (T, m, o), dtype)
     action = jax.random.normal(k[3], (T, m, p), dtype)
-    current = strategy.log_prob(params.policy, {}, (), obs.reshape(-1, o), action.reshape(-1, p), None)
+    first = jnp.zeros((T, m), bool)
+    current = strategy.log_prob(
+        params.policy, {}, Segment(obs.reshape(-1, o), action.reshape(-1, p), first.reshape(-1))
+    )
     batch = losses.SegmentBatch(
-        obs=obs,
-        action=action,
-        first=jnp.zeros((T, m), bool),
-        extras=(),
+        segment=Segment(obs=obs, action=action, first=first),
         # near the current policy, so the ratios stay inside the clipping range
         behaviour_log_prob=current.log_prob.reshape(T, m) + 0.05 * jax.random.normal(k[4], (T, m), dtype),
         advantages=jax.random.normal(k[5], (T, m), dtype),
         targets=jax.random.normal(k[6], (T, m), dtype),
-        carry0=(),
     )
     f = lambda v: jnp.asarray(v, dtype)  # noqa: E731
     hp = HParams(
@@ -143,9 +143,9 @@ def test_onpolicy_loss_against_float64_reference(clipped):
     loss, metrics = jax.jit(lambda pr, b: losses.onpolicy_loss(pr, hp, b, **kwargs))(params, batch)
     strategy, value_net = kwargs["strategy"], kwargs["value_net"]
     f64 = lambda x: np.asarray(x, np.float64)  # noqa: E731
-    mean = f64(strategy.mean_action(params.policy, batch.obs))
+    mean = f64(strategy.mean_action(params.policy, batch.segment.obs))
     log_std = f64(params.policy["log_std"])
-    a = f64(batch.action)
+    a = f64(batch.segment.action)
     logp = np.sum(-0.5 * ((a - mean) / np.exp(log_std)) ** 2 - log_std - 0.5 * math.log(2 * math.pi), -1)
     adv = f64(batch.advantages)
     adv = (adv - adv.mean()) / (adv.std() + 1e-8)
@@ -154,7 +154,7 @@ def test_onpolicy_loss_against_float64_reference(clipped):
         pi = -np.mean(np.minimum(ratio * adv, np.clip(ratio, 0.8, 1.2) * adv))
     else:
         pi = -np.mean(logp * adv)
-    v = 0.5 * np.mean((f64(value_net.apply(params.value, batch.obs)) - f64(batch.targets)) ** 2)
+    v = 0.5 * np.mean((f64(value_net.apply(params.value, batch.segment.obs)) - f64(batch.targets)) ** 2)
     entropy = np.sum(log_std + 0.5 * math.log(2 * math.pi * math.e))
     np.testing.assert_allclose(float(metrics["policy_loss"]), pi, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(float(metrics["value_loss"]), v, rtol=1e-5)

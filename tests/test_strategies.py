@@ -17,6 +17,7 @@ from coherent_jax.agents.onpolicy import OnPolicyTrainer
 from coherent_jax.config import parse_overrides
 from coherent_jax.envs import VecEnv
 from coherent_jax.exploration import make_behaviour, make_strategy
+from coherent_jax.exploration.base import SEGMENT_AXES, Segment
 from coherent_jax.exploration.noisynet import factorised, noisy_dense
 from coherent_jax.exploration.pink import autocorrelation, coloured_noise
 from coherent_jax.exploration.psne import perturb
@@ -98,7 +99,7 @@ def test_coherent_noise_autocorrelation_is_one_minus_beta(integration):
         "coherent.w_std_init=0.3",
     )
     noise, _, _, params, obs = run_fixed_state(strategy, 256, 200)
-    x = np.asarray(strategy.trunk.apply(params["trunk"], obs[:1]), np.float64)[0]
+    x = np.asarray(strategy.layer.features(params, obs[:1]), np.float64)[0]
     xh = np.append(x, 1.0)
     w_std = np.exp(np.asarray(params["log_w_std"], np.float64))
     v = (w_std**2 * xh**2).sum(axis=1)  # [p]
@@ -277,8 +278,9 @@ def test_psne_minibatch_log_prob_draws_each_episode_once_and_equals_per_segment(
     first, keys = jnp.asarray(first), jnp.asarray(keys)
 
     def reference(params):
-        return jax.vmap(strategy.log_prob, in_axes=(None, None, 0, 1, 1, 1, 1), out_axes=1)(
-            params, hp, carry0, obs, actions, first, keys
+        segment = Segment(obs, actions, first, carry0, keys)
+        return jax.vmap(strategy.log_prob, in_axes=(None, None, SEGMENT_AXES), out_axes=1)(
+            params, hp, segment
         ).log_prob
 
     @functools.partial(jax.jit, static_argnums=1)
@@ -287,8 +289,9 @@ def test_psne_minibatch_log_prob_draws_each_episode_once_and_equals_per_segment(
         capacity, draw_capacity = capacities
 
         def weighted(q):
+            segment = Segment(obs, actions, first, carry0, keys)
             values = strategy.batch_log_prob(
-                q, hp, carry0, obs, actions, first, keys, capacity=capacity, draw_capacity=draw_capacity
+                q, hp, segment, capacity=capacity, draw_capacity=draw_capacity
             ).log_prob
             return jnp.sum(weights * values), values
 
@@ -330,7 +333,9 @@ def test_psne_sigma_adapts_by_rule_451(delta, factor):
     new = jax.jit(lambda c, o: strategy.adapt(params, hp, c, o))(carry, obs)
     np.testing.assert_allclose(new.sigma, 0.2 * factor, rtol=1e-6)
     np.testing.assert_array_equal(new.key, carry.key)
-    out_logp, same = strategy.score_segment(params, hp, carry, carry, obs, None, None, logp)
+    actions = jnp.zeros((8, 4, 2))
+    segment = Segment(obs, actions, jnp.zeros((8, 4), bool), carry)
+    out_logp, same = strategy.score_segment(params, hp, segment, carry, logp)
     np.testing.assert_array_equal(out_logp, logp)
     np.testing.assert_array_equal(same.sigma, carry.sigma)
 
@@ -369,22 +374,17 @@ def test_behaviour_log_prob_equals_segment_recompute(overrides):
     @jax.jit
     def collect_and_score(env_state, carry, key):
         env_state, carry_end, data = unroll(env, act, env_state, carry, key, 10)
-        log_prob, carry_end = strategy.score_segment(
-            params, hp, carry, carry_end, data.obs, data.action, data.first, data.log_prob
-        )
+        segment = Segment(data.obs, data.action, data.first, carry, data.extras)
+        log_prob, carry_end = strategy.score_segment(params, hp, segment, carry_end, data.log_prob)
         carry_end = strategy.adapt(params, hp, carry_end, data.obs)
-        recomputed = jax.vmap(strategy.log_prob, in_axes=(None, None, 0, 1, 1, 1, 1), out_axes=1)(
-            params, hp, carry, data.obs, data.action, data.first, data.extras
+        recomputed = jax.vmap(strategy.log_prob, in_axes=(None, None, SEGMENT_AXES), out_axes=1)(
+            params, hp, segment
         )
         # The loss's minibatch form, also with room for every episode (psne: chunked).
-        batched = [strategy.batch_log_prob(params, hp, carry, data.obs, data.action, data.first, data.extras)]
+        batched = [strategy.batch_log_prob(params, hp, segment)]
         if strategy.name == "psne":
             room = {"capacity": 40, "draw_capacity": 40}
-            batched.append(
-                strategy.batch_log_prob(
-                    params, hp, carry, data.obs, data.action, data.first, data.extras, **room
-                )
-            )
+            batched.append(strategy.batch_log_prob(params, hp, segment, **room))
         return env_state, carry_end, data._replace(log_prob=log_prob), recomputed, batched
 
     env_state, carry = state.env_state, state.carry

@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 
 from coherent_jax.agents.onpolicy_state import AgentParams, HParams
-from coherent_jax.exploration.base import OnPolicyStrategy
+from coherent_jax.exploration.base import OnPolicyStrategy, Segment
 
 
 def gae(
@@ -148,48 +148,35 @@ class SegmentBatch(NamedTuple):
     """A minibatch of m whole env segments in time order, as the on-policy loss reads it.
 
     Attributes:
-      obs: [T, m, o] normalised observations s_t.
-      action: [T, m, p] actions taken.
-      first: [T, m] bool, s_t starts an episode.
-      extras: the strategy's stored per-step noise (`ActOutput.extras`), [T, m, ...].
+      segment: what the strategy scores (`Segment`): observations [T, m, o] (normalised),
+        actions [T, m, p], ``first`` [T, m], the strategy's stored per-step noise
+        [T, m, ...] and its carry at each segment's start [m, ...].
       behaviour_log_prob: [T, m] log pi_old(a_t | history) of collection.
       advantages: [T, m] GAE advantages.
       targets: [T, m] value targets.
-      carry0: the strategy's carry at each segment's start, [m, ...].
       context: for a strategy with ``history_length = H > 0``, the H steps before each
         segment (`rollout.EpisodeHistory`, observations normalised), [H, m, ...]; else ().
     """
 
-    obs: jax.Array
-    action: jax.Array
-    first: jax.Array
-    extras: Any
+    segment: Segment
     behaviour_log_prob: jax.Array
     advantages: jax.Array
     targets: jax.Array
-    carry0: Any
     context: Any = ()
+
+    def envs(self, index: jax.Array) -> SegmentBatch:
+        """The segments of the envs ``index`` [k] (`Segment.envs`; the rest on axis 1)."""
+        rest = jax.tree.map(lambda x: x[:, index], self._replace(segment=()))
+        return rest._replace(segment=self.segment.envs(index))
 
 
 def segment_log_prob(strategy: OnPolicyStrategy, policy: Any, hparams: Any, batch: SegmentBatch) -> Any:
     """The strategy's `SegmentLogProb` of each segment of ``batch`` [T, m]: with a context
     (H steps before each segment), of the windows context + segment, last T steps kept."""
     if not batch.context:
-        return strategy.batch_log_prob(
-            policy, hparams, batch.carry0, batch.obs, batch.action, batch.first, batch.extras
-        )
-    if batch.extras != ():
-        raise ValueError("a strategy that reads a history stores no per-step extras")
-    ctx, num_steps = batch.context, batch.obs.shape[0]
-    join = lambda h, s: jnp.concatenate([h, s.astype(h.dtype)])  # noqa: E731
-    seg = strategy.batch_log_prob(
-        policy,
-        hparams,
-        batch.carry0,
-        join(ctx.obs, batch.obs),
-        join(ctx.action, batch.action),
-        join(ctx.first, batch.first),
-    )
+        return strategy.batch_log_prob(policy, hparams, batch.segment)
+    num_steps = batch.segment.obs.shape[0]
+    seg = strategy.batch_log_prob(policy, hparams, batch.segment.after(batch.context))
     return jax.tree.map(lambda v: v[-num_steps:], seg)
 
 
@@ -228,7 +215,7 @@ def onpolicy_loss(
     entropy = jnp.mean(seg.entropy)
     metrics = {"policy_loss": pi_loss}
     if value_in_loss:
-        v_loss = value_loss(value_net.apply(params.value, batch.obs), batch.targets)
+        v_loss = value_loss(value_net.apply(params.value, batch.segment.obs), batch.targets)
         total = pi_loss + hparams.vf_coef * v_loss - hparams.ent_coef * entropy
         metrics["value_loss"] = v_loss
     else:

@@ -33,7 +33,7 @@ from coherent_jax.agents.onpolicy_state import AgentParams, HParams, RewardNorm,
 from coherent_jax.config import Config
 from coherent_jax.envs.vec_env import VecEnv
 from coherent_jax.exploration import make_strategy
-from coherent_jax.exploration.base import OnPolicyStrategy
+from coherent_jax.exploration.base import OnPolicyStrategy, Segment
 from coherent_jax.networks import RunningStats, ValueNetwork, normalize, scale_rewards, update_stats
 from coherent_jax.rollout import EpisodeHistory, episode_metrics, evaluation_metrics, unroll
 from coherent_jax.sweep_axis import all_points
@@ -187,9 +187,10 @@ class OnPolicyTrainer:
         env_state, carry, data = unroll(self.env, act, state.env_state, carry0, k_roll, cfg.unroll_length)
         obs = self._norm(stats, data.obs)
         context = self._context(state.history, stats)
+        segment = Segment(obs=obs, action=data.action, first=data.first, carry0=carry0, extras=data.extras)
         # Strategies may score the whole segment at once (coherent: joint Gaussian), and
         # adapt their noise on its states (PSNE).
-        behaviour_log_prob, carry = self._score(params, hp, carry0, carry, obs, data, context)
+        behaviour_log_prob, carry = self._score(params, hp, segment, carry, data.log_prob, context)
         carry = strategy.adapt(params.policy, hp.explore, carry, obs)
         data = data._replace(log_prob=behaviour_log_prob)
         values = self.value_net.apply(params.value, obs)
@@ -199,14 +200,10 @@ class OnPolicyTrainer:
             rewards, values, next_values, data.terminated, data.done, hp.gamma, hp.gae_lambda
         )
         batch = losses.SegmentBatch(
-            obs=obs,
-            action=data.action,
-            first=data.first,
-            extras=data.extras,
+            segment=segment,
             behaviour_log_prob=behaviour_log_prob,
             advantages=advantages,
             targets=targets,
-            carry0=carry0,
             context=context,
         )
         new_params, opt_state, metrics = self._update(params, state.opt_state, hp, batch, k_perm)
@@ -252,7 +249,7 @@ class OnPolicyTrainer:
             key,
         )
         value, value_opt, value_metrics = self._value_steps(
-            params.value, opt_state.value, hp, batch.obs, batch.targets
+            params.value, opt_state.value, hp, batch.segment.obs, batch.targets
         )
         metrics.update(value_metrics)
         return AgentParams(policy=policy, value=value), SplitOptState(policy_opt, value_opt), metrics
@@ -273,9 +270,7 @@ class OnPolicyTrainer:
 
         def sgd_step(c, env_idx):
             params, opt_state, stopped = c
-            # Time-major fields split on their env axis (1), the carry on its own (0).
-            sub = jax.tree.map(lambda x: x[:, env_idx], batch._replace(carry0=()))
-            sub = sub._replace(carry0=jax.tree.map(lambda x: x[env_idx], batch.carry0))
+            sub = batch.envs(env_idx)
             (_, aux), grads = self._grad_unless_stopped(grad_fn, params, sub, stopped)
             # Algorithm 2/5: stop the epochs once the approximate KL is too large.
             too_far = jnp.logical_and(hp.target_kl > 0, aux["approx_kl"] > 1.5 * hp.target_kl)
@@ -348,25 +343,21 @@ class OnPolicyTrainer:
             return ()
         return history._replace(obs=self._norm(stats, history.obs))
 
-    def _score(self, params, hp, carry0, carry, obs, data, context) -> tuple[jax.Array, Any]:
-        """`strategy.score_segment` of the segment [T, n], on windows context + segment when
-        the strategy reads a history (the last T log-probabilities kept)."""
+    def _score(self, params, hp, segment: Segment, carry, log_prob, context) -> tuple[jax.Array, Any]:
+        """`strategy.score_segment` of the segment [T, n] (``log_prob`` what `act` returned),
+        on windows context + segment when the strategy reads a history (`Segment.after`;
+        the last T log-probabilities kept)."""
         if not context:
-            return self.strategy.score_segment(
-                params.policy, hp.explore, carry0, carry, obs, data.action, data.first, data.log_prob
-            )
-        join = lambda h, v: jnp.concatenate([h, v.astype(h.dtype)])  # noqa: E731
+            return self.strategy.score_segment(params.policy, hp.explore, segment, carry, log_prob)
+        unscored = jnp.full(context.first.shape, jnp.nan)
         log_prob, carry = self.strategy.score_segment(
             params.policy,
             hp.explore,
-            carry0,
+            segment.after(context),
             carry,
-            join(context.obs, obs),
-            join(context.action, data.action),
-            join(context.first, data.first),
-            join(jnp.full(context.first.shape, jnp.nan), data.log_prob),
+            jnp.concatenate([unscored, log_prob.astype(unscored.dtype)]),
         )
-        return log_prob[-obs.shape[0] :], carry
+        return log_prob[-segment.obs.shape[0] :], carry
 
     def _scaled_rewards(self, norm: RewardNorm, data, gamma: jax.Array) -> tuple[RewardNorm, jax.Array]:
         """The rewards GAE and the value targets see: as collected, or with

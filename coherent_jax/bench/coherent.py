@@ -364,6 +364,8 @@ def _bench_segment_log_prob(cfg: Config, bench: dict, trainers: dict, log) -> di
     import jax
     import jax.numpy as jnp
 
+    from coherent_jax.exploration.base import Segment
+
     envs, num_steps, repeats = bench["seg_envs"], cfg.unroll_length, bench["seg_repeats"]
     results: dict[str, Any] = {"envs": envs, "T": num_steps, "repeats": repeats}
     for name, (trainer, state) in trainers.items():
@@ -375,14 +377,14 @@ def _bench_segment_log_prob(cfg: Config, bench: dict, trainers: dict, log) -> di
         actions = 0.5 * jax.random.normal(k_act, (envs, num_steps, p))
         first = jnp.zeros((envs, num_steps), bool).at[:, 0].set(True)
         carry0 = strategy.init_carry(k_carry, params, hparams, envs)
-        segments = jax.vmap(strategy.log_prob, in_axes=(None, None, 0, 0, 0, 0))
+        segments = jax.vmap(strategy.log_prob, in_axes=(None, None, 0))  # env-major segments
 
         def forward(params, hparams, carry0, obs, actions, first, segments=segments):
-            seg = segments(params, hparams, carry0, obs, actions, first)
+            seg = segments(params, hparams, Segment(obs, actions, first, carry0))
             return seg.log_prob, seg.entropy
 
         def loss(params, hparams, carry0, obs, actions, first, segments=segments):
-            seg = segments(params, hparams, carry0, obs, actions, first)
+            seg = segments(params, hparams, Segment(obs, actions, first, carry0))
             return jnp.mean(seg.log_prob) + jnp.mean(seg.entropy)
 
         args = (params, hparams, carry0, obs, actions, first)

@@ -140,7 +140,7 @@ class _Forms:
         return self.strategies[history]
 
     def trunk(self, params, obs):
-        return self.strategy(0).trunk.apply(params["trunk"], obs)
+        return self.strategy(0).layer.features(params, obs)
 
     def heads(self, params):
         import jax.numpy as jnp
@@ -185,6 +185,8 @@ class _Forms:
         the trainer's empty history is) and the segment; the last T steps."""
         import jax.numpy as jnp
 
+        from coherent_jax.exploration.base import Segment
+
         del params0
         p, seg = self.p, self.seg
         strat = self.strategy(obs.shape[0] - seg)
@@ -193,7 +195,7 @@ class _Forms:
         w_obs = jnp.concatenate([jnp.zeros((pad, obs.shape[1]), obs.dtype), obs])
         w_a = jnp.concatenate([jnp.zeros((pad, p), a.dtype), a])
         hp = {"beta": beta, "action_std": self.heads(params)[2]}
-        return strat.log_prob(params, hp, None, w_obs, w_a, first.at[pad].set(True)).log_prob[-seg:]
+        return strat.log_prob(params, hp, Segment(w_obs, w_a, first.at[pad].set(True))).log_prob[-seg:]
 
     def exact_mode(self, params, obs, a, beta, params0):
         """``coherent.gradient=exact``: the segment scored from the prior, as the trainer does."""

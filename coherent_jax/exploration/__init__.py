@@ -11,7 +11,13 @@ from __future__ import annotations
 import importlib
 from collections.abc import Mapping
 
-from coherent_jax.exploration.base import ActOutput, OffPolicyBehaviour, OnPolicyStrategy, SegmentLogProb
+from coherent_jax.exploration.base import (
+    ActOutput,
+    OffPolicyBehaviour,
+    OnPolicyStrategy,
+    Segment,
+    SegmentLogProb,
+)
 from coherent_jax.strategies import OFF_POLICY_CLASSES, ON_POLICY_CLASSES
 
 # explore name (and ablation variant) -> "module:Class", from the strategy table.
@@ -49,6 +55,7 @@ __all__ = [
     "ActOutput",
     "OffPolicyBehaviour",
     "OnPolicyStrategy",
+    "Segment",
     "SegmentLogProb",
     "make_behaviour",
     "make_strategy",

@@ -61,11 +61,11 @@ class ActionNoise(OnPolicyStrategy):
         action = mean + jnp.exp(log_std) * jax.random.normal(key, mean.shape, mean.dtype)
         return ActOutput(action, gaussian_log_prob(action, mean, log_std), carry)
 
-    def log_prob(self, params, hparams, carry0, obs, actions, first, extras=()):
-        chex.assert_rank([obs, actions], 2)
-        mean = self._mean(params, obs)
+    def log_prob(self, params, hparams, segment):
+        segment.check()
+        mean = self._mean(params, segment.obs)
         log_std = jnp.broadcast_to(params["log_std"], mean.shape)
-        return SegmentLogProb(gaussian_log_prob(actions, mean, log_std), gaussian_entropy(log_std))
+        return SegmentLogProb(gaussian_log_prob(segment.action, mean, log_std), gaussian_entropy(log_std))
 
     def mean_action(self, params, obs):
         return self._mean(params, obs)

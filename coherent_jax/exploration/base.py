@@ -16,7 +16,7 @@ adapts.
 Algorithms only call these members, so adding a strategy never touches an algorithm.
 Conventions: ``obs`` is already normalised; ``first`` marks the first step of an
 episode; collection members work on a batch of envs ``[n, ...]``; `log_prob` works on
-ONE env's time segment ``[T, ...]`` (the caller vmaps over envs).
+ONE env's time segment ``[T, ...]`` (a `Segment`; the caller vmaps over envs).
 """
 
 from __future__ import annotations
@@ -24,7 +24,9 @@ from __future__ import annotations
 import abc
 from typing import Any, NamedTuple
 
+import chex
 import jax
+import jax.numpy as jnp
 
 from coherent_jax.networks import SquashedGaussianActor, squash
 
@@ -51,6 +53,64 @@ class ActOutput(NamedTuple):
     extras: Any = ()
 
 
+class Segment(NamedTuple):
+    """A stored, time-major segment of steps, as the strategies score it (`log_prob`,
+    `batch_log_prob`, `score_segment`).
+
+    With T steps and leading batch axes b (none for one env's segment, [m] for a
+    minibatch, [n] for a whole collection):
+
+    Attributes:
+      obs: [T, *b, o] normalised observations s_t.
+      action: [T, *b, p] actions taken (before clipping to the action bounds).
+      first: [T, *b] bool, s_t starts an episode.
+      carry0: the strategy's carry at the segment's start (what `init_carry` or the
+        previous segment left), leading axes b; ``()`` where the caller has none.
+      extras: what `act` returned as `ActOutput.extras` at each step, leading axes
+        [T, *b]; ``()`` for strategies that store none.
+    """
+
+    obs: jax.Array
+    action: jax.Array
+    first: jax.Array
+    carry0: Any = ()
+    extras: Any = ()
+
+    def check(self, batch_rank: int = 0) -> None:
+        """Asserts the shapes above for ``batch_rank`` leading batch axes (at trace time)."""
+        lead = 1 + batch_rank
+        chex.assert_rank([self.obs, self.action, self.first], [lead + 1, lead + 1, lead])
+        steps = [self.obs, self.action, self.first, *jax.tree.leaves(self.extras)]
+        chex.assert_equal_shape_prefix(steps, lead)
+
+    def after(self, history: Any) -> Segment:
+        """The window of the H steps before the segment and the segment, H + T steps.
+
+        ``history`` has fields obs, action, first with leading axes [H, *b]
+        (`rollout.EpisodeHistory`); the segment's arrays are cast to its dtypes. Only a
+        strategy that stores no extras reads a history.
+        """
+        if jax.tree.leaves(self.extras):
+            raise ValueError("a strategy that reads a history stores no per-step extras")
+        join = lambda h, s: jnp.concatenate([h, s.astype(h.dtype)])  # noqa: E731
+        return self._replace(
+            obs=join(history.obs, self.obs),
+            action=join(history.action, self.action),
+            first=join(history.first, self.first),
+        )
+
+    def envs(self, index: jax.Array) -> Segment:
+        """The segments of the envs ``index`` [k] of a batch of segments, each field
+        indexed on its `SEGMENT_AXES` axis."""
+        pick = {0: lambda x: x[index], 1: lambda x: x[:, index]}
+        fields = zip(SEGMENT_AXES, self, strict=True)
+        return Segment(*(jax.tree.map(pick[axis], field) for axis, field in fields))
+
+
+#: the axis of each field of a batch of segments (`Segment` [T, m, ...]) that indexes them
+SEGMENT_AXES = Segment(obs=1, action=1, first=1, carry0=0, extras=1)
+
+
 class SegmentLogProb(NamedTuple):
     """Per-step log-probabilities and entropies of a stored segment, each [T]."""
 
@@ -65,7 +125,7 @@ class OnPolicyStrategy(abc.ABC):
     #: Steps of each env's past that `log_prob` reads before a segment (coherent's episode
     #: prefix). When it is H > 0 the trainer keeps each env's last H steps (raw observations,
     #: actions, ``first`` flags) and hands `score_segment` and `batch_log_prob` windows of
-    #: H + T steps, of which only the last T are scored; 0: segments alone.
+    #: H + T steps (`Segment.after`), of which only the last T are scored; 0: segments alone.
     history_length: int = 0
 
     @classmethod
@@ -99,25 +159,17 @@ class OnPolicyStrategy(abc.ABC):
         """Draws actions for a batch of envs, obs [n, o], first [n]."""
 
     def score_segment(
-        self,
-        params: Params,
-        hparams: Any,
-        carry0: Carry,
-        carry: Carry,
-        obs: jax.Array,
-        actions: jax.Array,
-        first: jax.Array,
-        log_prob: jax.Array,
+        self, params: Params, hparams: Any, segment: Segment, carry: Carry, log_prob: jax.Array
     ) -> tuple[jax.Array, Carry]:
-        """Behaviour log-probabilities of a whole collected segment (time-major [T, n, ...]).
+        """Behaviour log-probabilities of a whole collected segment (``segment`` [T, n, ...]).
 
         For strategies that score a segment at once rather than step by step in `act`
         (coherent's joint Gaussian); they also finish the carry the next segment starts
-        from. ``carry0`` / ``carry`` are the carries at the segment's start / end,
+        from. ``segment.carry0`` / ``carry`` are the carries at the segment's start / end,
         ``log_prob`` [T, n] what `act` returned. Returns (log_prob [T, n], carry).
         Default: both unchanged.
         """
-        del params, hparams, carry0, obs, actions, first
+        del params, hparams, segment
         return log_prob, carry
 
     def adapt(self, params: Params, hparams: Any, carry: Carry, obs: jax.Array) -> Carry:
@@ -129,45 +181,25 @@ class OnPolicyStrategy(abc.ABC):
         del params, hparams, obs
         return carry
 
-    def batch_log_prob(
-        self,
-        params: Params,
-        hparams: Any,
-        carry0: Carry,
-        obs: jax.Array,
-        actions: jax.Array,
-        first: jax.Array,
-        extras: Any = (),
-    ) -> SegmentLogProb:
-        """`log_prob` of a minibatch of m segments, time-major: obs [T, m, o], actions
-        [T, m, p], first [T, m], extras and the result with axis 1 the segment's;
-        ``carry0`` with leading axis m.
+    def batch_log_prob(self, params: Params, hparams: Any, segment: Segment) -> SegmentLogProb:
+        """`log_prob` of a minibatch of m segments, ``segment`` [T, m, ...] (``carry0``
+        [m, ...]); the result [T, m].
 
         Default: `log_prob` vmapped over the segments. A strategy overrides it when the
         segments of a minibatch can share work that separate calls would repeat (psne:
         one perturbation per episode rather than per step); the values stay those of
         `log_prob`.
         """
-        return jax.vmap(self.log_prob, in_axes=(None, None, 0, 1, 1, 1, 1), out_axes=1)(
-            params, hparams, carry0, obs, actions, first, extras
-        )
+        per_segment = jax.vmap(self.log_prob, in_axes=(None, None, SEGMENT_AXES), out_axes=1)
+        return per_segment(params, hparams, segment)
 
     @abc.abstractmethod
-    def log_prob(
-        self,
-        params: Params,
-        hparams: Any,
-        carry0: Carry,
-        obs: jax.Array,
-        actions: jax.Array,
-        first: jax.Array,
-        extras: Any = (),
-    ) -> SegmentLogProb:
-        """Log-probabilities of one env's segment, obs [T, o], actions [T, p].
+    def log_prob(self, params: Params, hparams: Any, segment: Segment) -> SegmentLogProb:
+        """Log-probabilities of one env's segment, ``segment`` [T, ...] (`Segment.check`).
 
-        ``carry0`` is that env's carry as stored at the start of the segment;
-        ``extras`` is what `act` returned as `ActOutput.extras` at each step (leading
-        axis T). The result is differentiable with respect to ``params``.
+        ``segment.carry0`` is that env's carry as stored at the start of the segment;
+        ``segment.extras`` is what `act` returned as `ActOutput.extras` at each step. The
+        result is differentiable with respect to ``params``.
 
         Why stored extras rather than regenerating the noise from keys: the noise of a
         step is a function of every earlier step's key and ``first`` flag (an episode's

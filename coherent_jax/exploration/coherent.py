@@ -10,7 +10,6 @@ options and what each runs.
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import chex
@@ -18,7 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from coherent_jax.exploration.adaptive import SigmaRule, adapt_sigma, policy_distance
-from coherent_jax.exploration.base import ActOutput, OffPolicyBehaviour, OnPolicyStrategy, SegmentLogProb
+from coherent_jax.exploration.base import ActOutput, OffPolicyBehaviour, SegmentLogProb
 from coherent_jax.exploration.chain import chain_step
 from coherent_jax.exploration.coherent_exact import MAX_BLOCK, block_size, chained_marginals
 from coherent_jax.exploration.coherent_filter import (
@@ -29,12 +28,8 @@ from coherent_jax.exploration.coherent_filter import (
     segment_marginals,
 )
 from coherent_jax.exploration.coherent_joint import segment_marginals_joint
-from coherent_jax.networks import MLP, augment, squash
-
-#: largest w_std / action_std per action dimension that the strategy runs with (see
-#: `CoherentExploration._head`)
-MAX_W_STD_RATIO = 10.0
-
+from coherent_jax.exploration.coherent_layer import ChainStrategy, LastLayer
+from coherent_jax.networks import augment, squash
 
 # --------------------------------------------------------------------------------------
 # The strategy: Coherent-A2C / Coherent-PPO (Algorithms 4 and 5).
@@ -89,49 +84,12 @@ def episode_history_length(episode_length: int, unroll_length: int) -> int:
     return -(-(episode_length - 1) // unroll_length) * unroll_length
 
 
-class ChainStrategy(OnPolicyStrategy):
-    """What the strategies on the beta-chain share: beta, the initial w_std, the action noise.
-
-    ``action_std`` (Lambda_a^-1/2) is a fixed, sweepable hyperparameter as in the thesis,
-    or learned (``log_action_std`` in the parameters) with ``learn_action_std``.
-    """
-
-    def __init__(
-        self, action_size: int, beta: float, w_std_init: float, action_std: float, learn_action_std: bool
-    ):
-        self.action_size = int(action_size)
-        self.beta = float(beta)
-        self.w_std_init = float(w_std_init)
-        self.action_std = float(action_std)
-        self.learn_action_std = bool(learn_action_std)
-
-    @staticmethod
-    def chain_settings(cfg) -> dict:
-        """The constructor's chain arguments as ``cfg`` gives them."""
-        return {
-            "beta": cfg.coherent.beta,
-            "w_std_init": cfg.coherent.w_std_init,
-            "action_std": cfg.coherent.action_std,
-            "learn_action_std": cfg.coherent.learn_action_std,
-        }
-
-    def init_hparams(self):
-        hp = {"beta": jnp.asarray(self.beta, jnp.float32)}
-        if not self.learn_action_std:
-            hp["action_std"] = jnp.full((self.action_size,), self.action_std, jnp.float32)
-        return hp
-
-    def _action_std(self, params, hparams):
-        if self.learn_action_std:
-            return jnp.exp(params["log_action_std"])
-        return hparams["action_std"]
-
-
 class CoherentExploration(ChainStrategy):
     """Deep Coherent Exploration of the policy's last layer (thesis §4.1-4.2).
 
     Parameters: the trunk f_theta, the last-layer mean ``mu`` [p, q+1] and per-weight
-    ``log_w_std`` [p, q+1] (Lambda^-1/2), and ``log_action_std`` [p] when learned
+    ``log_w_std`` [p, q+1] (Lambda^-1/2) of its policy (`coherent_layer.LastLayer`,
+    ``layer``), and ``log_action_std`` [p] when learned
     (otherwise ``action_std`` is a fixed, sweepable hyperparameter, as in the
     thesis). ``beta`` is a hyperparameter (an array, so it can be swept).
 
@@ -197,8 +155,7 @@ class CoherentExploration(ChainStrategy):
         if gradient == "episode" and (inference != "joint" or not episode_restart or unroll_length < 1):
             raise ValueError("gradient='episode' needs inference='joint', episode_restart and unroll_length")
         super().__init__(action_size, beta, w_std_init, action_std, learn_action_std)
-        self.feature_size = int(hidden[-1])
-        self.trunk = MLP(tuple(hidden), activation)
+        self.layer = LastLayer(action_size, hidden, activation, w_std_init)
         self.remat = bool(remat)
         self.inference = inference
         self.gradient = gradient
@@ -224,29 +181,11 @@ class CoherentExploration(ChainStrategy):
 
     # ---------------------------------------------------------------- params
     def init(self, key, obs_size):
-        k_trunk, k_mu = jax.random.split(key)
-        p, n = self.action_size, self.feature_size + 1
-        # Small initial mean weights (as for a Gaussian policy's last layer), zero bias.
-        w = jax.nn.initializers.orthogonal(0.01)(k_mu, (self.feature_size, p), jnp.float32).T
-        params = {
-            "trunk": self.trunk.init(k_trunk, jnp.zeros((1, obs_size))),
-            "mu": jnp.concatenate([w, jnp.zeros((p, 1), jnp.float32)], axis=1),
-            "log_w_std": jnp.full((p, n), math.log(self.w_std_init), jnp.float32),
-        }
-        if self.learn_action_std:
-            params["log_action_std"] = jnp.full((p,), math.log(self.action_std), jnp.float32)
-        return params
+        return {**self.layer.init(key, obs_size), **self._action_std_params()}
 
     def _head(self, params, hparams):
-        w_std = jnp.exp(params["log_w_std"])
-        action_std = self._action_std(params, hparams)
-        # The covariance-form marginals keep float32 within about 0.005 nats per step
-        # only while the weights' spread is within MAX_W_STD_RATIO of the action noise
-        # (beta = 0, 1000-step segments; at 300 they lose every digit and turn NaN).
-        # Beyond it the action noise is raised, in collection and in the loss alike, so
-        # the process run is still the process scored.
-        action_std = jnp.maximum(action_std, jnp.max(w_std, axis=-1) / MAX_W_STD_RATIO)
-        return params["mu"], w_std, action_std
+        """(mu, w_std, action_std) of the last layer (`LastLayer.weights`)."""
+        return self.layer.weights(params, self._action_std(params, hparams))
 
     @property
     def _keeps_belief(self) -> bool:
@@ -266,7 +205,7 @@ class CoherentExploration(ChainStrategy):
         return prior_belief(mu, w_std)
 
     def init_carry(self, key, params, hparams, num_envs):
-        p, n = self.action_size, self.feature_size + 1
+        p, n = self.action_size, self.layer.feature_size + 1
         m = n if self._keeps_belief else 0
         return CoherentCarry(
             z=jnp.zeros((num_envs, p, n), jnp.float32),
@@ -281,7 +220,7 @@ class CoherentExploration(ChainStrategy):
         chex.assert_rank([obs, first], [2, 1])
         mu, w_std, action_std = self._head(params, hparams)
         beta = hparams["beta"]
-        x = self.trunk.apply(params["trunk"], obs)  # [n, q]
+        x = self.layer.features(params, obs)  # [n, q]
         num_envs = x.shape[0]
         k_w, k_a = jax.random.split(key)
         # The chain in standard coordinates; a fresh draw at an episode start or a restart.
@@ -331,15 +270,16 @@ class CoherentExploration(ChainStrategy):
             )
         return segment_marginals_joint(belief0, x, a, first, mu, w_std, action_std, beta, from_prior)
 
-    def score_segment(self, params, hparams, carry0, carry, obs, actions, first, log_prob):
+    def score_segment(self, params, hparams, segment, carry, log_prob):
+        segment.check(batch_rank=1)
         # With the exact gradient the next segment restarts the chain (Algorithm 5, steps 4-5).
         carry = carry._replace(restart=jnp.full_like(carry.restart, self.gradient == "exact"))
         if self.gradient == "episode":  # windows of prefix + segment, scored as the loss scores them
-            return self.batch_log_prob(params, hparams, carry0, obs, actions, first).log_prob, carry
+            return self.batch_log_prob(params, hparams, segment).log_prob, carry
         if self.inference == "filter":
             return log_prob, carry  # scored step by step in `act`
         mu, w_std, action_std = self._head(params, hparams)
-        x = self.trunk.apply(params["trunk"], obs)  # [T, n, q]
+        x = self.layer.features(params, segment.obs)  # [T, n, q]
 
         def score(c0, x_e, a_e, f_e):
             f_e = self._segment_first(f_e, c0.restart)
@@ -348,24 +288,27 @@ class CoherentExploration(ChainStrategy):
             )
             return logp, _to_standard(belief, mu, w_std)
 
-        logp, (mean, cov) = jax.vmap(score, in_axes=(0, 1, 1, 1), out_axes=(1, 0))(carry0, x, actions, first)
+        logp, (mean, cov) = jax.vmap(score, in_axes=(0, 1, 1, 1), out_axes=(1, 0))(
+            segment.carry0, x, segment.action, segment.first
+        )
         if self.gradient == "exact":
             return logp, carry  # the next segment starts from the prior: no belief to keep
         return logp, carry._replace(mean=mean, cov=cov)
 
     # ------------------------------------------------------------------ loss
-    def log_prob(self, params, hparams, carry0, obs, actions, first, extras=()):
-        chex.assert_rank([obs, actions, first], [2, 2, 1])
+    def log_prob(self, params, hparams, segment):
+        segment.check()
+        actions = segment.action
         mu, w_std, action_std = self._head(params, hparams)
-        x = self.trunk.apply(params["trunk"], obs)
+        x = self.layer.features(params, segment.obs)
         if self.gradient == "episode":
-            return self._window_log_prob(x, actions, first, mu, w_std, action_std, hparams["beta"])
+            return self._window_log_prob(x, actions, segment.first, mu, w_std, action_std, hparams["beta"])
         # The stored belief is a constant of the data (like a stored RNN state); its
         # mapping onto the current mu and w_std is not.
         # With gradient="exact" a segment's chain starts at its first step, so the
         # stored belief is never used and nothing is held constant.
-        carry0 = jax.tree.map(jax.lax.stop_gradient, carry0)
-        first = self._segment_first(first, carry0.restart)
+        carry0 = jax.tree.map(jax.lax.stop_gradient, segment.carry0)
+        first = self._segment_first(segment.first, carry0.restart)
         belief0 = self._segment_belief(carry0, mu, w_std)
         logp, _, pred_var = self._score(belief0, x, actions, first, mu, w_std, action_std, hparams["beta"])
         return SegmentLogProb(logp, predictive_entropy(pred_var))
@@ -394,16 +337,11 @@ class CoherentExploration(ChainStrategy):
         return SegmentLogProb(logp, predictive_entropy(pred_var))
 
     def mean_action(self, params, obs):
-        x = self.trunk.apply(params["trunk"], obs)
-        return jnp.einsum("pk,...k->...p", params["mu"], augment(x))
+        return self.layer.mean_action(params, obs)
 
     def metrics(self, params, hparams):
         _, w_std, action_std = self._head(params, hparams)
-        return {
-            "w_std": jnp.mean(w_std),
-            "action_std": jnp.mean(action_std),
-            "beta": jnp.asarray(hparams["beta"]),
-        }
+        return self._chain_metrics(jnp.mean(w_std), action_std, hparams)
 
 
 # --------------------------------------------------------------------------------------

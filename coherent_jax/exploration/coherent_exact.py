@@ -6,21 +6,21 @@ the chain's episode integrated out under the current parameters (Algorithm 5, st
 constant of the data gives the right values but not that gradient: the history's
 trunk features, mu and w_std all move the belief a later step conditions on.
 
-Two pure functions give the exact quantity at a cost linear in the episode length:
-
-* `chained_marginals` scores a long segment as a chain of blocks of the joint form
-  (`coherent_joint.segment_marginals_joint`), each block starting from the belief the block
-  before it ends with, *not* stopped: the gradient flows through every belief back to
-  the start of the chain. O(T (B (q+1) + (q+1)^2)) per action dimension for blocks of
-  B steps, instead of the single joint form's O(T^2 (q+1) + T^3).
-* `refiltered_marginals` scores a segment that starts mid-episode by running the
-  same chain over the episode prefix (its features, actions and resets) first, so the
-  segment's log-probabilities condition on the prefix re-inferred under the current
-  parameters. Its cost grows as (prefix + segment) / segment.
+`chained_marginals` gives the exact quantity at a cost linear in the episode length: it
+scores a long segment as a chain of blocks of the joint form
+(`coherent_joint.segment_marginals_joint`), each block starting from the belief the block
+before it ends with, *not* stopped: the gradient flows through every belief back to the
+start of the chain. O(T (B (q+1) + (q+1)^2)) per action dimension for blocks of B steps,
+instead of the single joint form's O(T^2 (q+1) + T^3).
 
 The trainer's exact mode needs neither prefix nor stored belief: it restarts the chain
 at each segment start, as Algorithm 5 does at t = 0 of every buffer (steps 4-5), so
-every segment is scored from the prior by `chained_marginals`.
+every segment is scored from the prior by `chained_marginals`. Its episode mode
+(``coherent.gradient=episode``) scores a segment that starts mid-episode by running the
+same chain over the episode prefix (its features, actions and resets) first, so the
+segment's log-probabilities condition on the prefix re-inferred under the current
+parameters (`coherent.CoherentExploration`); its cost grows as (prefix + segment) /
+segment.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ import chex
 import jax
 import jax.numpy as jnp
 
-from coherent_jax.exploration.coherent_filter import Belief, prior_belief
+from coherent_jax.exploration.coherent_filter import Belief
 from coherent_jax.exploration.coherent_joint import segment_marginals_joint
 
 #: blocks of at most this many steps; 64 is where the joint form's T^2 and T^3 terms stay
@@ -120,58 +120,3 @@ def chained_marginals(
     final, (logp, pred_var) = jax.lax.scan(body, belief1, (split(x), split(a), split(first)))
     logp = jnp.concatenate([logp0, logp.reshape(-1)])
     return logp, final, jnp.concatenate([pred_var0, pred_var.reshape(-1, pred_var0.shape[-1])])
-
-
-def refiltered_marginals(
-    history_x: chex.Array,
-    history_a: chex.Array,
-    history_first: chex.Array,
-    x: chex.Array,
-    a: chex.Array,
-    first: chex.Array,
-    mu: chex.Array,
-    w_std: chex.Array,
-    action_std: chex.Array,
-    beta: chex.Array,
-    block: int | None = None,
-) -> tuple[chex.Array, chex.Array]:
-    """log p(a_t | a_<t, s_<=t) of a segment, the episode prefix re-inferred from its start.
-
-    The prefix (H steps before the segment) and the segment are one chain of
-    `chained_marginals` that starts from the prior at the first prefix step (4.33), so
-    the segment's terms are exactly the thesis's marginals (4.37)/(4.49) of an episode
-    filtered from its beginning under the given parameters, and differentiate through
-    the prefix's inputs. The prefix must start at an episode start, or at a step before
-    one: ``history_first`` (and ``first``) reset the chain wherever an episode starts,
-    so steps of earlier episodes in the window only cost time.
-
-    Args:
-      history_x, history_a, history_first: [H, q], [H, p], [H] the steps before the
-        segment; H may be 0.
-      x, a, first: [T, q], [T, p], [T] the segment.
-      mu, w_std, action_std, beta: as `chained_marginals`.
-      block: steps per block, a divisor of H + T; by default blocks of `MAX_BLOCK` steps,
-        the front padded with one-step episodes to a whole number of blocks.
-
-    Returns:
-      (logp [T], predictive variances s [T, p]) of the segment's steps.
-    """
-    chex.assert_rank([history_x, history_a, history_first, x, a, first], [2, 2, 1, 2, 2, 1])
-    num_steps = x.shape[0]
-    # The chain starts at the window's first step whatever its flag says (4.33).
-    history_first = jnp.asarray(history_first, bool)
-    first = jnp.asarray(first, bool)
-    if history_x.shape[0]:
-        history_first = history_first.at[0].set(True)
-    else:
-        first = first.at[0].set(True)
-    # Without a given block size, pad the front to whole blocks of MAX_BLOCK steps: each
-    # padding step is an episode of its own (first = True), so it changes nothing after it.
-    pad = 0 if block is not None else -(history_x.shape[0] + num_steps) % MAX_BLOCK
-    all_x = jnp.concatenate([jnp.zeros((pad, x.shape[1]), x.dtype), jnp.asarray(history_x, x.dtype), x])
-    all_a = jnp.concatenate([jnp.zeros((pad, a.shape[1]), a.dtype), jnp.asarray(history_a, a.dtype), a])
-    all_first = jnp.concatenate([jnp.ones((pad,), bool), history_first, first])
-    logp, _, pred_var = chained_marginals(
-        prior_belief(mu, w_std), all_x, all_a, all_first, mu, w_std, action_std, beta, block
-    )
-    return logp[-num_steps:], pred_var[-num_steps:]

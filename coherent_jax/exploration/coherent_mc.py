@@ -29,21 +29,44 @@ import jax
 import jax.numpy as jnp
 
 from coherent_jax.exploration.action import gaussian_entropy, gaussian_log_prob
-from coherent_jax.exploration.base import ActOutput, OnPolicyStrategy, SegmentLogProb
+from coherent_jax.exploration.base import ActOutput, SegmentLogProb
 from coherent_jax.exploration.chain import chain_step
-from coherent_jax.exploration.coherent import ChainStrategy, CoherentExploration
+from coherent_jax.exploration.coherent_layer import ChainStrategy, LastLayer
 from coherent_jax.networks import ACTIVATIONS, augment
 
 
-class CoherentMC(CoherentExploration):
+class CoherentMC(ChainStrategy):
     """Coherent exploration of the last layer scored by single-sample Monte Carlo.
 
-    Parameters, hyperparameters and the evaluation action are those of
-    `CoherentExploration`; only the per-env carry (the chain's z) and the
-    log-probability differ.
+    The policy (`coherent_layer.LastLayer`: parameters, the weights the chain runs with,
+    the evaluation action) is that of `coherent.CoherentExploration`; only the per-env
+    carry (the chain's z) and the log-probability differ.
     """
 
     name = "coherent-mc"
+
+    def __init__(
+        self,
+        action_size: int,
+        hidden,
+        activation: str,
+        beta: float,
+        w_std_init: float,
+        action_std: float,
+        learn_action_std: bool = False,
+    ):
+        super().__init__(action_size, beta, w_std_init, action_std, learn_action_std)
+        self.layer = LastLayer(action_size, hidden, activation, w_std_init)
+
+    @classmethod
+    def from_config(cls, cfg, action_size: int):
+        return cls(action_size, cfg.policy_hidden, cfg.activation, **cls.chain_settings(cfg))
+
+    def init(self, key, obs_size):
+        return {**self.layer.init(key, obs_size), **self._action_std_params()}
+
+    def _head(self, params, hparams):
+        return self.layer.weights(params, self._action_std(params, hparams))
 
     def init_carry(self, key, params, hparams, num_envs):
         return jnp.zeros((num_envs,) + params["mu"].shape, jnp.float32)
@@ -59,20 +82,25 @@ class CoherentMC(CoherentExploration):
         k_z, k_a = jax.random.split(key)
         mu, w_std, action_std = self._head(params, hparams)
         z = chain_step(k_z, carry, first, hparams["beta"])
-        x = self.trunk.apply(params["trunk"], obs)
+        x = self.layer.features(params, obs)
         mean = jnp.einsum("npk,nk->np", mu + w_std * z, augment(x))
         action = mean + action_std * jax.random.normal(k_a, mean.shape, mean.dtype)
         logp, _ = self._action_log_prob(params, hparams, z, x, action)
         return ActOutput(action, logp, z, extras=z)
 
-    # Scored step by step in `act`: no segment-wide scoring.
-    score_segment = OnPolicyStrategy.score_segment
-
-    def log_prob(self, params, hparams, carry0, obs, actions, first, extras=()):
-        chex.assert_rank([obs, actions, extras], [2, 2, 3])
-        x = self.trunk.apply(params["trunk"], obs)
-        logp, log_std = self._action_log_prob(params, hparams, extras, x, actions)
+    def log_prob(self, params, hparams, segment):
+        segment.check()
+        chex.assert_rank(segment.extras, 3)  # the chain's z [T, p, q+1]
+        x = self.layer.features(params, segment.obs)
+        logp, log_std = self._action_log_prob(params, hparams, segment.extras, x, segment.action)
         return SegmentLogProb(logp, gaussian_entropy(log_std))
+
+    def mean_action(self, params, obs):
+        return self.layer.mean_action(params, obs)
+
+    def metrics(self, params, hparams):
+        _, w_std, action_std = self._head(params, hparams)
+        return self._chain_metrics(jnp.mean(w_std), action_std, hparams)
 
 
 class CoherentAllLayers(ChainStrategy):
@@ -115,10 +143,7 @@ class CoherentAllLayers(ChainStrategy):
             log_w_std.append(
                 {"w": jnp.full((m, k), log_s, jnp.float32), "b": jnp.full((k,), log_s, jnp.float32)}
             )
-        params = {"mu": mu, "log_w_std": log_w_std}
-        if self.learn_action_std:
-            params["log_action_std"] = jnp.full((self.action_size,), math.log(self.action_std), jnp.float32)
-        return params
+        return {"mu": mu, "log_w_std": log_w_std, **self._action_std_params()}
 
     def init_carry(self, key, params, hparams, num_envs):
         return jax.tree.map(lambda v: jnp.zeros((num_envs,) + v.shape, v.dtype), params["mu"])
@@ -156,11 +181,11 @@ class CoherentAllLayers(ChainStrategy):
         log_std = jnp.broadcast_to(jnp.log(action_std), mean.shape)
         return ActOutput(action, gaussian_log_prob(action, mean, log_std), z, extras=z)
 
-    def log_prob(self, params, hparams, carry0, obs, actions, first, extras=()):
-        chex.assert_rank([obs, actions], 2)
-        mean = self._sampled_mean(params, extras, obs)
+    def log_prob(self, params, hparams, segment):
+        segment.check()
+        mean = self._sampled_mean(params, segment.extras, segment.obs)
         log_std = jnp.broadcast_to(jnp.log(self._action_std(params, hparams)), mean.shape)
-        return SegmentLogProb(gaussian_log_prob(actions, mean, log_std), gaussian_entropy(log_std))
+        return SegmentLogProb(gaussian_log_prob(segment.action, mean, log_std), gaussian_entropy(log_std))
 
     def mean_action(self, params, obs):
         flat = obs.reshape(-1, obs.shape[-1])
@@ -169,8 +194,4 @@ class CoherentAllLayers(ChainStrategy):
 
     def metrics(self, params, hparams):
         stds = [jnp.mean(jnp.exp(v)) for v in jax.tree.leaves(params["log_w_std"])]
-        return {
-            "w_std": jnp.mean(jnp.stack(stds)),
-            "action_std": jnp.mean(self._action_std(params, hparams)),
-            "beta": jnp.asarray(hparams["beta"]),
-        }
+        return self._chain_metrics(jnp.mean(jnp.stack(stds)), self._action_std(params, hparams), hparams)

@@ -113,10 +113,10 @@ class GeneralizedSDE(OnPolicyStrategy):
         action = mean + noise
         return ActOutput(action, gaussian_log_prob(action, mean, log_std), carry)
 
-    def log_prob(self, params, hparams, carry0, obs, actions, first, extras=()):
-        chex.assert_rank([obs, actions], 2)
-        _, mean, log_std = self._dist(params, obs)
-        return SegmentLogProb(gaussian_log_prob(actions, mean, log_std), gaussian_entropy(log_std))
+    def log_prob(self, params, hparams, segment):
+        segment.check()
+        _, mean, log_std = self._dist(params, segment.obs)
+        return SegmentLogProb(gaussian_log_prob(segment.action, mean, log_std), gaussian_entropy(log_std))
 
     def mean_action(self, params, obs):
         return self.net.apply(params["net"], obs)[1]

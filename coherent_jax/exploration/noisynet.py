@@ -126,12 +126,11 @@ class NoisyNet(OnPolicyStrategy):
         action = mean + jnp.exp(log_std) * jax.random.normal(k_a, mean.shape, mean.dtype)
         return ActOutput(action, gaussian_log_prob(action, mean, log_std), noise, extras=noise)
 
-    def log_prob(self, params, hparams, carry0, obs, actions, first, extras=()):
-        chex.assert_rank([obs, actions], 2)
-        chex.assert_equal_shape_prefix([obs, actions, extras[0]["in"]], 1)
-        mean = self._forward(params, obs, extras)  # the noise sampled at each step
+    def log_prob(self, params, hparams, segment):
+        segment.check()  # every layer's noise [T, ...] among the extras
+        mean = self._forward(params, segment.obs, segment.extras)  # the noise sampled at each step
         log_std = jnp.broadcast_to(params["log_std"], mean.shape)
-        return SegmentLogProb(gaussian_log_prob(actions, mean, log_std), gaussian_entropy(log_std))
+        return SegmentLogProb(gaussian_log_prob(segment.action, mean, log_std), gaussian_entropy(log_std))
 
     def mean_action(self, params, obs):
         return self._forward(params, obs, None)
