@@ -15,10 +15,17 @@ import pytest
 
 from coherent_jax.config import ConfigError, parse_overrides
 from coherent_jax.exploration import make_behaviour, make_strategy
+from coherent_jax.exploration.base import Segment
 from coherent_jax.networks import SquashedGaussianActor
 from coherent_jax.train import train
 
 OBS_SIZE, ACTIONS, HIDDEN = 5, 3, 8
+
+
+def segment_of(obs, actions) -> Segment:
+    """One env's segment of these steps, none of them an episode start (lattice reads neither)."""
+    obs, actions = jnp.asarray(obs), jnp.asarray(actions)
+    return Segment(obs, actions, jnp.zeros(obs.shape[:1], bool))
 
 
 def build(*overrides):
@@ -82,7 +89,7 @@ def test_log_prob_and_entropy_equal_float64_reference(sw):
     rng = np.random.default_rng(1)
     obs = rng.normal(size=(7, OBS_SIZE)).astype(np.float32)
     actions = rng.normal(size=(7, ACTIONS)).astype(np.float32)
-    got = strategy.log_prob(params, {}, None, jnp.asarray(obs), jnp.asarray(actions), None)
+    got = strategy.log_prob(params, {}, segment_of(obs, actions))
     x, mean = features(strategy, params, obs)
     for t in range(7):
         cov = reference_cov(strategy, params, x[t], **sw)
@@ -161,7 +168,7 @@ def test_weight_grad_switch(weight_grad):
     actions = jnp.asarray(rng.normal(size=(4, ACTIONS)), jnp.float32)
 
     def total(p):
-        return jnp.sum(strategy.log_prob(p, {}, None, obs, actions, None).log_prob)
+        return jnp.sum(strategy.log_prob(p, {}, segment_of(obs, actions)).log_prob)
 
     grad = np.asarray(jax.grad(total)(params)["net"]["params"]["Dense_0"]["kernel"], np.float64)
     x, mean = features(strategy, params, np.asarray(obs))

@@ -201,10 +201,10 @@ class Lattice(OnPolicyStrategy):
         action = mean + noise
         return ActOutput(action, mvn_log_prob_entropy(action, mean, cov)[0], carry)
 
-    def log_prob(self, params, hparams, carry0, obs, actions, first, extras=()):
-        chex.assert_rank([obs, actions], 2)
-        _, mean, cov = self._dist(params, obs)
-        return SegmentLogProb(*mvn_log_prob_entropy(actions, mean, cov))
+    def log_prob(self, params, hparams, segment):
+        segment.check()
+        _, mean, cov = self._dist(params, segment.obs)
+        return SegmentLogProb(*mvn_log_prob_entropy(segment.action, mean, cov))
 
     def mean_action(self, params, obs):
         return self.net.apply(params["net"], obs)[1]
