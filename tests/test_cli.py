@@ -33,6 +33,8 @@ BAD = [
     (["algo=sac", "explore=noisynet"], "'algo'"),
     (["algo=sac", "explore=coherent", "coherent.integration=analytic"], "'coherent.integration'"),
     (["algo=sac", "explore=coherent", "coherent.integration=mc", "coherent.layers=all"], "'coherent.layers'"),
+    (["explore=coherent", "coherent.integration=mc", "coherent.gradient=episode"], "'coherent.gradient'"),
+    (["algo=sac", "explore=coherent", "coherent.gradient=stored"], "'coherent.gradient'"),
     (["gsde.resample_every=0"], "'gsde.resample_every'"),
     (["pink.exponent=-1"], "'pink.exponent'"),
     (["lattice.resample_every=0"], "'lattice.resample_every'"),

@@ -173,6 +173,12 @@ def coherent_ablations(cfg: Config) -> None:
         "true with algo=sac or coherent.integration=mc (the switch is the analytic chain's)",
     )
     check(
+        co.integration == "analytic" or co.gradient == "exact",
+        "coherent.gradient",
+        co.gradient,
+        "exact with coherent.integration=mc or algo=sac (the gradient modes are the analytic chain's)",
+    )
+    check(
         on_policy or co.integration == "mc",
         "coherent.integration",
         co.integration,
