@@ -64,12 +64,13 @@ STRATEGIES = {
     "psne": ["explore=psne"],
     "gsde": ["explore=gsde"],
     "pink": ["explore=pink"],
+    "lattice": ["explore=lattice"],
 }
 RUNS: dict[str, list[str]] = {}
 for _algo in ("ppo", "a2c"):
     for _name, _extra in STRATEGIES.items():
         RUNS[f"{_algo}-{_name}"] = [*ON_POLICY, f"algo={_algo}", *_extra]
-for _name in ("action", "coherent", "psne", "gsde", "pink"):
+for _name in ("action", "coherent", "psne", "gsde", "pink", "lattice"):
     RUNS[f"sac-{_name}"] = [*SAC, *STRATEGIES[_name]]
 ITERATIONS = {"sac": 6}  # SAC: two warm-up iterations, then updates and sigma adaptation
 DEFAULT_ITERATIONS = 3
