@@ -259,7 +259,10 @@ def test_training_keys_pass_through_including_dotted_ones():
     from coherent_jax.config import ConfigError
 
     items = ["coherent.beta=0.1", "coherent.integration=mc", "coherent.layers=all"]
-    cfg = coherent.parse(items).config
+    # The episode row is the analytic chain's: with mc integration it is refused before anything runs.
+    with pytest.raises(ConfigError, match="'chains': 'episode'.*'coherent.gradient'"):
+        coherent.parse(items)
+    cfg = coherent.parse([*items, "chains=[thesis]"]).config
     assert (cfg.coherent.beta, cfg.coherent.integration, cfg.coherent.layers) == (0.1, "mc", "all")
     assert throughput.parse(["coherent.integration=mc"]).config.coherent.integration == "mc"
     with pytest.raises(ConfigError, match="'coherent.integration'"):

@@ -20,7 +20,7 @@ import dataclasses
 import statistics
 from typing import Any
 
-from coherent_jax.config import Config, parse_overrides, validate
+from coherent_jax.config import Config, ConfigError, parse_overrides, validate
 
 #: the rows, in the order they run
 CHAINS = ("thesis", "episode")
@@ -32,7 +32,13 @@ def chain_config(cfg: Config, chain: str) -> Config:
         return parse_overrides([f"env={cfg.env}", f"seed={cfg.seed}", "algo=ppo", "preset=thesis"])
     if chain == "episode":
         out = dataclasses.replace(cfg, coherent=dataclasses.replace(cfg.coherent, gradient="episode"))
-        validate(dataclasses.replace(out, explore="coherent"))
+        try:
+            validate(dataclasses.replace(out, explore="coherent"))
+        except ConfigError as exc:  # a setting the episode gradient refuses: name the row
+            raise ConfigError(
+                f"invalid value for 'chains': 'episode' does not run with these settings ({exc}) "
+                "(allowed: thesis, or none)"
+            ) from None
         return out
     raise ValueError(f"unknown chain row {chain!r}; allowed: {', '.join(CHAINS)}")
 
