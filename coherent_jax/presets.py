@@ -148,13 +148,19 @@ def layered_base(base: Any, algo: str | None, preset: str | None) -> Any:
     return base
 
 
-def _flat(values: dict[str, Any], same: Any = None) -> str:
-    """``key=value`` items of a layer, a group's fields dotted (``ppo.clip_eps=0.2``); an item for
-    which ``same(key, value)`` is true is left out."""
+def dotted_items(values: dict[str, Any]) -> dict[str, Any]:
+    """A layer's values with a group's fields as dotted keys (``{"ppo": {"clip_eps": 0.2}}`` ->
+    ``{"ppo.clip_eps": 0.2}``)."""
     items: dict[str, Any] = {}
     for k, v in values.items():
         items.update({f"{k}.{g}": w for g, w in v.items()} if isinstance(v, dict) else {k: v})
-    items = {k: v for k, v in items.items() if same is None or not same(k, v)}
+    return items
+
+
+def _flat(values: dict[str, Any], same: Any = None) -> str:
+    """``key=value`` items of a layer, a group's fields dotted (``ppo.clip_eps=0.2``); an item for
+    which ``same(key, value)`` is true is left out."""
+    items = {k: v for k, v in dotted_items(values).items() if same is None or not same(k, v)}
     shown = {k: str(v).lower() if isinstance(v, bool) else v for k, v in items.items()}
     return " ".join(f"{k}={v:.6g}" if isinstance(v, float) else f"{k}={v}" for k, v in shown.items()).replace(
         ", ", ","

@@ -23,7 +23,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from coherent_jax.config.checks import ConfigError, validate
 from coherent_jax.config.schema import FIELDS, GROUPS, LEGACY_KEYS, SECTIONS, SWEEPABLE, Config
-from coherent_jax.presets import ALGO_DEFAULTS, help_lines, layered_base
+from coherent_jax.presets import ALGO_DEFAULTS, dotted_items, help_lines, layered_base
 
 _NOTED: set[str] = set()  # the flat keys already noted in this process
 
@@ -235,12 +235,9 @@ def _algo_changes() -> dict[str, dict[str, Any]]:
     a default the algorithm leaves as it is is not a change."""
     out: dict[str, dict[str, Any]] = {}
     for algo, values in ALGO_DEFAULTS.items():
-        for k, v in values.items():
-            for key, value in (
-                {f"{k}.{g}": w for g, w in v.items()} if isinstance(v, dict) else {k: v}
-            ).items():
-                if not _is_default(key, value):
-                    out.setdefault(key, {})[algo] = value
+        for key, value in dotted_items(values).items():
+            if not _is_default(key, value):
+                out.setdefault(key, {})[algo] = value
     return out
 
 
