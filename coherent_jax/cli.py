@@ -149,6 +149,19 @@ def choice_list(choices: Sequence[str]) -> Callable[[str], list[str]]:
     return parse
 
 
+def ordered_choice_list(choices: Sequence[str]) -> Callable[[str], list[str]]:
+    """Parser of a non-empty list of distinct ``choices`` (``[b,a]``), returned in the order given."""
+
+    def parse(text: str) -> list[str]:
+        value = _yaml(text)
+        items = [str(v) for v in (value if isinstance(value, list) else [value])]
+        if not items or any(item not in choices for item in items) or len(set(items)) != len(items):
+            raise ValueError(text)
+        return items
+
+    return parse
+
+
 def output_file(text: str) -> str:
     """Parser of a file path that can be written: not a directory, under a writable folder.
 

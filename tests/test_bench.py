@@ -154,6 +154,11 @@ def run_cli(args, cwd):
         (["coherent", "policy_hidden=[64,"], "'policy_hidden'"),
         (["sac", "sac.warmup_steps=5"], "'sac.warmup_steps'"),
         (["physics", "envs=[3]", "variants=[mjx_2dev]"], "'envs'"),
+        (["strategies", "strategies=[action,action]"], "'strategies'"),
+        (["strategies", "strategies=[action,bogus]"], "'strategies'"),
+        (["strategies", "algo=sac", "strategies=[action,noisynet]"], "'strategies'"),
+        (["strategies", "explore=gsde"], "'explore'"),
+        (["strategies", "sac.warmup_steps=5"], "'sac.warmup_steps'"),
     ],
 )
 def test_bad_input_exits_2_and_writes_nothing(tmp_path, capsys, args, named):
@@ -241,7 +246,7 @@ def test_throughput_bad_input_exits_2_and_writes_nothing(tmp_path, capsys, args,
         assert list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.parametrize("suite", ["throughput", "coherent", "sac", "physics"])
+@pytest.mark.parametrize("suite", ["throughput", "coherent", "sac", "strategies", "physics"])
 def test_every_suite_checks_its_output_path_first(tmp_path, capsys, suite):
     """A location that cannot be written is refused in one line before any work, not at the end."""
     from coherent_jax.bench.__main__ import main

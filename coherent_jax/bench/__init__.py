@@ -9,6 +9,7 @@ and ``format_table(result)``.
 * `coherent`: what coherent exploration costs next to action noise (training, the
   filter against the dense reference of `dense`, the loss's segment log-prob);
 * `sac`: SAC and Coherent-SAC iterations, collection and updates apart;
+* `strategies`: every exploration strategy's iteration of one algorithm, side by side;
 * `physics`: MJX settings against native MuJoCo, one subprocess per row;
 * `standard`: Gymnasium's tasks against their Brax re-creations and EnvPool;
 * `gradient`: each coherent loss's gradient against a float64 whole-episode reference;
@@ -18,7 +19,7 @@ and ``format_table(result)``.
 `measure` holds what every suite records (times, memory, machine, JSON).
 """
 
-SUITES = ("throughput", "coherent", "sac", "physics", "standard", "gradient", "processes")
+SUITES = ("throughput", "coherent", "sac", "strategies", "physics", "standard", "gradient", "processes")
 DEFAULT_SUITE = "throughput"  # what ``python -m coherent_jax.bench`` runs with no suite named
 # Training keys the in-process suites do not read (they time iterations: they write no run
 # directory, checkpoint or TensorBoard file, and run no fixed budget): refused, not ignored.
