@@ -42,7 +42,7 @@ def test_tiny_run_times_each_strategy_against_the_first(tmp_path, algo):
     assert saved["settings"]["config"]["explore"] == "action"  # the suite varies it per row
     if algo == "sac":
         assert saved["settings"]["config"]["sac"]["warmup_steps"] != 0  # the default, recorded as given
-    for name, e in tr["rows"].items():
+    for e in tr["rows"].values():
         assert len(e["iteration_s"]) == 3 and e["compile_s"] > 0
         assert e["iteration_s_median"] == pytest.approx(sorted(e["iteration_s"])[1])
         assert e["env_steps_per_s"] == pytest.approx(32 / e["iteration_s_median"])

@@ -47,6 +47,28 @@ def compile_timed(fn, *args):
     return compiled, time.perf_counter() - t0
 
 
+def warm_iteration(iteration, state, log, what: str) -> dict[str, Any]:
+    """``iteration(state) -> (state, metrics)`` compiled and called once untimed, as a run of
+    `time_interleaved`: its ``step``, the ``state`` after the warm-up call, ``compile_s``,
+    ``memory``, ``warmup_call_s`` and an empty ``times``. ``what`` names it in the log."""
+    import jax
+
+    log(f"[bench] compiling {what} ...")
+    step, compile_s = compile_timed(iteration, state)
+    mem = memory(step)
+    log(f"[bench]   compiled in {compile_s:.1f} s; peak memory {peak_mb(mem)} MB")
+    t0 = time.perf_counter()
+    state, _ = jax.block_until_ready(step(state))  # warm-up call, not timed
+    return {
+        "step": step,
+        "state": state,
+        "compile_s": compile_s,
+        "memory": mem,
+        "warmup_call_s": time.perf_counter() - t0,
+        "times": [],
+    }
+
+
 def time_calls(compiled, args, repeats: int) -> list[float]:
     """Seconds of each of ``repeats`` calls, each waited for to the end."""
     import jax

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import dataclasses
 import statistics
-import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -74,20 +73,8 @@ def _bench(cfg: Config, iterations: int, log) -> dict:
             run_cfg = with_values(cfg, {"explore": explore, "sac.warmup_steps": warmup})
             trainer = SACTrainer(run_cfg, env=env, eval_env=env)
             state = jax.jit(trainer.init)(jax.random.PRNGKey(cfg.seed))
-            log(f"[bench] compiling the SAC {mode.replace('_', ' ')}, explore={explore} ...")
-            step, compile_s = measure.compile_timed(trainer.iteration, state)
-            mem = measure.memory(step)
-            log(f"[bench]   compiled in {compile_s:.1f} s; peak memory {measure.peak_mb(mem)} MB")
-            t0 = time.perf_counter()
-            state, _ = jax.block_until_ready(step(state))  # warm-up call, not timed
-            runs[name] = {
-                "step": step,
-                "state": state,
-                "compile_s": compile_s,
-                "memory": mem,
-                "warmup_call_s": time.perf_counter() - t0,
-                "times": [],
-            }
+            what = f"the SAC {mode.replace('_', ' ')}, explore={explore}"
+            runs[name] = measure.warm_iteration(trainer.iteration, state, log, what)
 
     def count_updates(name: str, metrics: dict) -> None:
         if name.endswith("/iteration"):

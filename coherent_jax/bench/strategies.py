@@ -18,7 +18,6 @@ JSON file (default ``bench_results/strategies.json``), written atomically.
 from __future__ import annotations
 
 import statistics
-import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -31,7 +30,7 @@ _ALL = "all"
 
 
 def _strategy_list(text: str) -> list[str] | str:
-    """``all`` or a non-empty list of distinct ``explore=`` values, in the order given (the first is the baseline)."""
+    """``all``, or distinct ``explore=`` values in the order given (the first is the baseline)."""
     return _ALL if text.strip() == _ALL else cli.ordered_choice_list(EXPLORES)(text)
 
 
@@ -92,23 +91,9 @@ def _compile_all(cfg: Config, names: Sequence[str], log) -> dict[str, dict]:
     for name in names:
         trainer = make_trainer(_strategy_config(cfg, name), env=env, eval_env=env)
         state = jax.jit(trainer.init)(jax.random.PRNGKey(cfg.seed))
-        log(f"[bench] compiling the {cfg.algo} iteration, explore={name} ...")
-        t0 = time.perf_counter()
-        step = jax.jit(trainer.iteration, donate_argnums=0).lower(state).compile()
-        compile_s = time.perf_counter() - t0
-        mem = measure.memory(step)
-        log(f"[bench]   compiled in {compile_s:.1f} s; peak memory {measure.peak_mb(mem)} MB")
-        t0 = time.perf_counter()
-        state, _ = jax.block_until_ready(step(state))  # warm-up call, not timed
-        runs[name] = {
-            "step": step,
-            "state": state,
-            "compile_s": compile_s,
-            "memory": mem,
-            "warmup_call_s": time.perf_counter() - t0,
-            "times": [],
-            "updates_applied": [],
-        }
+        what = f"the {cfg.algo} iteration, explore={name}"
+        runs[name] = measure.warm_iteration(trainer.iteration, state, log, what)
+        runs[name]["updates_applied"] = []
     return runs
 
 
@@ -169,7 +154,7 @@ def format_table(result: dict) -> str:
     ]
     for name, e in rows.items():
         lines.append(
-            f"  {name:<10}{e['compile_s']:>10.1f}{e['iteration_s_median']:>9.3f}{e['env_steps_per_s']:>13,.0f}"
-            f"{e['time_over_baseline']:>8.2f}{e['updates_applied_median']:>12.0f}{measure.peak_mb(e['memory']):>10}"
+            f"  {name:<10}{e['compile_s']:>10.1f}{e['iteration_s_median']:>9.3f}"
+            f"{e['env_steps_per_s']:>13,.0f}{e['time_over_baseline']:>8.2f}{e['updates_applied_median']:>12.0f}{measure.peak_mb(e['memory']):>10}"
         )
     return "\n".join(lines)
