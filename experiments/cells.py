@@ -39,6 +39,9 @@ TASK_RATE = {
 # Lattice: `python -m coherent_jax.bench strategies env=halfcheetah` (2026-12-04, idle
 # machine) measured 2.02x, beside gSDE's 1.28x (docs/benchmarks.md).
 STRATEGY_COST = {"coherent": 2.5, "noisynet": 1.5, "psne": 2.2, "gsde": 1.3, "pink": 1.1, "lattice": 2.0}
+# coherent.gradient=episode re-infers each segment's episode prefix in the loss: 22x the
+# exact mode's iteration at the defaults (docs/benchmarks.md, "Long chains").
+EPISODE_GRADIENT_COST = 22.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -163,12 +166,22 @@ def _cost(cell: Cell) -> float:
     """Iteration time relative to action noise (1 for SAC, whose updates dominate)."""
     if cell.setting("algo", "ppo") == "sac":
         return 1.0
-    return STRATEGY_COST.get(cell.setting("explore", "action") or "action", 1.0)
+    cost = STRATEGY_COST.get(cell.setting("explore", "action") or "action", 1.0)
+    return cost * (EPISODE_GRADIENT_COST if cell.setting("coherent.gradient") == "episode" else 1.0)
 
 
 def _kind(cell: Cell) -> tuple[str | None, ...]:
-    """What sets a cell's rate apart from its strategy: task, algorithm, SAC's UTD."""
-    return (cell.setting("env"), cell.setting("algo", "ppo"), cell.setting("utd_ratio"))
+    """What sets a cell's rate apart from its strategy: task, algorithm, SAC's UTD, the
+    minibatches, and the preset (``preset=thesis`` runs 4 envs x 1,000 steps with up to 80
+    full-batch steps)."""
+    keys = ("env", "algo", "utd_ratio", "num_minibatches", "preset")
+    return tuple(cell.setting(k, "ppo" if k == "algo" else None) for k in keys)
+
+
+def _strategy(cell: Cell) -> tuple[str | None, ...]:
+    """The settings of a cell's strategy that change its cost (beta and the like do not)."""
+    keys = ("coherent.gradient", "coherent.integration", "coherent.layers")
+    return (cell.setting("explore", "action"), *(cell.setting(k) for k in keys))
 
 
 def _finished_cells(results: Path) -> list[tuple[Cell, float]]:
@@ -191,19 +204,20 @@ def estimated_seconds(cell: Cell, results: Path) -> float:
     """Compute the cell still needs.
 
     From its own measured rate once it has one; else from the finished cells of the
-    same task and algorithm (any suite), each rescaled by STRATEGY_COST to this cell's
-    strategy (median over them); else from the defaults above. Vmapped points share
-    the cores, so a cell's total rate is about one point's, whatever its points.
+    same task, algorithm, minibatches and preset (any suite): those of the same strategy
+    (and coherent gradient, integration and layers) as they ran, or if there are none,
+    every one rescaled by `_cost` to this cell's strategy (median over them); else from
+    the defaults above. Vmapped points share the cores, so a cell's total rate is about
+    one point's, whatever its points.
     """
     fraction, rate = progress(cell, results)
     if rate is None:
-        kin = [
-            r * _cost(other) / _cost(cell)
-            for other, r in _finished_cells(results)
-            if _kind(other) == _kind(cell)
-        ]
-        if kin:
-            rate = statistics.median(kin)
+        kin = [(other, r) for other, r in _finished_cells(results) if _kind(other) == _kind(cell)]
+        same = [r for other, r in kin if _strategy(other) == _strategy(cell)]
+        if same:
+            rate = statistics.median(same)
+        elif kin:
+            rate = statistics.median([r * _cost(other) / _cost(cell) for other, r in kin])
         else:
             algo = cell.setting("algo", "ppo")
             base = TASK_RATE.get(cell.setting("env", ""), DEFAULT_RATE.get(algo, 5000.0))

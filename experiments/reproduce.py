@@ -50,6 +50,7 @@ sys.path[:0] = [str(ROOT / "experiments"), str(ROOT)]
 import curves  # noqa: E402
 from cells import (  # noqa: E402, F401  (re-exported: the state of a cell is read as reproduce.X)
     DEFAULT_RATE,
+    EPISODE_GRADIENT_COST,
     SPEC_VERSION,
     STRATEGY_COST,
     TASK_RATE,

@@ -173,6 +173,42 @@ def _fake_sweep(cell, results, finished):
     return d
 
 
+def test_estimates_read_cells_of_the_same_preset_and_strategy_first(tmp_path):
+    """A protocol cell (``preset=thesis``: 4 envs x 1,000 steps) takes no rate from a cell
+    at the defaults; a finished cell of the same strategy is taken as it ran."""
+    (cell,) = reproduce.select("protocol", ["hopper/a2c/psne-thesis"])
+    cost = reproduce.STRATEGY_COST
+    default = cell.env_steps * cost["psne"] / reproduce.DEFAULT_RATE["a2c"]
+    # The thesis suite's hopper/a2c/psne ran at the defaults: not this cell's kind.
+    _fake_sweep(reproduce.select("thesis", ["hopper/a2c/psne"])[0], tmp_path, finished=True)
+    assert reproduce.estimated_seconds(cell, tmp_path) == pytest.approx(default)
+    # A protocol cell of the same task and algorithm, another strategy: rescaled.
+    _fake_sweep(reproduce.select("protocol", ["hopper/a2c/action-thesis"])[0], tmp_path, finished=True)
+    assert reproduce.estimated_seconds(cell, tmp_path) == pytest.approx(
+        cell.env_steps * cost["psne"] / 1000.0
+    )
+    # The ablation suite's coherent cells are of the thesis suite's coherent cell's kind and
+    # strategy: their rate (set to 400) is taken as it is, the action cell (1,000) left aside.
+    (coherent,) = reproduce.select("thesis", ["halfcheetah/ppo/coherent"])
+    _fake_sweep(reproduce.select("thesis", ["halfcheetah/ppo/action"])[0], tmp_path, finished=True)
+    assert reproduce.estimated_seconds(coherent, tmp_path) == pytest.approx(
+        coherent.env_steps * cost["coherent"] / 1000.0
+    )
+    beta0 = _fake_sweep(reproduce.select("ablations", ["halfcheetah/ppo/coherent-beta0"])[0], tmp_path, True)
+    (beta0 / "sweep" / "sweep.json").write_text(json.dumps({"sweep_env_steps_per_s": 400.0}))
+    assert reproduce.estimated_seconds(coherent, tmp_path) == pytest.approx(coherent.env_steps / 400.0)
+    # The episode gradient is a strategy of its own cost: the coherent cell's rate (400)
+    # divided by EPISODE_GRADIENT_COST, not taken as it is.
+    (episode,) = reproduce.select("protocol", ["halfcheetah/ppo/coherent-episode"])
+    _fake_sweep(coherent, tmp_path, finished=True)
+    (reproduce.cell_dir(coherent, tmp_path) / "sweep" / "sweep.json").write_text(
+        json.dumps({"sweep_env_steps_per_s": 400.0})
+    )
+    assert reproduce.estimated_seconds(episode, tmp_path) == pytest.approx(
+        episode.env_steps * reproduce.EPISODE_GRADIENT_COST / 400.0
+    )
+
+
 def test_cell_states_and_compute_left(tmp_path):
     done, stopped, running, missing = reproduce.select("thesis", ["hopper/a2c/*"])
     _fake_sweep(done, tmp_path, finished=True)
