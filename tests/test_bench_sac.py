@@ -3,6 +3,7 @@
 import json
 
 import pytest
+from helpers import TINY_BENCH, TINY_BENCH_SAC
 
 from coherent_jax.bench import sac
 from coherent_jax.config import ConfigError
@@ -29,17 +30,7 @@ def test_bad_settings_exit_2_and_write_nothing(tmp_path, capsys, args, key):
 @pytest.mark.slow
 def test_tiny_run_reports_both_strategies(tmp_path):
     out = tmp_path / "sac.json"
-    overrides = [
-        "env=pointmass",
-        "num_envs=4",
-        "unroll_length=8",
-        "policy_hidden=[16]",
-        "value_hidden=[16]",
-        "sac.batch_size=16",
-        "sac.utd_ratio=0.25",
-        "iterations=2",
-        f"out={out}",
-    ]
+    overrides = [*TINY_BENCH, *TINY_BENCH_SAC, "iterations=2", f"out={out}"]
     result = sac.run(overrides, log=lambda msg: None)
     saved = json.loads(out.read_text())
     tr = saved["training"]

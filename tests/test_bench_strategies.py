@@ -3,6 +3,7 @@
 import json
 
 import pytest
+from helpers import TINY_BENCH, TINY_BENCH_SAC
 
 from coherent_jax.bench import strategies
 from coherent_jax.strategies import SUPPORTED_ALGOS
@@ -22,19 +23,8 @@ def test_all_means_every_strategy_the_algorithm_runs_with_action_first():
 @pytest.mark.parametrize("algo", ["ppo", "sac"])
 def test_tiny_run_times_each_strategy_against_the_first(tmp_path, algo):
     out = tmp_path / "strategies.json"
-    sizes = ["sac.batch_size=16", "sac.utd_ratio=0.25"] if algo == "sac" else ["ppo.num_minibatches=2"]
-    items = [
-        f"algo={algo}",
-        "env=pointmass",
-        "num_envs=4",
-        "unroll_length=8",
-        "policy_hidden=[16]",
-        "value_hidden=[16]",
-        *sizes,
-        "strategies=[gsde,lattice]",
-        "iterations=3",
-        f"out={out}",
-    ]
+    sizes = TINY_BENCH_SAC if algo == "sac" else ("ppo.num_minibatches=2",)
+    items = [f"algo={algo}", *TINY_BENCH, *sizes, "strategies=[gsde,lattice]", "iterations=3", f"out={out}"]
     result = strategies.run(items, log=lambda msg: None)
     saved = json.loads(out.read_text())
     tr = saved["training"]
