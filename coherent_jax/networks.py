@@ -23,6 +23,8 @@ ACTIVATIONS: dict[str, Callable[[jax.Array], jax.Array]] = {
     "elu": jax.nn.elu,
     "swish": jax.nn.swish,
 }
+#: the orthogonal init's gain of a policy's linear mean head: small, so initial actions are near zero
+HEAD_GAIN = 0.01
 
 
 class MLP(nn.Module):
@@ -46,20 +48,22 @@ class MLP(nn.Module):
 class MeanHead(nn.Module):
     """The trunk x = f_theta(s), then the linear mean head W x + b of a Gaussian policy (eq. 2.1).
 
-    The head starts small (orthogonal, gain 0.01, as in CleanRL/SB3) so that initial
-    actions are near zero. Returns (x [..., q], mean [..., p]): strategies whose noise
-    is a function of the features (gSDE) need x as well.
+    The head starts small (orthogonal, ``head_gain`` 0.01, as in CleanRL/SB3) so that
+    initial actions are near zero; a strategy whose noise passes through the head (Lattice)
+    may start it larger. Returns (x [..., q], mean [..., p]): strategies whose noise is a
+    function of the features (gSDE) need x as well.
     """
 
     hidden: tuple[int, ...]
     activation: str
     action_size: int
     layer_norm: bool = False
+    head_gain: float = HEAD_GAIN
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
         x = MLP(self.hidden, self.activation, layer_norm=self.layer_norm)(obs)
-        return x, nn.Dense(self.action_size, kernel_init=nn.initializers.orthogonal(0.01))(x)
+        return x, nn.Dense(self.action_size, kernel_init=nn.initializers.orthogonal(self.head_gain))(x)
 
 
 def augment(x: jax.Array) -> jax.Array:
@@ -163,11 +167,20 @@ class SquashedGaussianActor:
     linear *mean head* ``mu`` [p, q+1] (weights, bias last, acting on xh = [x; 1])
     that exploration strategies may perturb, and a state-dependent log-std head.
     Parameters: ``{"trunk", "mu", "log_std"}``; ``layer_norm`` puts LayerNorm
-    between the trunk's layers (parameter-space noise wants it).
+    between the trunk's layers (parameter-space noise wants it); ``head_gain`` is the mean
+    head's orthogonal init gain (`MeanHead`).
     """
 
-    def __init__(self, action_size: int, hidden: Sequence[int], activation: str, layer_norm: bool = False):
+    def __init__(
+        self,
+        action_size: int,
+        hidden: Sequence[int],
+        activation: str,
+        layer_norm: bool = False,
+        head_gain: float = HEAD_GAIN,
+    ):
         self.action_size = int(action_size)
+        self.head_gain = float(head_gain)
         self.feature_size = int(hidden[-1])
         self.trunk = MLP(tuple(hidden), activation, layer_norm)
         self.log_std_head = nn.Dense(self.action_size, kernel_init=nn.initializers.orthogonal(0.01))
@@ -175,7 +188,7 @@ class SquashedGaussianActor:
     def init(self, key: jax.Array, obs_size: int) -> dict:
         k_trunk, k_mu, k_std = jax.random.split(key, 3)
         q, p = self.feature_size, self.action_size
-        w = nn.initializers.orthogonal(0.01)(k_mu, (q, p), jnp.float32).T
+        w = nn.initializers.orthogonal(self.head_gain)(k_mu, (q, p), jnp.float32).T
         return {
             "trunk": self.trunk.init(k_trunk, jnp.zeros((1, obs_size))),
             "mu": jnp.concatenate([w, jnp.zeros((p, 1), jnp.float32)], axis=1),

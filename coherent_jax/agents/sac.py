@@ -104,9 +104,14 @@ def polyak_update(target: Any, online: Any, tau: jax.Array) -> Any:
 
 
 def make_actor(cfg: Config, action_size: int, behaviour: OffPolicyBehaviour) -> SquashedGaussianActor:
-    """SAC's actor; LayerNorm between its layers if the behaviour asks for it (PSNE)."""
+    """SAC's actor; LayerNorm between its layers if the behaviour asks for it (PSNE), and
+    the mean head's init gain it asks for (Lattice)."""
     return SquashedGaussianActor(
-        action_size, cfg.policy_hidden, cfg.activation, layer_norm=behaviour.actor_layer_norm
+        action_size,
+        cfg.policy_hidden,
+        cfg.activation,
+        layer_norm=behaviour.actor_layer_norm,
+        head_gain=behaviour.actor_head_gain,
     )
 
 

@@ -292,3 +292,10 @@ class LatticeOptions(Group):
         "std of white noise added to every action dimension (on-policy; a floor on the covariance)",
         check=NON_NEGATIVE,
     )
+    head_gain: float = field(
+        0.57735,
+        "orthogonal init gain of the policy's (SAC: the actor's) mean head W, 1/sqrt(3) as the reference's "
+        "PyTorch default, so the latent noise through W is about a quarter of the action variance at the "
+        "start; 0.01, every other strategy's, starts Lattice as gSDE",
+        check=POSITIVE,
+    )

@@ -28,7 +28,7 @@ import chex
 import jax
 import jax.numpy as jnp
 
-from coherent_jax.networks import SquashedGaussianActor, squash
+from coherent_jax.networks import HEAD_GAIN, SquashedGaussianActor, squash
 
 Params = Any
 Carry = Any
@@ -224,6 +224,8 @@ class OffPolicyBehaviour:
     name: str = "action"
     #: the actor should put LayerNorm between its layers (PSNE).
     actor_layer_norm: bool = False
+    #: the orthogonal init gain of the actor's mean head (Lattice starts it larger).
+    actor_head_gain: float = HEAD_GAIN
 
     @classmethod
     def from_config(cls, cfg: Any, action_size: int) -> OffPolicyBehaviour:

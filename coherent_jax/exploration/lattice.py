@@ -2,8 +2,9 @@
 
 Lattice generalises gSDE (`gsde.py`). The policy's last latent layer x = f_theta(s)
 (the trunk output, d features) feeds the linear mean head, mean = W' x + b with the
-head's kernel W [d, p]. Two random matrices, held for ``resample_every`` steps and
-redrawn at each episode start (paper, Figure 1C), perturb it:
+head's kernel W [d, p]. Two random matrices, held for ``resample_every`` steps (paper,
+Figure 1C) and redrawn at each episode start as gSDE's are here (the reference code
+redraws at each rollout's start instead), perturb it:
 
     latent noise   P_x [d, d],  (P_x)_ij ~ N(0, sigma_x,ij^2),  x~ = x + alpha P_x' x
     action noise   P_a [d, p],  (P_a)_ij ~ N(0, sigma_a,ij^2)
@@ -24,7 +25,8 @@ What follows the reference implementation (amathislab/lattice,
 defaults ``full_std=True``, ``learn_features=False``; the paper's equation numbers
 are not cited: each formula was checked against the reference code, not the paper's text):
 
-* the stds: one learned log-std per entry ("full std", [d, d + p]: P_x's then P_a's),
+* the stds: one learned log-std per entry ("full std", [d, d + p]: P_x's then P_a's;
+  the reference's PPO scripts pass ``full_std=False``, one per latent row),
   clipped to [log 1e-3, log 10] (``std_clip`` as the reference's policies pass it;
   no gradient outside the range), then scaled by 1/sqrt(d) so that the action's std
   does not grow with the width of the layer: with features of unit mean square the
@@ -42,8 +44,17 @@ are not cited: each formula was checked against the reference code, not the pape
   noise; here it is drawn, white, at every step, so that the stored log-probability
   is the density of the action taken.
 
+The mean head starts at orthogonal gain ``lattice.head_gain`` (default 1/sqrt(3)), the column
+norm of PyTorch's default linear layer, which the reference's PPO runs use
+(``ortho_init=False``), instead of the 0.01 of every other strategy here: the latent
+noise reaches the action through W, and with W at 0.01 it would be about 1e-4 of the
+action's variance at the start (Lattice would begin as gSDE), where at 1/sqrt(3) it is
+about a quarter. The price is initial mean actions of std about 0.3 instead of near 0;
+``lattice.head_gain=0.01`` starts Lattice as every other strategy starts.
+
 A floor of 1e-6 on the diagonal (not drawn, as gSDE's) keeps the Cholesky factor
-finite where every feature vanishes. With SAC, `LatticeBehaviour` supplies SAC's xi.
+finite where every feature vanishes. With SAC, `LatticeBehaviour` supplies SAC's xi,
+and its actor's mean head starts at the same gain.
 """
 
 from __future__ import annotations
@@ -57,7 +68,7 @@ import jax.numpy as jnp
 from coherent_jax.exploration.base import ActOutput, OffPolicyBehaviour, OnPolicyStrategy, SegmentLogProb
 from coherent_jax.exploration.gsde import init_gsde_carry, next_z
 from coherent_jax.exploration.linalg import whiten
-from coherent_jax.networks import ActorDist, MeanHead, squash
+from coherent_jax.networks import HEAD_GAIN, ActorDist, MeanHead, squash
 
 STD_MIN, STD_MAX = 1e-3, 10.0  # the clip range of the learned stds (the reference's std_clip)
 _VAR_FLOOR = 1e-6
@@ -135,10 +146,11 @@ class Lattice(OnPolicyStrategy):
         action_noise: bool = True,
         weight_grad: bool = True,
         std_reg: float = 0.0,
+        head_gain: float = HEAD_GAIN,
     ):
         self.action_size = int(action_size)
         self.latent_size = int(hidden[-1])
-        self.net = MeanHead(tuple(hidden), activation, self.action_size)
+        self.net = MeanHead(tuple(hidden), activation, self.action_size, head_gain=float(head_gain))
         self.init_std = float(init_std)
         self.resample_every = int(resample_every)
         self.alpha = float(alpha)
@@ -159,6 +171,7 @@ class Lattice(OnPolicyStrategy):
             lc.action_noise,
             lc.weight_grad,
             lc.std_reg,
+            lc.head_gain,
         )
 
     @property
@@ -237,15 +250,22 @@ class LatticeBehaviour(OffPolicyBehaviour):
 
     name = "lattice"
 
-    def __init__(self, resample_every: int, alpha: float = 1.0, action_noise: bool = True):
+    def __init__(
+        self,
+        resample_every: int,
+        alpha: float = 1.0,
+        action_noise: bool = True,
+        head_gain: float = HEAD_GAIN,
+    ):
         self.resample_every = int(resample_every)
         self.alpha = float(alpha)
         self.action_noise = bool(action_noise)
+        self.actor_head_gain = float(head_gain)
 
     @classmethod
     def from_config(cls, cfg, action_size: int):
         lc = cfg.lattice
-        return cls(lc.resample_every, lc.alpha, lc.action_noise)
+        return cls(lc.resample_every, lc.alpha, lc.action_noise, lc.head_gain)
 
     def init_carry(self, key, actor, actor_params, hparams, num_envs):
         q = actor.feature_size
