@@ -293,9 +293,9 @@ class LatticeOptions(Group):
         check=NON_NEGATIVE,
     )
     head_gain: float = field(
-        0.57735,
-        "orthogonal init gain of the policy's (SAC: the actor's) mean head W, 1/sqrt(3) as the reference's "
-        "PyTorch default, so the latent noise through W is about a quarter of the action variance at the "
-        "start; 0.01, every other strategy's, starts Lattice as gSDE",
+        0.01,
+        "orthogonal init gain of the policy's (SAC: the actor's) mean head W, every strategy's 0.01: Lattice "
+        "starts as gSDE and its latent noise grows with W; 0.57735 (1/sqrt(3), the reference's PyTorch "
+        "default) makes it a quarter of the action variance from the start",
         check=POSITIVE,
     )

@@ -44,17 +44,18 @@ are not cited: each formula was checked against the reference code, not the pape
   noise; here it is drawn, white, at every step, so that the stored log-probability
   is the density of the action taken.
 
-The mean head starts at orthogonal gain ``lattice.head_gain`` (default 1/sqrt(3)), the column
-norm of PyTorch's default linear layer, which the reference's PPO runs use
-(``ortho_init=False``), instead of the 0.01 of every other strategy here: the latent
-noise reaches the action through W, and with W at 0.01 it would be about 1e-4 of the
-action's variance at the start (Lattice would begin as gSDE), where at 1/sqrt(3) it is
-about a quarter. The price is initial mean actions of std about 0.3 instead of near 0;
-``lattice.head_gain=0.01`` starts Lattice as every other strategy starts.
+The mean head starts at orthogonal gain ``lattice.head_gain``, by default every
+strategy's 0.01. The latent noise reaches the action through W, so at the start it is
+about g^2 = 1e-4 of the action's variance (Lattice begins as gSDE) and grows with W as
+the mean is learned (on HalfCheetah W's columns reached norms 0.4-0.6 by 400k steps).
+The reference's PPO runs start W at PyTorch's default linear layer (``ortho_init=False``,
+column norm about 1/sqrt(3)), where the latent noise is a quarter of the variance from
+the start: ``lattice.head_gain=0.57735`` does that, at the price of initial mean actions
+of std about 0.3; on HalfCheetah-PPO it learned more slowly (docs/strategies.md).
 
 A floor of 1e-6 on the diagonal (not drawn, as gSDE's) keeps the Cholesky factor
 finite where every feature vanishes. With SAC, `LatticeBehaviour` supplies SAC's xi,
-and its actor's mean head starts at the same gain.
+and its actor's mean head starts at ``lattice.head_gain`` too.
 """
 
 from __future__ import annotations
