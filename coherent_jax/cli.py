@@ -136,14 +136,20 @@ def choice(choices: Sequence[str]) -> Callable[[str], str]:
     return parse
 
 
+def _listed(text: str, choices: Sequence[str]) -> list[str]:
+    """The items of a non-empty list (``[a,b]``, or one bare value) of ``choices``, as given."""
+    value = _yaml(text)
+    items = [str(v) for v in (value if isinstance(value, list) else [value])]
+    if not items or any(item not in choices for item in items):
+        raise ValueError(text)
+    return items
+
+
 def choice_list(choices: Sequence[str]) -> Callable[[str], list[str]]:
     """Parser of a non-empty list of ``choices`` (``[a,b]``), returned in the order of ``choices``."""
 
     def parse(text: str) -> list[str]:
-        value = _yaml(text)
-        items = [str(v) for v in (value if isinstance(value, list) else [value])]
-        if not items or any(item not in choices for item in items):
-            raise ValueError(text)
+        items = _listed(text, choices)
         return [c for c in choices if c in items]
 
     return parse
@@ -153,9 +159,8 @@ def ordered_choice_list(choices: Sequence[str]) -> Callable[[str], list[str]]:
     """Parser of a non-empty list of distinct ``choices`` (``[b,a]``), returned in the order given."""
 
     def parse(text: str) -> list[str]:
-        value = _yaml(text)
-        items = [str(v) for v in (value if isinstance(value, list) else [value])]
-        if not items or any(item not in choices for item in items) or len(set(items)) != len(items):
+        items = _listed(text, choices)
+        if len(set(items)) != len(items):
             raise ValueError(text)
         return items
 

@@ -7,13 +7,13 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-# The test run's compilation cache (made by conftest.pytest_configure), and the compile
-# time from which a program is worth caching.
 # The smallest benchmark setting: pointmass, 4 envs x 8 steps, 16-unit networks; SAC
 # with batch 16 and 8 updates per iteration.
 TINY_BENCH = ("env=pointmass", "num_envs=4", "unroll_length=8", "policy_hidden=[16]", "value_hidden=[16]")
 TINY_BENCH_SAC = ("sac.batch_size=16", "sac.utd_ratio=0.25")
 
+# The test run's compilation cache (made by conftest.pytest_configure), and the compile
+# time from which a program is worth caching.
 CACHE_VAR = "COHERENT_JAX_TEST_COMPILE_CACHE"
 CACHE_MIN_COMPILE_S = 0.5
 
