@@ -39,3 +39,11 @@ def all_points(pred: jax.Array) -> jax.Array:
         return jax.lax.pmin(pred, POINT_AXIS)
     except NameError:
         return pred
+
+
+def least_point(value: jax.Array) -> jax.Array:
+    """``value`` (an integer scalar) at its smallest over the sweep being traced."""
+    try:
+        return jax.lax.pmin(value, POINT_AXIS)
+    except NameError:
+        return value

@@ -60,6 +60,8 @@ STRATEGIES = {
     "coherent_filter": ["explore=coherent", "coherent.inference=filter"],
     "coherent_mc": ["explore=coherent", "coherent.integration=mc"],
     "coherent_all": ["explore=coherent", "coherent.integration=mc", "coherent.layers=all"],
+    "coherent_episode": ["explore=coherent", "coherent.gradient=episode"],
+    "coherent_stored": ["explore=coherent", "coherent.gradient=stored"],
     "noisynet": ["explore=noisynet"],
     "psne": ["explore=psne"],
     "gsde": ["explore=gsde"],

@@ -40,8 +40,10 @@ TASK_RATE = {
 # machine) measured 2.02x, beside gSDE's 1.28x (docs/benchmarks.md).
 STRATEGY_COST = {"coherent": 2.5, "noisynet": 1.5, "psne": 2.2, "gsde": 1.3, "pink": 1.1, "lattice": 2.0}
 # coherent.gradient=episode re-infers each segment's episode prefix in the loss: 22x the
-# exact mode's iteration at the defaults (docs/benchmarks.md, "Long chains").
-EPISODE_GRADIENT_COST = 22.0
+# exact mode's iteration at the defaults before the blocks ahead of the minibatch's
+# earliest episode start were skipped, 1.64x less since (HalfCheetah, over one episode
+# cycle, interleaved in one process; docs/benchmarks.md, "Long chains").
+EPISODE_GRADIENT_COST = 13.5
 
 
 @dataclasses.dataclass(frozen=True)

@@ -16,6 +16,7 @@ TINY = [
     "env=pointmass",
     "num_envs=4",
     "unroll_length=8",
+    "episode_length=20",
     "ppo.num_minibatches=2",
     "iterations=1",
     "filter_q=[8]",
@@ -75,8 +76,10 @@ def test_coherent_suite_writes_every_figure(tmp_path):
     (chain,) = data["chains"].values()
     assert list(data["chains"]) == ["episode"] and chain["gradient"] == "episode"
     assert (chain["num_envs"], chain["unroll_length"]) == (4, 8)
+    # One whole episode cycle (20 steps in segments of 8: 3 iterations), by its mean.
+    assert chain["timed_iterations"] == 3 and chain["statistic"] == "mean"
     for name in ("action", "coherent"):
-        for key in ("iteration_s_median", "env_steps_per_s", "compile_s"):
+        for key in ("iteration_s", "iteration_s_median", "env_steps_per_s", "compile_s"):
             assert _positive(chain[name][key]), (name, key)
         cfg = data["settings"]["config"]
         assert 1 <= chain[name]["policy_steps"] <= cfg["ppo"]["num_epochs"] * cfg["ppo"]["num_minibatches"]
@@ -90,7 +93,7 @@ def test_long_chain_rows_are_the_preset_and_the_episode_gradient():
     """The ``thesis`` row is ``preset=thesis`` on the suite's task and seed (its buffer
     scored from its start, the chain through env resets), the ``episode`` row the suite's
     own settings with the episode gradient; an unknown row is refused."""
-    from coherent_jax.bench.chains import chain_config
+    from coherent_jax.bench.chains import chain_config, timed_iterations
     from coherent_jax.config import parse_overrides
 
     cfg = parse_overrides(["env=hopper", "seed=7", "num_envs=16"])
@@ -100,6 +103,10 @@ def test_long_chain_rows_are_the_preset_and_the_episode_gradient():
     assert not thesis.coherent.episode_restart
     episode = chain_config(cfg, "episode")
     assert episode.coherent.gradient == "episode" and episode.num_envs == 16
+    # The episode row's cost rises with the prefix: it is timed over whole episode cycles.
+    assert timed_iterations(episode, "episode", 5) == 16  # 1,000 steps in segments of 64
+    assert timed_iterations(episode, "episode", 17) == 32
+    assert timed_iterations(thesis, "thesis", 5) == 5
     with pytest.raises(ValueError, match="'stored'"):
         chain_config(cfg, "stored")
 

@@ -19,8 +19,9 @@ from references import reference_log_marginals, sample_actions
 
 from coherent_jax.agents import losses
 from coherent_jax.exploration.base import Segment
-from coherent_jax.exploration.coherent import CoherentExploration, episode_history_length
+from coherent_jax.exploration.coherent import CoherentExploration, episode_history_length, window_start_block
 from coherent_jax.rollout import EpisodeHistory, Transition
+from coherent_jax.sweep_axis import vmap_points
 
 P, Q, OBS = 2, 3, 4
 
@@ -168,6 +169,39 @@ def test_the_trainers_loss_reads_each_segment_with_its_own_history(x64):
             np.testing.assert_allclose(got[:, e], want, rtol=1e-10, atol=1e-10)
         data = Transition(stack(0), stack(2), stack(1), *([None] * 6))
         history = history.extend(data)
+
+
+def test_window_start_block_is_the_earliest_episode_start_a_segment_needs():
+    """Windows of 24 prefix steps and an 8-step segment, blocks of 8: each window needs the
+    block of its latest episode start at or before the segment's first step (index 24);
+    a minibatch the earliest of its windows'."""
+    first = np.zeros((32, 4), bool)
+    first[17, 0] = True  # block 2
+    first[[10, 28], 1] = True  # block 1; the reset inside the segment does not count
+    first[[5, 24], 2] = True  # the segment's first step starts an episode: block 3
+    # env 3: no start in the window (its episode began before it): from the window's start
+    starts = [int(window_start_block(first[:, e], 24, 8)) for e in range(4)]
+    assert starts == [2, 1, 3, 0]
+    assert int(window_start_block(first[:, :3], 24, 8)) == 1
+    assert int(window_start_block(first[:, [0, 2]], 24, 8)) == 2
+    assert int(window_start_block(first[:24], 24, 8)) == 0  # not a window: nothing skipped
+
+
+def test_a_sweep_skips_blocks_once_for_all_its_points():
+    """Under the sweep's ``vmap`` (axis `POINT_AXIS`) the start block is reduced over the
+    points, so each block is a real ``cond`` and skipped blocks cost nothing; under a plain
+    ``vmap`` the predicate would differ per point and the cond become a select."""
+    strat = make("episode", 0.1)
+    params = strat.init(jax.random.PRNGKey(0), OBS)
+    width = strat.history_length + 16
+    segment = Segment(jnp.zeros((width, 2, OBS)), jnp.zeros((width, 2, P)), jnp.zeros((width, 2), bool))
+    points = jax.tree.map(lambda v: jnp.stack([v, v]), ({"beta": jnp.asarray(0.1)}, segment))
+
+    def log_prob(hp, seg):
+        return strat.batch_log_prob(params, hp, seg).log_prob
+
+    assert "cond[" in str(jax.make_jaxpr(vmap_points(log_prob))(*points))
+    assert "cond[" not in str(jax.make_jaxpr(jax.vmap(log_prob))(*points))
 
 
 def test_history_length_reaches_back_to_the_episode_start():

@@ -155,6 +155,40 @@ def test_refiltered_segment_gradient_equals_full_episode_reference(x64, beta):
         assert np.abs(np.asarray(grad["theta"]["w"])).max() > 0
 
 
+@pytest.mark.parametrize("beta", [0.01, 0.3])
+def test_skipped_blocks_before_the_episode_start_change_nothing_kept(x64, beta):
+    """32 steps in 4 blocks of 8, an episode from step 19 (block 2): with ``start_block=2``
+    that episode's log-probabilities and the gradient of their weighted sum equal the
+    dense reference's, before and after an update, and the skipped block scores 0 with
+    variance 1. Starting at block 3, past the episode start, changes them."""
+    params, obs, a, first = problem(7, 32, resets=(19,), beta=beta)
+    weights = jnp.asarray(np.random.default_rng(8).normal(size=13))  # steps 19-31
+
+    def from_block(start):
+        def logp_fn(x, a, first, mu, w_std, action_std, beta):
+            prior = C.prior_belief(mu, w_std)
+            return E.chained_marginals(
+                prior, x, a, first, mu, w_std, action_std, beta, 8, from_prior=True, start_block=start
+            )[0]
+
+        return _weighted(logp_fn)
+
+    for point in (params, perturb(params, 9)):
+        (_, ref), grad_ref = reference_loss(point, obs, a, first, weights, beta)
+        (_, logp), grad = from_block(jnp.asarray(2))(point, obs, a, first, weights, beta)
+        np.testing.assert_allclose(logp, ref, rtol=1e-10, atol=1e-10)
+        assert_trees_close(grad, grad_ref, rtol=1e-8, atol=1e-10)
+        (_, late), _ = from_block(jnp.asarray(3))(point, obs, a, first, weights, beta)
+        assert np.max(np.abs(np.asarray(late) - np.asarray(ref))) > 1e-3
+    mu, w_std, action_std = heads(params)
+    x = trunk(params["theta"], obs)
+    logp, _, pred_var = E.chained_marginals(
+        C.prior_belief(mu, w_std), x, a, first, mu, w_std, action_std, beta, 8, start_block=jnp.asarray(2)
+    )
+    assert np.all(np.asarray(logp[8:16]) == 0.0) and np.all(np.asarray(pred_var[8:16]) == 1.0)
+    assert np.all(np.asarray(logp[16:]) != 0.0)
+
+
 def test_stored_belief_gives_the_right_values_but_not_the_thesis_gradient(x64):
     """The defect the exact forms remove, on a narrow last layer at beta = 0.01.
 

@@ -71,7 +71,12 @@ KEYS: dict[str, cli.Key] = {
         "a non-empty list of " + ", ".join(CHAINS) + ", or none",
         "long-chain rows (bench/chains.py): preset=thesis, and coherent.gradient=episode",
     ),
-    "chain_iterations": cli.Key(3, _count, "an integer >= 1", "timed PPO iterations per long-chain row"),
+    "chain_iterations": cli.Key(
+        3,
+        _count,
+        "an integer >= 1",
+        "timed PPO iterations per long-chain row (episode: rounded up to whole episode cycles)",
+    ),
     "seg_envs": cli.Key(8, _count, "an integer >= 1", "env segments in the log_prob minibatch"),
     "seg_repeats": cli.Key(10, _count, "an integer >= 1", "timed calls per log_prob measurement"),
 }

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from coherent_jax.exploration.adaptive import SigmaRule, adapt_sigma, policy_distance
-from coherent_jax.exploration.base import ActOutput, OffPolicyBehaviour, SegmentLogProb
+from coherent_jax.exploration.base import SEGMENT_AXES, ActOutput, OffPolicyBehaviour, SegmentLogProb
 from coherent_jax.exploration.chain import chain_step
 from coherent_jax.exploration.coherent_exact import MAX_BLOCK, block_size, chained_marginals
 from coherent_jax.exploration.coherent_filter import (
@@ -30,6 +30,7 @@ from coherent_jax.exploration.coherent_filter import (
 from coherent_jax.exploration.coherent_joint import segment_marginals_joint
 from coherent_jax.exploration.coherent_layer import ChainStrategy, LastLayer
 from coherent_jax.networks import augment, squash
+from coherent_jax.sweep_axis import least_point
 
 # --------------------------------------------------------------------------------------
 # The strategy: Coherent-A2C / Coherent-PPO (Algorithms 4 and 5).
@@ -82,6 +83,24 @@ def episode_history_length(episode_length: int, unroll_length: int) -> int:
     if episode_length < 1 or unroll_length < 1:
         raise ValueError(f"episode and unroll lengths must be >= 1, got {episode_length}, {unroll_length}")
     return -(-(episode_length - 1) // unroll_length) * unroll_length
+
+
+def window_start_block(first: chex.Array, history_length: int, block: int) -> chex.Array:
+    """The first block of episode-mode windows that their segments' scores depend on.
+
+    A window holds `history_length` prefix steps, then the segment; every kept step
+    conditions on its episode from that episode's start on, and the latest start at or
+    before the segment's first step (window index H; index 0 if none) is the earliest
+    any of them needs. The block holding it, at its earliest over the windows (``first``
+    [W, *b]) and over a sweep's points, so that one ``lax.cond`` per block skips the
+    blocks before it for the whole minibatch (`coherent_exact.chained_marginals`).
+    """
+    if first.shape[0] <= history_length:  # a segment without its prefix: nothing to skip
+        return jnp.zeros((), jnp.int32)
+    first = jnp.asarray(first, bool)[: history_length + 1]
+    step = jnp.arange(history_length + 1).reshape((-1,) + (1,) * (first.ndim - 1))
+    starts = jnp.max(jnp.where(first, step, 0), axis=0)
+    return least_point(jnp.min(starts) // block)
 
 
 class CoherentExploration(ChainStrategy):
@@ -296,13 +315,19 @@ class CoherentExploration(ChainStrategy):
         return logp, carry._replace(mean=mean, cov=cov)
 
     # ------------------------------------------------------------------ loss
-    def log_prob(self, params, hparams, segment):
+    def log_prob(self, params, hparams, segment, start_block=None):
+        """`OnPolicyStrategy.log_prob`; with ``gradient="episode"``, of one window, its blocks
+        before ``start_block`` skipped (default: its own `window_start_block`)."""
         segment.check()
         actions = segment.action
         mu, w_std, action_std = self._head(params, hparams)
         x = self.layer.features(params, segment.obs)
         if self.gradient == "episode":
-            return self._window_log_prob(x, actions, segment.first, mu, w_std, action_std, hparams["beta"])
+            if start_block is None:
+                start_block = window_start_block(segment.first, self.history_length, self.block)
+            return self._window_log_prob(
+                x, actions, segment.first, mu, w_std, action_std, hparams["beta"], start_block
+            )
         # The stored belief is a constant of the data (like a stored RNN state); its
         # mapping onto the current mu and w_std is not.
         # With gradient="exact" a segment's chain starts at its first step, so the
@@ -313,12 +338,21 @@ class CoherentExploration(ChainStrategy):
         logp, _, pred_var = self._score(belief0, x, actions, first, mu, w_std, action_std, hparams["beta"])
         return SegmentLogProb(logp, predictive_entropy(pred_var))
 
-    def _window_log_prob(self, x, actions, first, mu, w_std, action_std, beta) -> SegmentLogProb:
+    def batch_log_prob(self, params, hparams, segment):
+        if self.gradient != "episode":
+            return super().batch_log_prob(params, hparams, segment)
+        # One start block for the minibatch: the blocks before every window's episode start are skipped.
+        start = window_start_block(segment.first, self.history_length, self.block)
+        per_segment = jax.vmap(self.log_prob, in_axes=(None, None, SEGMENT_AXES, None), out_axes=1)
+        return per_segment(params, hparams, segment, start)
+
+    def _window_log_prob(self, x, actions, first, mu, w_std, action_std, beta, start) -> SegmentLogProb:
         """``gradient="episode"``: a window of `history_length` prefix steps and a segment,
         scored from the prior at its first step as blocks of the joint form chained by
         differentiable beliefs (`coherent_exact.chained_marginals`). The window always
-        reaches back to the segment's episode start, which resets the belief there (4.33),
-        so every earlier step only costs time; the trainer reads the last T steps."""
+        reaches back to the segment's episode start, which resets the belief there (4.33);
+        the blocks before ``start`` (`window_start_block`) are skipped, as nothing kept
+        depends on them. The trainer reads the last T steps."""
         first = jnp.asarray(first, bool).at[0].set(True)
         prior = prior_belief(mu, w_std)
         logp, _, pred_var = chained_marginals(
@@ -333,6 +367,7 @@ class CoherentExploration(ChainStrategy):
             self.block,
             from_prior=True,
             remat=self.remat,
+            start_block=start,
         )
         return SegmentLogProb(logp, predictive_entropy(pred_var))
 

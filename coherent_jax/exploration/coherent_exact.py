@@ -56,6 +56,7 @@ def chained_marginals(
     block: int | None = None,
     from_prior: bool = False,
     remat: bool = False,
+    start_block: chex.Array | None = None,
 ) -> tuple[chex.Array, Belief, chex.Array]:
     """`coherent_filter.segment_marginals` over T steps, as blocks of the joint form chained by beliefs.
 
@@ -87,6 +88,13 @@ def chained_marginals(
       from_prior: the segment starts an episode (``belief0`` unused); the first block
         then skips the stored belief's terms (`segment_marginals_joint`).
       remat: ``jax.checkpoint`` each block (static).
+      start_block: an integer scalar k0, or None. Block 0 is always scored; blocks
+        1 .. k0 - 1 are skipped: the belief passes through them unchanged, their logp
+        are 0 and their variances 1. Only right where every step that is kept
+        conditions on nothing before block k0, i.e. each kept step's episode starts at
+        or after step k0 B (the episode mode's windows, `coherent.window_start_block`).
+        A ``jax.lax.cond`` per block, so a k0 that is the same for a whole batch skips
+        its work; under ``vmap`` over k0 both branches run.
 
     Returns:
       (logp [T], the belief over w_T before a_T, the predictive variances s [T, p]).
@@ -107,16 +115,26 @@ def chained_marginals(
     def split(v):
         return v[block:].reshape((num_blocks - 1, block) + v.shape[1:])
 
-    def body(belief, inputs):
-        x_k, a_k, first_k = inputs
+    def score(belief, x_k, a_k, first_k):
         logp, belief, pred_var = segment_marginals_joint(
             belief, x_k, a_k, first_k, mu, w_std, action_std, beta
         )
         return belief, (logp, pred_var)
 
+    def skip(belief, x_k, a_k, first_k):
+        del x_k, a_k, first_k
+        return belief, (jnp.zeros_like(logp0), jnp.ones_like(pred_var0))
+
+    def body(belief, inputs):
+        k, x_k, a_k, first_k = inputs
+        if start_block is None:
+            return score(belief, x_k, a_k, first_k)
+        return jax.lax.cond(k >= start_block, score, skip, belief, x_k, a_k, first_k)
+
     # The belief is the only state passed between blocks; with remat the backward pass
     # recomputes each block's [p, B, B] factor from it instead of keeping all of them.
     body = jax.checkpoint(body) if remat else body
-    final, (logp, pred_var) = jax.lax.scan(body, belief1, (split(x), split(a), split(first)))
+    index = jnp.arange(1, num_blocks)
+    final, (logp, pred_var) = jax.lax.scan(body, belief1, (index, split(x), split(a), split(first)))
     logp = jnp.concatenate([logp0, logp.reshape(-1)])
     return logp, final, jnp.concatenate([pred_var0, pred_var.reshape(-1, pred_var0.shape[-1])])
