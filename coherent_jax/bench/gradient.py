@@ -21,7 +21,9 @@ The modes, as the trainer runs them:
 * ``exact`` (``coherent.gradient=exact``, the default): the segment scored from the prior;
   exact for the ``segment`` reference (the process whose chain is cut at every segment);
 * ``episode`` (``coherent.gradient=episode``): the strategy's `log_prob` of the window of
-  prefix and segment that the trainer hands its loss; exact for the ``episode`` reference;
+  prefix and segment that the trainer hands its loss (for episodes of the longest history
+  and a segment, padded in front: a shorter history's window skips its padded blocks, as
+  the trainer skips those before an episode's start); exact for the ``episode`` reference;
 * ``stored`` (``coherent.gradient=stored``): the belief at the segment start inferred at
   collection, held fixed in standardised coordinates and mapped onto the current mu and
   w_std; exact for neither once the segment has a history.
@@ -126,21 +128,24 @@ class _Forms:
     def __init__(self, settings: dict[str, Any]) -> None:
         self.settings = settings
         self.p, self.q, self.seg = settings["p"], settings["q"], settings["segment"]
-        self.strategies: dict[int, Any] = {}
+        self._strategy = None
 
-    def strategy(self, history: int):
-        """The trainer's coherent strategy in episode mode, for episodes of history + segment steps."""
+    def strategy(self):
+        """The trainer's coherent strategy in episode mode, for episodes as long as the longest
+        history and a segment: every case's window has that episode's length, as a trainer's
+        windows do, and the blocks before a shorter episode's start are skipped as there."""
         from coherent_jax.exploration import coherent as C
 
-        if history not in self.strategies:
-            self.strategies[history] = C.CoherentExploration(
+        if self._strategy is None:
+            longest = max(self.settings["histories"]) + self.seg
+            self._strategy = C.CoherentExploration(
                 self.p, [self.q], "tanh", 0.0, self.settings["w_std"], self.settings["action_std"],
-                gradient="episode", episode_length=history + self.seg, unroll_length=self.seg,
+                gradient="episode", episode_length=longest, unroll_length=self.seg,
             )  # fmt: skip
-        return self.strategies[history]
+        return self._strategy
 
     def trunk(self, params, obs):
-        return self.strategy(0).layer.features(params, obs)
+        return self.strategy().layer.features(params, obs)
 
     def heads(self, params):
         import jax.numpy as jnp
@@ -189,7 +194,7 @@ class _Forms:
 
         del params0
         p, seg = self.p, self.seg
-        strat = self.strategy(obs.shape[0] - seg)
+        strat = self.strategy()
         pad = strat.history_length + seg - obs.shape[0]
         first = jnp.concatenate([jnp.ones(pad, bool), jnp.zeros(obs.shape[0], bool)])
         w_obs = jnp.concatenate([jnp.zeros((pad, obs.shape[1]), obs.dtype), obs])
@@ -271,7 +276,7 @@ def _case(settings: dict[str, Any], forms: _Forms, history: int, beta: float):
     rng = np.random.default_rng([settings["seed"], history, int(beta * 1e6)])
     num_steps = history + seg
     obs = np.cumsum(rng.normal(size=(num_steps, settings["obs_size"])), axis=0) * 0.1
-    init = forms.strategy(0).init(jax.random.PRNGKey(settings["seed"]), settings["obs_size"])
+    init = forms.strategy().init(jax.random.PRNGKey(settings["seed"]), settings["obs_size"])
     params0 = {
         "trunk": jax.tree.map(lambda v: np.asarray(v, np.float64), init["trunk"]),
         "mu": rng.normal(size=(p, q + 1)) * 0.1,
