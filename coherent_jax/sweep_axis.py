@@ -33,17 +33,14 @@ def any_point(pred: jax.Array) -> jax.Array:
         return pred
 
 
-def all_points(pred: jax.Array) -> jax.Array:
-    """``pred`` (a boolean scalar) true at every point of the sweep being traced."""
-    try:
-        return jax.lax.pmin(pred, POINT_AXIS)
-    except NameError:
-        return pred
-
-
 def least_point(value: jax.Array) -> jax.Array:
-    """``value`` (an integer scalar) at its smallest over the sweep being traced."""
+    """``value`` (a scalar) at its smallest over the sweep being traced."""
     try:
         return jax.lax.pmin(value, POINT_AXIS)
-    except NameError:
+    except NameError:  # not inside a sweep's vmap
         return value
+
+
+def all_points(pred: jax.Array) -> jax.Array:
+    """``pred`` (a boolean scalar) true at every point of the sweep being traced: its least value."""
+    return least_point(pred)

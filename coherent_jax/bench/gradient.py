@@ -126,26 +126,21 @@ class _Forms:
     ``(params, obs, a, beta, params0)`` for the settings' ``p``, ``q`` and ``segment``."""
 
     def __init__(self, settings: dict[str, Any]) -> None:
-        self.settings = settings
-        self.p, self.q, self.seg = settings["p"], settings["q"], settings["segment"]
-        self._strategy = None
-
-    def strategy(self):
-        """The trainer's coherent strategy in episode mode, for episodes as long as the longest
-        history and a segment: every case's window has that episode's length, as a trainer's
-        windows do, and the blocks before a shorter episode's start are skipped as there."""
         from coherent_jax.exploration import coherent as C
 
-        if self._strategy is None:
-            longest = max(self.settings["histories"]) + self.seg
-            self._strategy = C.CoherentExploration(
-                self.p, [self.q], "tanh", 0.0, self.settings["w_std"], self.settings["action_std"],
-                gradient="episode", episode_length=longest, unroll_length=self.seg,
-            )  # fmt: skip
-        return self._strategy
+        self.settings = settings
+        self.p, self.q, self.seg = settings["p"], settings["q"], settings["segment"]
+        # The trainer's coherent strategy in episode mode, for episodes of the longest history
+        # and a segment: every case's window has that episode's length, as a trainer's windows
+        # do, and the blocks before a shorter episode's start are skipped as there.
+        self.strategy = C.CoherentExploration(
+            self.p, [self.q], "tanh", 0.0, settings["w_std"], settings["action_std"],
+            gradient="episode", episode_length=max(settings["histories"]) + self.seg,
+            unroll_length=self.seg,
+        )  # fmt: skip
 
     def trunk(self, params, obs):
-        return self.strategy().layer.features(params, obs)
+        return self.strategy.layer.features(params, obs)
 
     def heads(self, params):
         import jax.numpy as jnp
@@ -194,7 +189,7 @@ class _Forms:
 
         del params0
         p, seg = self.p, self.seg
-        strat = self.strategy()
+        strat = self.strategy
         pad = strat.history_length + seg - obs.shape[0]
         first = jnp.concatenate([jnp.ones(pad, bool), jnp.zeros(obs.shape[0], bool)])
         w_obs = jnp.concatenate([jnp.zeros((pad, obs.shape[1]), obs.dtype), obs])
@@ -276,7 +271,7 @@ def _case(settings: dict[str, Any], forms: _Forms, history: int, beta: float):
     rng = np.random.default_rng([settings["seed"], history, int(beta * 1e6)])
     num_steps = history + seg
     obs = np.cumsum(rng.normal(size=(num_steps, settings["obs_size"])), axis=0) * 0.1
-    init = forms.strategy().init(jax.random.PRNGKey(settings["seed"]), settings["obs_size"])
+    init = forms.strategy.init(jax.random.PRNGKey(settings["seed"]), settings["obs_size"])
     params0 = {
         "trunk": jax.tree.map(lambda v: np.asarray(v, np.float64), init["trunk"]),
         "mu": rng.normal(size=(p, q + 1)) * 0.1,
