@@ -319,11 +319,14 @@ def sweep_job(plan: SweepPlan, out_dir: Path | None, env=None, eval_env=None) ->
 
 
 def point_summaries(plan: SweepPlan, out: Outcome, common: dict[str, Any]) -> list[dict[str, Any]]:
-    """Each point's ``summary.json``: its settings and final returns (None for a diverged point)."""
+    """Each point's ``summary.json``: its settings and final returns (None for a diverged point;
+    the evaluation's None too for a sweep stopped before its first evaluation)."""
     cfg = plan.base
+    evals = out.last_eval.get("eval/episode_return"), out.last_eval.get("eval/episode_return_std")
     summaries = []
     for j, p in enumerate(plan.points):
         ok = j not in out.diverged
+        final_eval, final_eval_std = (None if v is None or not ok else to_float(v[j]) for v in evals)
         summaries.append(
             {
                 "point": p.index,
@@ -333,10 +336,8 @@ def point_summaries(plan: SweepPlan, out: Outcome, common: dict[str, Any]) -> li
                 "env": cfg.env,
                 "algo": cfg.algo,
                 "explore": cfg.explore,
-                "final_eval_return": to_float(out.last_eval["eval/episode_return"][j]) if ok else None,
-                "final_eval_return_std": to_float(out.last_eval["eval/episode_return_std"][j])
-                if ok
-                else None,
+                "final_eval_return": final_eval,
+                "final_eval_return_std": final_eval_std,
                 "final_train_return": to_float(out.last_return[j]) if ok else None,
                 "diverged": out.diverged.get(j),
                 **common,

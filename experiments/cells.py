@@ -1,5 +1,6 @@
 """A cell of the reproduction (`reproduce.py`): its specification, where its results
-live, and their state (done, running, stopped or missing) with the compute still needed.
+live, their state (done, running, stopped, carried or missing) with the compute still
+needed, and the sweep that runs it.
 
 A cell's directory is ``RESULTS/SUITE/CELL/``: ``cell.json`` (its specification and
 fingerprint), ``sweep/`` (the sweep's directory: ``sweep.json`` once finished, one run
@@ -13,11 +14,17 @@ import hashlib
 import json
 import os
 import statistics
+import subprocess
+import sys
+import time
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-from curves import point_dirs as _point_dirs  # beside this file (reproduce.py puts it on sys.path)
+import carry  # beside this file (reproduce.py puts it on sys.path)
+from curves import point_dirs as _point_dirs
+
+from coherent_jax.config import modern_items
 
 SPEC_VERSION = 1  # bump when the meaning of a cell's overrides changes
 
@@ -128,7 +135,8 @@ def _pid_alive(pid: int) -> bool:
 
 
 def cell_state(cell: Cell, results: Path) -> str:
-    """done | running | stopped | missing."""
+    """done | running | stopped | carried | missing (carried: stopped elsewhere, its state in
+    the cell's carry file, `carry`)."""
     d = cell_dir(cell, results)
     if (d / "sweep" / "sweep.json").exists():
         return "done"
@@ -139,7 +147,9 @@ def cell_state(cell: Cell, results: Path) -> str:
                 return "running"
         except (ValueError, IndexError, OSError):
             pass
-    return "stopped" if (d / "sweep").exists() else "missing"
+    if (d / "sweep").exists():
+        return "stopped"
+    return "carried" if carry.carry_path(d).is_file() else "missing"
 
 
 def progress(cell: Cell, results: Path) -> tuple[float, float | None]:
@@ -147,12 +157,15 @@ def progress(cell: Cell, results: Path) -> tuple[float, float | None]:
     sweep = cell_dir(cell, results) / "sweep"
     if (sweep / "sweep.json").exists():
         return 1.0, _measured_rate(sweep)
+    if sweep.exists():
+        logs = (p / "metrics.jsonl" for p in _point_dirs(sweep))
+        texts = [f.read_text() for f in logs if f.exists()]
+    else:  # a carried cell's logs are in its carry file
+        texts = [b.decode() for b in carry.carried_metrics(sweep.parent).values()]
     done = 0
-    for point in _point_dirs(sweep):
-        rows = point / "metrics.jsonl"
-        if rows.exists():
-            lines = [json.loads(x) for x in rows.read_text().splitlines() if x.strip()]
-            done += max((r.get("env_steps", 0) for r in lines), default=0)
+    for text in texts:
+        lines = [json.loads(x) for x in text.splitlines() if x.strip()]
+        done += max((r.get("env_steps", 0) for r in lines), default=0)
     return (done / cell.env_steps if cell.env_steps else 0.0), None
 
 
@@ -245,3 +258,49 @@ def status(cells: Iterable[Cell], results: Path) -> str:
         f"total still needed: ~{left / 3600:.1f} h on this machine (estimates until a cell finishes)"
     )
     return "\n".join(lines)
+
+
+# ------------------------------------------------------------------ running a cell
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def sweep_command(cell: Cell, results: Path) -> list[str]:
+    sweep = cell_dir(cell, results) / "sweep"
+    if sweep.exists():
+        return [sys.executable, "-m", "coherent_jax.sweep", f"resume={sweep}"]
+    # A cell's specification keeps the flat keys it was defined with (its fingerprint, and so
+    # its results, stay valid); the sweep is given their grouped names, with no note.
+    return [
+        sys.executable,
+        "-m",
+        "coherent_jax.sweep",
+        *modern_items(cell.overrides, note=False),
+        f"seeds={cell.seeds}",
+        f"run_dir={sweep}",
+    ]
+
+
+def run_cell(cell: Cell, results: Path, log=print) -> int:
+    d = cell_dir(cell, results)
+    check_cell_dir(cell, results)
+    d.mkdir(parents=True, exist_ok=True)
+    carry.unpack(d)  # a cell carried from elsewhere continues from its checkpoint
+    record = {
+        "spec": cell.spec(),
+        "fingerprint": cell.fingerprint,
+        "command": " ".join(sweep_command(cell, results)),
+    }
+    if not (d / "cell.json").exists():
+        (d / "cell.json").write_text(json.dumps(record, indent=2) + "\n")
+    (d / "running.pid").write_text(f"{os.getpid()}\n")
+    cmd = sweep_command(cell, results)
+    log(f"[reproduce] {cell.suite} {cell.name}: {' '.join(cmd[1:])}")
+    t0 = time.time()
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    try:
+        with open(d / "run.log", "a") as out:
+            code = subprocess.call(cmd, stdout=out, stderr=subprocess.STDOUT, cwd=ROOT, env=env)
+    finally:
+        (d / "running.pid").unlink(missing_ok=True)
+    log(f"[reproduce] {cell.name}: exit {code} after {time.time() - t0:.0f} s")
+    return code

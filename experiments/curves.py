@@ -47,6 +47,7 @@ LOG = "metrics.jsonl"
 # The small files of a cell that git keeps, beside its suite's table.
 CELL_FILES = ("cell.json",)
 SWEEP_FILES = ("config.yaml", "grid.json", "sweep.csv", "sweep.json", "versions.json")
+RESUMED_VERSIONS = "versions-resumed-*.json"
 POINT_FILES = ("config.yaml", "summary.json")
 
 Row = tuple[str, str, int, float | None, float | None]  # cell, point, env steps, *METRICS
@@ -195,9 +196,11 @@ def build(results: Path, suite: str) -> Path:
 
 def committed_files(cell: Path, table: Path) -> list[Path]:
     """What git keeps of the finished cell in directory `cell`: its small files (`CELL_FILES`,
-    `SWEEP_FILES`, each point's `POINT_FILES`) and its suite's `table`, those that exist."""
+    `SWEEP_FILES`, `RESUMED_VERSIONS`, each point's `POINT_FILES`) and its suite's `table`,
+    those that exist."""
     sweep = cell / "sweep"
     files = [cell / f for f in CELL_FILES] + [sweep / f for f in SWEEP_FILES]
+    files += sorted(sweep.glob(RESUMED_VERSIONS))  # a cell resumed on another machine or commit
     files += [point / f for point in point_dirs(sweep) for f in POINT_FILES]
     return [f for f in [*files, table] if f.is_file()]
 

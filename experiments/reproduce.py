@@ -19,12 +19,16 @@ clone, is done.
 Cells are resumable: a cell whose sweep finished is never recomputed, one that was
 stopped or killed continues from its checkpoint (``resume=``), and a results directory
 written for another version of the cell's specification is refused rather than mixed
-in. ``--status`` prints, for each cell, whether it is done, running, stopped or
-missing, and the compute it still needs.
+in. ``--status`` prints, for each cell, whether it is done, running, stopped, carried or
+missing, and the compute it still needs. ``--pack`` writes each stopped cell's state
+to its ``carry.tar.gz`` (`carry`), which git keeps, so that a clone elsewhere continues
+it: a cell longer than a machine is kept still finishes (stop it with SIGTERM first,
+which checkpoints it).
 
     python experiments/reproduce.py thesis --status
     nohup python experiments/reproduce.py thesis > reproduce-thesis.log 2>&1 &
     python experiments/reproduce.py ablations --cells 'halfcheetah/ppo/*'
+    python experiments/reproduce.py protocol --pack --commit
 
 Exit status: 0 when every selected cell is done, 1 when a cell's sweep failed,
 2 for bad input (an unknown suite or cell, a refused results directory).
@@ -34,11 +38,8 @@ from __future__ import annotations
 
 import argparse
 import fnmatch
-import json
-import os
 import subprocess
 import sys
-import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -47,6 +48,7 @@ from pathlib import Path
 # results are made and tabulated by its own code, as its cells' subprocesses are).
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT / "experiments"), str(ROOT)]
+import carry  # noqa: E402
 import curves  # noqa: E402
 from cells import (  # noqa: E402, F401  (re-exported: the state of a cell is read as reproduce.X)
     DEFAULT_RATE,
@@ -64,10 +66,10 @@ from cells import (  # noqa: E402, F401  (re-exported: the state of a cell is re
     check_cell_dir,
     estimated_seconds,
     progress,
+    run_cell,
     status,
+    sweep_command,
 )
-
-from coherent_jax.config import modern_items  # noqa: E402
 
 RESULTS = ROOT / "experiments" / "results"
 
@@ -367,58 +369,44 @@ def select(suite: str, patterns: Sequence[str]) -> list[Cell]:
 
 
 # ------------------------------------------------------------------ running a cell
-def sweep_command(cell: Cell, results: Path) -> list[str]:
-    sweep = cell_dir(cell, results) / "sweep"
-    if sweep.exists():
-        return [sys.executable, "-m", "coherent_jax.sweep", f"resume={sweep}"]
-    # A cell's specification keeps the flat keys it was defined with (its fingerprint, and so
-    # its results, stay valid); the sweep is given their grouped names, with no note.
-    return [
-        sys.executable,
-        "-m",
-        "coherent_jax.sweep",
-        *modern_items(cell.overrides, note=False),
-        f"seeds={cell.seeds}",
-        f"run_dir={sweep}",
-    ]
-
-
-def run_cell(cell: Cell, results: Path, log=print) -> int:
-    d = cell_dir(cell, results)
-    check_cell_dir(cell, results)
-    d.mkdir(parents=True, exist_ok=True)
-    record = {
-        "spec": cell.spec(),
-        "fingerprint": cell.fingerprint,
-        "command": " ".join(sweep_command(cell, results)),
-    }
-    if not (d / "cell.json").exists():
-        (d / "cell.json").write_text(json.dumps(record, indent=2) + "\n")
-    (d / "running.pid").write_text(f"{os.getpid()}\n")
-    cmd = sweep_command(cell, results)
-    log(f"[reproduce] {cell.suite} {cell.name}: {' '.join(cmd[1:])}")
-    t0 = time.time()
-    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    try:
-        with open(d / "run.log", "a") as out:
-            code = subprocess.call(cmd, stdout=out, stderr=subprocess.STDOUT, cwd=ROOT, env=env)
-    finally:
-        (d / "running.pid").unlink(missing_ok=True)
-    log(f"[reproduce] {cell.name}: exit {code} after {time.time() - t0:.0f} s")
-    return code
-
-
 def commit_cell(cell: Cell, results: Path) -> None:
     """Commits a finished cell's compact results: its suite's curves table, updated from the
     cell's per-seed logs, and the cell's small files (`curves.committed_files`). The logs
     themselves stay local (experiments/results/.gitignore)."""
     table = curves.update_table(results, cell.suite, [cell.name])
     files = [str(f) for f in curves.committed_files(cell_dir(cell, results), table)]
+    files += carry.drop(cell_dir(cell, results), ROOT)
+    _git_commit(files, f"results: {cell.suite} {cell.name}")
+
+
+def _git_commit(files: Sequence[str], message: str) -> None:
     subprocess.run(["git", "-C", str(ROOT), "add", "--", *files], check=True)
-    subprocess.run(
-        ["git", "-C", str(ROOT), "commit", "-q", "-m", f"results: {cell.suite} {cell.name}", "--", *files],
-        check=False,
-    )
+    subprocess.run(["git", "-C", str(ROOT), "commit", "-q", "-m", message, "--", *files], check=False)
+
+
+def pack_cells(cells: Sequence[Cell], results: Path, commit: bool) -> int:
+    """``--pack``: each stopped cell's carry file; none if a selected cell is running."""
+    running = [c.name for c in cells if cell_state(c, results) == "running"]
+    if running:
+        print(
+            f"error: cell {running[0]!r} is running (allowed: stopped cells; SIGTERM checkpoints it)",
+            file=sys.stderr,
+        )
+        return 2
+    packed = []
+    for cell in (c for c in cells if cell_state(c, results) == "stopped"):
+        try:
+            packed.append(str(carry.pack(cell_dir(cell, results))))
+        except carry.CarryError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        size = Path(packed[-1]).stat().st_size / 1e6
+        print(
+            f"[reproduce] {cell.name}: {100 * progress(cell, results)[0]:.1f}% done, packed in {size:.2f} MB"
+        )
+    if commit and packed:
+        _git_commit(packed, f"results: carry {len(packed)} stopped cells of {cells[0].suite}")
+    return 0
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -430,9 +418,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--cells", nargs="*", default=[], help="only cells whose name matches (glob)")
     parser.add_argument("--results", default=str(RESULTS), help="results directory")
     parser.add_argument(
+        "--pack",
+        action="store_true",
+        help="write each stopped cell's carry.tar.gz (its checkpoint and logs, for git) and exit",
+    )
+    parser.add_argument(
         "--commit",
         action="store_true",
-        help="git-commit each cell's compact results (small files, suite's curves table) when it finishes",
+        help="git-commit each cell's compact results (small files, suite's curves table) when it "
+        "finishes, or with --pack the carry files",
     )
     args = parser.parse_args(argv)
     results = Path(args.results).resolve()
@@ -451,6 +445,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.status:
         print(status(cells, results))
         return 0
+    if args.pack:
+        return pack_cells(cells, results, args.commit)
     failed = []
     for cell in cells:
         state = cell_state(cell, results)

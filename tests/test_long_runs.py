@@ -6,6 +6,7 @@ kill is a real SIGKILL of a training subprocess.
 
 import hashlib
 import json
+import shutil
 import signal
 import subprocess
 import sys
@@ -13,7 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import child_env
+from helpers import child_env, load_experiment
 
 from coherent_jax.config import parse_overrides
 from coherent_jax.runs import (
@@ -169,6 +170,49 @@ def test_sigterm_stops_after_the_iteration_with_a_checkpoint(tmp_path):
     ckpt = decode_checkpoint(run / CHECKPOINT, parse_overrides(args))
     assert ckpt.iteration == rows[-1]["iteration"] == len(rows) < 150
     assert not (run / "summary.json").exists() and not (run / "params.msgpack").exists()
+
+
+@pytest.mark.slow
+def test_a_sweep_stopped_before_its_first_evaluation_and_carried_resumes_to_the_uninterrupted_one(tmp_path):
+    """SIGTERM to a vmapped sweep before any evaluation: exit 128+15 with no traceback and no
+    sweep.json. Carried as experiments/reproduce.py carries a cell to another checkout (packed,
+    the sweep directory deleted, unpacked) and resumed, every point's metrics equal those of a
+    sweep never stopped."""
+    carry = load_experiment("carry")
+    cell = tmp_path / "cell"
+    sweep = cell / "sweep"
+    args = [*(a for a in LONG if not a.startswith(("eval_every=", "checkpoint_every="))), "seeds=2"]
+    args += ["eval_every=1000", "checkpoint_every=1000"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "coherent_jax.sweep", *args, f"run_dir={sweep}"],
+        cwd=tmp_path,
+        env=child_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    points = ("p000-seed=5", "p001-seed=6")  # LONG: seed=5
+    wait_for_rows(proc, sweep / points[0] / "metrics.jsonl", 5)
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert "Traceback" not in err and "stopped by SIGTERM" in out, err
+    rows = read_metrics(sweep / points[0] / "metrics.jsonl")
+    assert 5 <= len(rows) < 150 and not any("eval/episode_return" in r for r in rows)
+    assert not (sweep / "sweep.json").exists()
+    carry.pack(cell)
+    shutil.rmtree(sweep)
+    assert carry.unpack(cell)
+
+    from coherent_jax.sweep import main as sweep_main
+
+    assert sweep_main([f"resume={sweep}"]) == 0
+    ref = tmp_path / "ref"
+    assert sweep_main([*args, f"run_dir={ref}"]) == 0
+    for point in points:
+        resumed = strip_times(read_metrics(sweep / point / "metrics.jsonl"))
+        assert len(resumed) == 150 and resumed == strip_times(read_metrics(ref / point / "metrics.jsonl"))
+        assert json.loads((sweep / point / "summary.json").read_text())["final_eval_return"] is not None
 
 
 def test_divergence_stops_naming_iteration_and_quantity(tmp_path, capsys):
