@@ -457,8 +457,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             failed.append(cell.name)
         elif args.commit:
             commit_cell(cell, results)
-        else:  # the suite's table all the same, for whoever commits the results later
+        else:  # the suite's table all the same, for whoever commits the results later; no carry file
             curves.update_table(results, cell.suite, [cell.name])
+            carry.drop(cell_dir(cell, results), ROOT)
     print(status(cells, results))
     if failed:
         print(f"[reproduce] failed: {', '.join(failed)} (see their run.log)", file=sys.stderr)

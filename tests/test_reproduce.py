@@ -334,6 +334,27 @@ def test_pack_refuses_a_running_cell_and_packs_none(tmp_path, capsys):
     assert (a / "carry.tar.gz").exists() and (b / "carry.tar.gz").exists()
 
 
+def test_a_carried_cell_is_unpacked_before_its_sweep_resumes_and_its_carry_file_goes(tmp_path, monkeypatch):
+    carry = load_experiment("carry")
+    (cell,) = reproduce.select("protocol", ["hopper/a2c/action-thesis"])
+    d = _stopped_cell_with_a_checkpoint(cell, tmp_path)
+    carry.pack(d)
+    shutil.rmtree(d / "sweep")
+    seen = []
+
+    def finishing_sweep(c, results):  # stands for `resume=`: records what it found, then finishes
+        sweep = reproduce.cell_dir(c, results) / "sweep"
+        seen.append(sorted(p.name for p in sweep.iterdir()))
+        code = f"import pathlib; pathlib.Path({str(sweep / 'sweep.json')!r}).write_text('{{}}')"
+        return [sys.executable, "-c", code]
+
+    monkeypatch.setattr(sys.modules["cells"], "sweep_command", finishing_sweep)
+    monkeypatch.setattr(reproduce.curves, "update_table", lambda *a: None)
+    assert reproduce.main(["protocol", "--cells", cell.name, "--results", str(tmp_path)]) == 0
+    assert seen and "checkpoint.msgpack" in seen[0] and "seed=0" in seen[0]
+    assert reproduce.cell_state(cell, tmp_path) == "done" and not carry.carry_path(d).exists()
+
+
 def test_results_of_another_specification_are_refused(tmp_path):
     cell = reproduce.select("thesis", ["hopper/ppo/action"])[0]
     d = _fake_sweep(cell, tmp_path, finished=False)
