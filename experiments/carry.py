@@ -76,10 +76,15 @@ def pack(cell_dir: Path, max_bytes: int = MAX_BYTES) -> Path:
         raise CarryError(f"cell {str(cell_dir)!r} has finished (allowed: a stopped cell)")
     if not (sweep / "checkpoint.msgpack").is_file():
         raise CarryError(f"cell {str(cell_dir)!r} has no checkpoint to carry (allowed: a stopped cell)")
-    data = _archive(sweep, carried_files(sweep))
-    if len(data) > max_bytes:
+    files = carried_files(sweep)
+    # Checkpoints are float32 arrays, which gzip shrinks little: twice the limit unpacked
+    # is refused before the archive is built (an SAC cell's is hundreds of MB).
+    raw = sum(f.stat().st_size for f in files)
+    data = _archive(sweep, files) if raw <= 2 * max_bytes else None
+    if data is None or len(data) > max_bytes:
+        size = f"packs to {len(data) / 2**20:.1f} MB" if data else f"holds {raw / 2**20:.0f} MB to pack"
         raise CarryError(
-            f"cell {str(cell_dir)!r} packs to {len(data) / 2**20:.1f} MB "
+            f"cell {str(cell_dir)!r} {size} "
             f"(allowed: at most {max_bytes / 2**20:.0f} MB; an SAC cell carries its replay buffer)"
         )
     target = carry_path(cell_dir)

@@ -385,7 +385,8 @@ def _git_commit(files: Sequence[str], message: str) -> None:
 
 
 def pack_cells(cells: Sequence[Cell], results: Path, commit: bool) -> int:
-    """``--pack``: each stopped cell's carry file; none if a selected cell is running."""
+    """``--pack``: each stopped cell's carry file; none if a selected cell is running (exit 2).
+    A cell that cannot be carried (too large: SAC) is named and passed over (exit 1)."""
     running = [c.name for c in cells if cell_state(c, results) == "running"]
     if running:
         print(
@@ -393,20 +394,21 @@ def pack_cells(cells: Sequence[Cell], results: Path, commit: bool) -> int:
             file=sys.stderr,
         )
         return 2
-    packed = []
+    packed, failed = [], 0
     for cell in (c for c in cells if cell_state(c, results) == "stopped"):
         try:
             packed.append(str(carry.pack(cell_dir(cell, results))))
         except carry.CarryError as exc:
             print(f"error: {exc}", file=sys.stderr)
-            return 2
+            failed += 1
+            continue
         size = Path(packed[-1]).stat().st_size / 1e6
         print(
             f"[reproduce] {cell.name}: {100 * progress(cell, results)[0]:.1f}% done, packed in {size:.2f} MB"
         )
     if commit and packed:
         _git_commit(packed, f"results: carry {len(packed)} stopped cells of {cells[0].suite}")
-    return 0
+    return 1 if failed else 0
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -290,7 +290,7 @@ def test_a_stopped_cell_is_carried_by_its_packed_state_and_unpacked_whole(tmp_pa
     assert any(a.startswith("resume=") for a in reproduce.sweep_command(stopped, tmp_path))
     # Refused, leaving the carry file as it was: a pack over the limit, a finished cell.
     with pytest.raises(carry.CarryError, match=r"packs to .* MB \(allowed: at most"):
-        carry.pack(d, max_bytes=1000)
+        carry.pack(d, max_bytes=3000)  # 4.2 kB of files, 4.6 kB packed
     assert path.read_bytes() == first
     e = _fake_sweep(finished, tmp_path, finished=True)
     with pytest.raises(carry.CarryError, match="has finished"):
@@ -332,6 +332,18 @@ def test_pack_refuses_a_running_cell_and_packs_none(tmp_path, capsys):
     (b / "running.pid").unlink()
     assert reproduce.main(args) == 0
     assert (a / "carry.tar.gz").exists() and (b / "carry.tar.gz").exists()
+    # A cell too large to carry (as an SAC checkpoint with its replay buffer) is named and
+    # passed over, before its archive is built; the others are packed.
+    carry = sys.modules["carry"]
+    (b / "carry.tar.gz").unlink()
+    big = b / "sweep" / "checkpoint.msgpack"
+    with open(big, "r+b") as f:
+        f.truncate(2 * carry.MAX_BYTES + 1)
+    (a / "carry.tar.gz").unlink()
+    assert reproduce.main(args) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "psne-thesis' holds 32 MB to pack (allowed: at most 16 MB" in err[0], err
+    assert (a / "carry.tar.gz").exists() and not (b / "carry.tar.gz").exists()
 
 
 def test_a_carried_cell_is_unpacked_before_its_sweep_resumes_and_its_carry_file_goes(tmp_path, monkeypatch):
