@@ -1,8 +1,11 @@
 """Where a run's numbers came from, beside the package versions of ``versions.json``.
 
 * ``git_commit``, ``git_dirty``: the commit of the checkout this package was imported
-  from, and whether its tracked files differed from it (untracked files do not count);
-  both null outside a git checkout of the project (an installed wheel, no ``git``).
+  from, and whether its tracked files differed from it. Untracked files do not count,
+  nor do the results under `RESULTS_DATA` (experiments/results/): a suite updates its
+  committed curves as each cell finishes, before they are committed, and that is data,
+  not code. Both null outside a git checkout of the project (an installed wheel, no
+  ``git``).
 * ``cpu_model``: the processor's name (``model name`` of ``/proc/cpuinfo``, else
   `platform.processor`).
 * ``cpu_vector_isa``: the widest vector extension the CPU reports (``avx512f``, ``avx2``,
@@ -22,6 +25,8 @@ from typing import Any
 # Widest first: the first of these in the CPU's flags is its level.
 VECTOR_LEVELS = ("avx512f", "avx2", "avx", "sse4_2")
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
+#: tracked results data that `git_state` does not count as a change of the checkout
+RESULTS_DATA = "experiments/results"
 
 
 def _git(root: Path, *args: str) -> str | None:
@@ -45,7 +50,8 @@ def git_state(root: Path = PROJECT_ROOT) -> dict[str, Any]:
     if top is None or Path(top).resolve() != Path(root).resolve():
         return none
     commit = _git(root, "rev-parse", "HEAD")
-    status = _git(root, "status", "--porcelain", "--untracked-files=no")
+    code_only = ("--", ".", f":(exclude){RESULTS_DATA}")
+    status = _git(root, "status", "--porcelain", "--untracked-files=no", *code_only)
     if commit is None or status is None:
         return none
     return {"git_commit": commit, "git_dirty": bool(status)}

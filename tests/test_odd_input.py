@@ -438,6 +438,25 @@ def test_versions_json_records_commit_dirty_flag_and_cpu(tmp_path):
     assert provenance.cpu_info(cpuinfo) == {"cpu_model": "Test CPU 3000", "cpu_vector_isa": "avx2"}
 
 
+def test_results_data_do_not_make_the_checkout_dirty_but_code_does(tmp_path):
+    from coherent_jax import provenance
+
+    repo = tmp_path / "repo"
+    (repo / "coherent_jax").mkdir(parents=True)
+    (repo / provenance.RESULTS_DATA / "protocol").mkdir(parents=True)
+    (repo / "coherent_jax" / "train.py").write_text("x = 1\n")
+    curves = repo / provenance.RESULTS_DATA / "protocol" / "curves.csv.gz"
+    curves.write_bytes(b"old")
+    git = ["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t"]
+    for args in (["init", "-q"], ["add", "-A"], ["commit", "-q", "-m", "start"]):
+        subprocess.run(git + args, check=True, capture_output=True)
+    assert provenance.git_state(repo)["git_dirty"] is False
+    curves.write_bytes(b"new")  # a finished cell's curves, not yet committed
+    assert provenance.git_state(repo)["git_dirty"] is False
+    (repo / "coherent_jax" / "train.py").write_text("x = 2\n")
+    assert provenance.git_state(repo)["git_dirty"] is True
+
+
 HOPPER_CELLS = ("hopper/a2c/action", "hopper/a2c/coherent", "hopper/ppo/action")
 
 
