@@ -19,12 +19,13 @@ import sys
 import time
 from collections.abc import Iterable
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import carry  # beside this file (reproduce.py puts it on sys.path)
 from curves import point_dirs as _point_dirs
 
 from coherent_jax.config import modern_items
+from coherent_jax.provenance import cpu_info
 
 SPEC_VERSION = 1  # bump when the meaning of a cell's overrides changes
 
@@ -199,11 +200,29 @@ def _strategy(cell: Cell) -> tuple[str | None, ...]:
     return (cell.setting("explore", "action"), *(cell.setting(k) for k in keys))
 
 
-def _finished_cells(results: Path) -> list[tuple[Cell, float]]:
-    """Every finished cell under ``results`` (any suite) with its measured rate."""
+class Finished(NamedTuple):
+    """A finished cell, its measured env steps/s and the CPU model it ran on (None if unknown)."""
+
+    cell: Cell
+    rate: float
+    cpu_model: str | None
+
+
+def _cpu_model(sweep: Path) -> str | None:
+    """The CPU model a sweep recorded in its ``versions.json``, or None."""
+    try:
+        model = json.loads((sweep / "versions.json").read_text()).get("cpu_model")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return model if isinstance(model, str) else None
+
+
+def _finished_cells(results: Path) -> list[Finished]:
+    """Every finished cell under ``results`` (any suite) with its measured rate and CPU."""
     found = []
     for spec_file in sorted(results.glob("*/**/cell.json")):
-        rate = _measured_rate(spec_file.parent / "sweep")
+        sweep = spec_file.parent / "sweep"
+        rate = _measured_rate(sweep)
         if rate is None:
             continue
         try:
@@ -211,7 +230,7 @@ def _finished_cells(results: Path) -> list[tuple[Cell, float]]:
             cell = Cell(spec["suite"], spec["name"], tuple(spec["overrides"]), int(spec["seeds"]))
         except (OSError, KeyError, TypeError, ValueError):
             continue
-        found.append((cell, rate))
+        found.append(Finished(cell, rate, _cpu_model(sweep)))
     return found
 
 
@@ -219,20 +238,23 @@ def estimated_seconds(cell: Cell, results: Path) -> float:
     """Compute the cell still needs.
 
     From its own measured rate once it has one; else from the finished cells of the
-    same task, algorithm, minibatches and preset (any suite): those of the same strategy
-    (and coherent gradient, integration and layers) as they ran, or if there are none,
-    every one rescaled by `_cost` to this cell's strategy (median over them); else from
-    the defaults above. Vmapped points share the cores, so a cell's total rate is about
-    one point's, whatever its points.
+    same task, algorithm, minibatches and preset (any suite), those that ran on this
+    machine's CPU model if there are any (rates differed about twofold between the CPUs
+    the suites ran on): those of the same strategy (and coherent gradient, integration
+    and layers) as they ran, or if there are none, every one rescaled by `_cost` to this
+    cell's strategy (median over them); else from the defaults above. Vmapped points
+    share the cores, so a cell's total rate is about one point's, whatever its points.
     """
     fraction, rate = progress(cell, results)
     if rate is None:
-        kin = [(other, r) for other, r in _finished_cells(results) if _kind(other) == _kind(cell)]
-        same = [r for other, r in kin if _strategy(other) == _strategy(cell)]
+        kin = [f for f in _finished_cells(results) if _kind(f.cell) == _kind(cell)]
+        here = cpu_info()["cpu_model"]
+        kin = [f for f in kin if here is not None and f.cpu_model == here] or kin
+        same = [f.rate for f in kin if _strategy(f.cell) == _strategy(cell)]
         if same:
             rate = statistics.median(same)
         elif kin:
-            rate = statistics.median([r * _cost(other) / _cost(cell) for other, r in kin])
+            rate = statistics.median([f.rate * _cost(f.cell) / _cost(cell) for f in kin])
         else:
             algo = cell.setting("algo", "ppo")
             base = TASK_RATE.get(cell.setting("env", ""), DEFAULT_RATE.get(algo, 5000.0))

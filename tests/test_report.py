@@ -269,7 +269,7 @@ def test_a_cell_present_only_as_compact_data_is_done(tmp_path):
     assert reproduce.cell_state(done, clone) == "done"
     assert reproduce.progress(done, clone) == (1.0, 1000.0)
     assert reproduce.estimated_seconds(done, clone) == 0.0
-    assert [c.name for c, _ in reproduce._finished_cells(clone)] == [done.name]
+    assert [f.cell.name for f in reproduce._finished_cells(clone)] == [done.name]
     assert reproduce.estimated_seconds(missing, clone) == pytest.approx(
         missing.env_steps * reproduce.STRATEGY_COST["psne"] / 1000.0
     )

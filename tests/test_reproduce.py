@@ -185,6 +185,29 @@ def test_estimates_read_cells_of_the_same_preset_and_strategy_first(tmp_path):
     )
 
 
+def test_estimates_read_cells_of_this_cpu_model_first(tmp_path, monkeypatch):
+    """Rates differed about twofold between CPUs: a finished cell of this machine's CPU
+    model is read before any other, even of another strategy; unknown CPUs are others."""
+    (cell,) = reproduce.select("protocol", ["hopper/a2c/psne-thesis"])
+    monkeypatch.setattr(sys.modules["cells"], "cpu_info", lambda: {"cpu_model": "This CPU"})
+
+    def finished(suite, name, overrides, rate, cpu):
+        d = fake_sweep(reproduce.Cell(suite, name, overrides, cell.seeds), tmp_path, finished=True)
+        (d / "sweep" / "sweep.json").write_text(json.dumps({"sweep_env_steps_per_s": rate}))
+        if cpu is not None:
+            (d / "sweep" / "versions.json").write_text(json.dumps({"cpu_model": cpu}))
+
+    # The same strategy and kind, run elsewhere (another CPU, and one of unknown CPU).
+    finished("elsewhere", "psne-a", cell.overrides, 500.0, "Other CPU")
+    finished("elsewhere", "psne-b", cell.overrides, 700.0, None)
+    assert reproduce.estimated_seconds(cell, tmp_path) == pytest.approx(cell.env_steps / 600.0)
+    # An action-noise cell of the same kind on this CPU: read first, rescaled.
+    (action,) = reproduce.select("protocol", ["hopper/a2c/action-thesis"])
+    finished(action.suite, action.name, action.overrides, 1000.0, "This CPU")
+    expected = cell.env_steps * reproduce.STRATEGY_COST["psne"] / 1000.0
+    assert reproduce.estimated_seconds(cell, tmp_path) == pytest.approx(expected)
+
+
 def test_cell_states_and_compute_left(tmp_path):
     done, stopped, running, missing = reproduce.select("thesis", ["hopper/a2c/*"])
     fake_sweep(done, tmp_path, finished=True)
