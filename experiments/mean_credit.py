@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from coherent_jax.bench.gradient import sample_episode
 from coherent_jax.exploration.coherent_filter import log_marginals
 
 #: the windows of steps the table reports, as [start, end) (end clipped to T)
@@ -43,18 +44,6 @@ def smooth_features(rng: np.random.Generator, num_steps: int, q: int, rho: float
             z = rho * z + math.sqrt(1 - rho**2) * rng.normal(size=q)
         out[t] = np.tanh(z)
     return out
-
-
-def sample_chain(rng, x, mu, w_std, action_std, beta) -> np.ndarray:
-    """[T, p] actions of one episode: w_0 ~ N(mu, w_std^2) (4.1), w_t from (4.2)-(4.4), a_t (4.29)."""
-    xh = np.concatenate([x, np.ones((x.shape[0], 1))], axis=1)
-    w = mu + w_std * rng.normal(size=mu.shape)
-    actions = np.empty((x.shape[0], mu.shape[0]))
-    for t in range(x.shape[0]):
-        if t:
-            w = (1 - beta) * w + beta * mu + math.sqrt(2 * beta - beta**2) * w_std * rng.normal(size=mu.shape)
-        actions[t] = w @ xh[t] + action_std * rng.normal(size=mu.shape[0])
-    return actions
 
 
 def step_scores(x, a, mu, w_std, action_std, beta) -> np.ndarray:
@@ -75,7 +64,7 @@ def credit(num_steps: int, betas: list[float], episodes: int, seed: int, p: int 
     for beta in betas:
         sq = np.zeros(num_steps)
         for _ in range(episodes):
-            a = sample_chain(rng, x, mu, w_std, action_std, beta)
+            a = sample_episode(rng, x, mu, w_std, action_std, beta)
             sq += np.sum(step_scores(x, a, mu, w_std, action_std, beta) ** 2, axis=(1, 2)) / episodes
         rows.append(
             {

@@ -23,7 +23,7 @@ def _problem(beta, seed=0, num_steps=30, p=2, q=4):
     mu = 0.3 * rng.normal(size=(p, q + 1))
     w_std = rng.uniform(0.2, 0.6, size=(p, q + 1))
     action_std = rng.uniform(0.1, 0.3, size=p)
-    a = credit.sample_chain(rng, x, mu, w_std, action_std, beta)
+    a = credit.sample_episode(rng, x, mu, w_std, action_std, beta)
     return x, a, mu, w_std, action_std
 
 
