@@ -161,7 +161,9 @@ class Config:
         check=at_least(0, "an integer >= 0 (0 = all devices)"),
     )
     distributed: bool = field(
-        False, "call jax.distributed.initialize() first (several hosts; see README, Devices)", group="devices"
+        False,
+        "call jax.distributed.initialize() first (several hosts; see docs/runs.md, Devices)",
+        group="devices",
     )
     # --- the groups: an algorithm's or a strategy's own settings
     ppo: PPOOptions = _group(PPOOptions, "a2c and ppo")

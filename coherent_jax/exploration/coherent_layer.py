@@ -27,7 +27,7 @@ MAX_W_STD_RATIO = 10.0
 class ChainStrategy(OnPolicyStrategy):
     """What the strategies on the beta-chain share: beta, the initial w_std, the action noise.
 
-    ``action_std`` (Lambda_a^-1/2) is a fixed, sweepable hyperparameter as in the thesis,
+    ``action_std`` (Lambda_a^-1/2) is a fixed hyperparameter as in the thesis,
     or learned (``log_action_std`` in the parameters) with ``learn_action_std``.
     """
 
