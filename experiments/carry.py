@@ -148,12 +148,11 @@ def carried_metrics(cell_dir: Path) -> dict[str, bytes]:
 
 def drop(cell_dir: Path, root: Path) -> list[str]:
     """Deletes a finished cell's carry file; returns its path if the git checkout at `root`
-    tracks it (a removal to commit), else nothing."""
+    tracks it (a removal to commit), else nothing. A tracked file already deleted (the cell
+    finished in a run without ``--commit``) is returned too, so its removal is committed."""
     path = carry_path(cell_dir)
-    if not path.is_file():
-        return []
-    path.unlink()
     tracked = subprocess.run(
         ["git", "-C", str(root), "ls-files", "--error-unmatch", "--", str(path)], capture_output=True
     )
+    path.unlink(missing_ok=True)
     return [str(path)] if tracked.returncode == 0 else []

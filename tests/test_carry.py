@@ -62,6 +62,35 @@ def test_a_stopped_cell_is_carried_by_its_packed_state_and_unpacked_whole(tmp_pa
     assert carry.drop(d, tmp_path) == [] and not path.exists()
 
 
+def test_a_tracked_carry_file_is_removed_in_the_commit_also_when_the_finish_deleted_it(tmp_path):
+    """A cell that finishes in a run without --commit deletes its carry file at once; the
+    later commit must still commit that removal."""
+    import subprocess
+
+    carry = load_experiment("carry")
+    repo = tmp_path / "repo"
+    cells = {}
+    for name in ("finished-here", "finished-before"):
+        d = repo / "results" / name
+        d.mkdir(parents=True)
+        carry.carry_path(d).write_bytes(b"packed state")
+        cells[name] = d
+    git = ["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t"]
+    for args in (["init", "-q"], ["add", "-A"], ["commit", "-q", "-m", "carried"]):
+        subprocess.run(git + args, check=True, capture_output=True)
+    carry.carry_path(cells["finished-before"]).unlink()  # the run without --commit
+    for d in cells.values():
+        assert carry.drop(d, repo) == [str(carry.carry_path(d))]
+        assert not carry.carry_path(d).exists()
+    assert carry.drop(cells["finished-here"], repo) == [str(carry.carry_path(cells["finished-here"]))]
+    paths = [str(carry.carry_path(d)) for d in cells.values()]
+    subprocess.run(git + ["add", "--", *paths], check=True, capture_output=True)
+    subprocess.run(git + ["commit", "-q", "-m", "finished", "--", *paths], check=True, capture_output=True)
+    listed = subprocess.run(git + ["ls-files"], check=True, capture_output=True, text=True).stdout
+    status = subprocess.run(git + ["status", "--porcelain"], check=True, capture_output=True, text=True)
+    assert listed == "" and status.stdout == ""
+
+
 def test_a_carry_file_reaching_outside_its_sweep_is_refused_and_nothing_is_written(tmp_path):
     import io
     import tarfile
