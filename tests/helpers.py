@@ -3,6 +3,7 @@ and the tables of the Brax tasks that two modules check."""
 
 import importlib.util
 import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -96,3 +97,12 @@ def load_experiment(name: str):
     sys.modules[name] = module
     spec.loader.exec_module(module)
     return module
+
+
+def commit_all(repo: Path, message: str = "start") -> list[str]:
+    """Makes `repo` a git repository with every file in it committed; returns the git
+    command prefix (with a throwaway identity) for the test's further commands."""
+    git = ["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t"]
+    for args in (["init", "-q"], ["add", "-A"], ["commit", "-q", "-m", message]):
+        subprocess.run(git + args, check=True, capture_output=True)
+    return git

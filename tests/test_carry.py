@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 from cell_fakes import fake_sweep, reproduce
-from helpers import load_experiment
+from helpers import commit_all, load_experiment
 
 
 def _stopped_cell_with_a_checkpoint(cell, results):
@@ -75,9 +75,7 @@ def test_a_tracked_carry_file_is_removed_in_the_commit_also_when_the_finish_dele
         d.mkdir(parents=True)
         carry.carry_path(d).write_bytes(b"packed state")
         cells[name] = d
-    git = ["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t"]
-    for args in (["init", "-q"], ["add", "-A"], ["commit", "-q", "-m", "carried"]):
-        subprocess.run(git + args, check=True, capture_output=True)
+    git = commit_all(repo, "carried")
     carry.carry_path(cells["finished-before"]).unlink()  # the run without --commit
     for d in cells.values():
         assert carry.drop(d, repo) == [str(carry.carry_path(d))]

@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from helpers import child_env, load_experiment
+from helpers import child_env, commit_all, load_experiment
 
 from coherent_jax import evaluate, runlock, sweep, train
 from coherent_jax.bench.__main__ import main as bench_main
@@ -447,9 +447,7 @@ def test_results_data_do_not_make_the_checkout_dirty_but_code_does(tmp_path):
     (repo / "coherent_jax" / "train.py").write_text("x = 1\n")
     curves = repo / provenance.RESULTS_DATA / "protocol" / "curves.csv.gz"
     curves.write_bytes(b"old")
-    git = ["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t"]
-    for args in (["init", "-q"], ["add", "-A"], ["commit", "-q", "-m", "start"]):
-        subprocess.run(git + args, check=True, capture_output=True)
+    commit_all(repo)
     assert provenance.git_state(repo)["git_dirty"] is False
     curves.write_bytes(b"new")  # a finished cell's curves, not yet committed
     assert provenance.git_state(repo)["git_dirty"] is False
