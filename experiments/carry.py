@@ -18,7 +18,7 @@ A finished cell's carry file is dropped when the cell is committed.
 The archive is the same bytes for the same files (sorted, no times or owners), so a
 cell packed twice unchanged is no new blob. A pack larger than `MAX_BYTES` is refused:
 an SAC checkpoint holds its replay buffer (hundreds of MB), so SAC cells must finish
-where they start.
+on the machine where they start (stopped there, they resume from the local checkpoint).
 """
 
 from __future__ import annotations

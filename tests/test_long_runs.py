@@ -391,3 +391,53 @@ def test_ctrl_c_during_compile_and_kill_before_first_checkpoint_are_resumable(tm
     assert [r["iteration"] for r in reference] == list(range(1, 11))
     assert strip_times(read_metrics(run / "metrics.jsonl")) == reference
     assert strip_times(read_metrics(bare / "metrics.jsonl")) == reference
+
+
+SAC_LONG = [
+    *(a for a in LONG if not a.startswith(("algo=", "num_envs=", "ppo.", "checkpoint_every="))),
+    "algo=sac",
+    "explore=coherent",
+    "num_envs=2",
+    "sac.buffer_size=256",
+    "sac.batch_size=8",
+    "sac.warmup_steps=64",
+    "checkpoint_every=1000",
+    "seeds=2",
+]
+
+
+@pytest.mark.slow
+def test_an_sac_sweep_stopped_after_its_buffer_wrapped_resumes_to_the_uninterrupted_one(tmp_path):
+    """SIGTERM to a vmapped Coherent-SAC sweep after the replay ring buffer has wrapped and
+    updates have begun; resumed, every point's metrics and parameters equal those of a sweep
+    never stopped. The checkpoint must hold the buffer (contents, position, size), the
+    chain's state and the optimiser's, or the resumed run departs from the reference."""
+    from coherent_jax.sweep import main as sweep_main
+
+    sweep = tmp_path / "sweep"
+    points = ("p000-seed=5", "p001-seed=6")  # LONG: seed=5
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "coherent_jax.sweep", *SAC_LONG, f"run_dir={sweep}"],
+        cwd=tmp_path,
+        env=child_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    # 8 env steps per iteration: the 256-slot buffer has wrapped after iteration 32.
+    wait_for_rows(proc, sweep / points[0] / "metrics.jsonl", 40)
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    stopped_at = len(read_metrics(sweep / points[0] / "metrics.jsonl"))
+    assert 40 <= stopped_at < 150 and not (sweep / "sweep.json").exists()
+
+    assert sweep_main([f"resume={sweep}"]) == 0
+    ref = tmp_path / "ref"
+    assert sweep_main([*SAC_LONG, f"run_dir={ref}"]) == 0
+    for point in points:
+        reference = strip_times(read_metrics(ref / point / "metrics.jsonl"))
+        assert len(reference) == 150 and any("eval/episode_return" in r for r in reference)
+        assert strip_times(read_metrics(sweep / point / "metrics.jsonl")) == reference
+        params = (sweep / point / "params.msgpack").read_bytes()
+        assert params == (ref / point / "params.msgpack").read_bytes()
