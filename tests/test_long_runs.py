@@ -49,10 +49,10 @@ def strip_times(rows):
     return [{k: v for k, v in r.items() if k != "time_s"} for r in rows]
 
 
-def spawn(args, cwd):
+def spawn(args, cwd, module="coherent_jax.train"):
     env = child_env()
     return subprocess.Popen(
-        [sys.executable, "-m", "coherent_jax.train", *args],
+        [sys.executable, "-m", module, *args],
         cwd=cwd,
         env=env,
         stdout=subprocess.PIPE,
@@ -183,14 +183,7 @@ def test_a_sweep_stopped_before_its_first_evaluation_and_carried_resumes_to_the_
     sweep = cell / "sweep"
     args = [*(a for a in LONG if not a.startswith(("eval_every=", "checkpoint_every="))), "seeds=2"]
     args += ["eval_every=1000", "checkpoint_every=1000"]
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "coherent_jax.sweep", *args, f"run_dir={sweep}"],
-        cwd=tmp_path,
-        env=child_env(),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    proc = spawn([*args, f"run_dir={sweep}"], tmp_path, "coherent_jax.sweep")
     points = ("p000-seed=5", "p001-seed=6")  # LONG: seed=5
     wait_for_rows(proc, sweep / points[0] / "metrics.jsonl", 5)
     proc.send_signal(signal.SIGTERM)
@@ -416,14 +409,7 @@ def test_an_sac_sweep_stopped_after_its_buffer_wrapped_resumes_to_the_uninterrup
 
     sweep = tmp_path / "sweep"
     points = ("p000-seed=5", "p001-seed=6")  # LONG: seed=5
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "coherent_jax.sweep", *SAC_LONG, f"run_dir={sweep}"],
-        cwd=tmp_path,
-        env=child_env(),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    proc = spawn([*SAC_LONG, f"run_dir={sweep}"], tmp_path, "coherent_jax.sweep")
     # 8 env steps per iteration: the 256-slot buffer has wrapped after iteration 32.
     wait_for_rows(proc, sweep / points[0] / "metrics.jsonl", 40)
     proc.send_signal(signal.SIGTERM)
