@@ -20,9 +20,7 @@ figures go to OUT.json (default bench_results/mean_credit.json).
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import os
 from pathlib import Path
 
 import jax
@@ -30,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from coherent_jax.bench.gradient import sample_episode
+from coherent_jax.bench.measure import write_json_atomic
 from coherent_jax.exploration.coherent_filter import log_marginals
 
 #: the windows of steps the table reports, as [start, end) (end clipped to T)
@@ -108,10 +107,7 @@ def main() -> None:
         share = row["share_first_65"]
         print(f"beta {row['beta']:<5}  rms score by steps: {cells}  share in the first 65: {share:.3f}")
     out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".tmp")
-    tmp.write_text(json.dumps(result, indent=2) + "\n")
-    os.replace(tmp, out)
+    write_json_atomic(out, result)
     print(f"wrote {out}")
 
 
