@@ -32,7 +32,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -47,7 +46,7 @@ import numpy as np  # noqa: E402
 from jax.sharding import Mesh, NamedSharding, SingleDeviceSharding  # noqa: E402
 from jax.sharding import PartitionSpec as P  # noqa: E402
 
-from coherent_jax.bench.measure import write_json_atomic  # noqa: E402
+from coherent_jax.bench import measure  # noqa: E402
 from coherent_jax.exploration.coherent_exact import chained_marginals  # noqa: E402
 from coherent_jax.exploration.coherent_filter import prior_belief  # noqa: E402
 
@@ -161,19 +160,16 @@ def rollout_program(host: Callbacks, steps: int, sharding) -> Callable:
 
 
 def median_ms(fns: dict, args: dict, rounds: int) -> dict:
-    """Warm each up, then time ``rounds`` interleaved rounds; median milliseconds by name."""
-    for name, fn in fns.items():
-        jax.block_until_ready(fn(*args[name]))
+    """Median milliseconds by name over ``rounds`` interleaved rounds of one call each
+    (`measure.time_calls`); the caller has called each once already (compiled, warm)."""
     times = {name: [] for name in fns}
     for _ in range(rounds):
         for name, fn in fns.items():
-            start = time.perf_counter()
-            jax.block_until_ready(fn(*args[name]))
-            times[name].append(1e3 * (time.perf_counter() - start))
-    return {name: float(np.median(v)) for name, v in times.items()}
+            times[name] += measure.time_calls(fn, args[name], 1)
+    return {name: 1e3 * float(np.median(v)) for name, v in times.items()}
 
 
-def measure(envs: int, steps: int, rounds: int) -> dict:
+def run(envs: int, steps: int, rounds: int) -> dict:
     """Both measurements and their checks (see the module docstring)."""
     mesh = Mesh(np.array(jax.devices()[:2]), ("d",))
     data = problem(envs, steps)
@@ -202,6 +198,7 @@ def measure(envs: int, steps: int, rounds: int) -> dict:
         calls[name] = host.calls
     rollout_ms = median_ms(rollouts, rollout_args, rounds)
     return {
+        "machine": measure.machine(),
         "envs": envs,
         "steps": steps,
         "rounds": rounds,
@@ -240,7 +237,7 @@ def main() -> int:
     if jax.device_count() < 2:
         flags, found = os.environ["XLA_FLAGS"], jax.device_count()
         parser.error(f"invalid XLA_FLAGS {flags!r}: {found} JAX device (allowed: a count of 2 or more)")
-    result = measure(args.envs, args.steps, args.rounds)
+    result = run(args.envs, args.steps, args.rounds)
     print(
         f"{args.envs} chains x {args.steps} steps, p = {P_ACT}, q = {Q}; median ms over {args.rounds} rounds"
     )
@@ -255,7 +252,7 @@ def main() -> int:
         per_step = 1e3 * (ms - base) / args.steps
         print(f"rollout, {name:<33} {ms:8.1f} ms  +{per_step:6.1f} us per step  {calls} callbacks")
     out = Path(args.out)
-    write_json_atomic(out, result)
+    measure.write_json_atomic(out, result)
     print(
         f"wrote {out}"
         + ("" if result["ok"] else "; a check FAILED (see loss_rel_err, callbacks_per_rollout)")
