@@ -163,11 +163,25 @@ def progress(cell: Cell, results: Path) -> tuple[float, float | None]:
         texts = [f.read_text() for f in logs if f.exists()]
     else:  # a carried cell's logs are in its carry file
         texts = [b.decode() for b in carry.carried_metrics(sweep.parent).values()]
-    done = 0
+    done, rates = 0, []
     for text in texts:
         lines = [json.loads(x) for x in text.splitlines() if x.strip()]
         done += max((r.get("env_steps", 0) for r in lines), default=0)
-    return (done / cell.env_steps if cell.env_steps else 0.0), None
+        rates.append(_logged_rate(lines))
+    rate = sum(rates) if rates and None not in rates else None
+    return (done / cell.env_steps if cell.env_steps else 0.0), rate
+
+
+def _logged_rate(rows: list[dict]) -> float | None:
+    """One point's env steps/s between its first and last logged iteration, or None.
+
+    ``time_s`` runs on across resumes, so the span covers every stretch the point ran,
+    less the first iteration's compilation; the points of a vmapped cell run together,
+    so their rates add up to the cell's."""
+    timed = [(r["env_steps"], r["time_s"]) for r in rows if "env_steps" in r and "time_s" in r]
+    if len(timed) < 2 or timed[-1][1] <= timed[0][1]:
+        return None
+    return (timed[-1][0] - timed[0][0]) / (timed[-1][1] - timed[0][1])
 
 
 def _measured_rate(sweep: Path) -> float | None:
@@ -237,7 +251,9 @@ def _finished_cells(results: Path) -> list[Finished]:
 def estimated_seconds(cell: Cell, results: Path) -> float:
     """Compute the cell still needs.
 
-    From its own measured rate once it has one; else from the finished cells of the
+    From its own measured rate once it has one (a finished cell's ``sweep.json``, a
+    stopped, carried or running cell's logged iterations: a coherent episode cell's cost
+    follows its episodes' lengths, which no other cell's rate shows); else from the finished cells of the
     same task, algorithm, minibatches and preset (any suite), those that ran on this
     machine's CPU model if there are any (rates differed about twofold between the CPUs
     the suites ran on): those of the same strategy (and coherent gradient, integration

@@ -185,6 +185,38 @@ def test_estimates_read_cells_of_the_same_preset_and_strategy_first(tmp_path):
     )
 
 
+def test_a_started_cell_is_estimated_from_its_own_logged_rate(tmp_path):
+    """A stopped or running cell's points log env steps and time: their rates (first to
+    last logged iteration, the first one's compilation left out) add up to the cell's and
+    come before any other cell's; a point without times leaves the estimate to the others."""
+    (episode,) = reproduce.select("protocol", ["halfcheetah/ppo/coherent-episode"])
+    coherent = reproduce.select("thesis", ["halfcheetah/ppo/coherent"])[0]
+    fake_sweep(coherent, tmp_path, finished=True)  # 1,000 env steps/s, rescaled otherwise
+    d = fake_sweep(episode, tmp_path, finished=False)
+    total = int(episode.setting("total_steps"))
+    rows = [(total // 8, 80.0), (total // 4, 100.0), (total // 2, 100.0 + (total // 4) / 20.0)]
+    for seed in (0, 1):
+        point = d / "sweep" / f"seed={seed}"
+        point.mkdir(exist_ok=True)
+        (point / "config.yaml").write_text(f"seed: {seed}\n")
+        lines = [{"iteration": i, "env_steps": n, "time_s": t} for i, (n, t) in enumerate(rows)]
+        (point / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in lines))
+    fraction, rate = reproduce.progress(episode, tmp_path)
+    assert fraction == pytest.approx(2 * 0.5 / episode.seeds)
+    # Each point: (total/2 - total/8) env steps in (total/4)/20 + 20 s.
+    point_rate = (total // 2 - total // 8) / ((total // 4) / 20.0 + 20.0)
+    assert rate == pytest.approx(2 * point_rate)
+    assert reproduce.estimated_seconds(episode, tmp_path) == pytest.approx(
+        (1 - fraction) * episode.env_steps / (2 * point_rate)
+    )
+    # One point without times: the finished coherent cell's rate, rescaled, again.
+    (d / "sweep" / "seed=1" / "metrics.jsonl").write_text(json.dumps({"env_steps": total // 2}) + "\n")
+    assert reproduce.progress(episode, tmp_path)[1] is None
+    assert reproduce.estimated_seconds(episode, tmp_path) == pytest.approx(
+        (1 - fraction) * episode.env_steps * reproduce.EPISODE_GRADIENT_COST / 1000.0
+    )
+
+
 def test_estimates_read_cells_of_this_cpu_model_first(tmp_path, monkeypatch):
     """Rates differed about twofold between CPUs: a finished cell of this machine's CPU
     model is read before any other, even of another strategy; unknown CPUs are others."""
