@@ -254,11 +254,12 @@ def estimated_seconds(cell: Cell, results: Path) -> float:
     From its own measured rate once it has one (a finished cell's ``sweep.json``, a
     stopped, carried or running cell's logged iterations: a coherent episode cell's cost
     follows its episodes' lengths, which no other cell's rate shows); else from the
-    finished cells of the same task, algorithm, minibatches and preset (any suite), those that ran on this
-    machine's CPU model if there are any (rates differed about twofold between the CPUs
-    the suites ran on): those of the same strategy (and coherent gradient, integration
-    and layers) as they ran, or if there are none, every one rescaled by `_cost` to this
-    cell's strategy (median over them); else from the defaults above. Vmapped points
+    finished cells of the same task, algorithm, minibatches and preset (any suite), those
+    that ran on this machine's CPU model if there are any (rates differed about twofold
+    between the CPUs the suites ran on): those of the same strategy (and coherent
+    gradient, integration and layers) as they ran, or if there are none, every one
+    rescaled by `_cost` to this cell's strategy (median over them); else from the
+    defaults above. Vmapped points
     share the cores, so a cell's total rate is about one point's, whatever its points.
     """
     fraction, rate = progress(cell, results)
