@@ -259,8 +259,8 @@ def estimated_seconds(cell: Cell, results: Path) -> float:
     between the CPUs the suites ran on): those of the same strategy (and coherent
     gradient, integration and layers) as they ran, or if there are none, every one
     rescaled by `_cost` to this cell's strategy (median over them); else from the
-    defaults above. Vmapped points
-    share the cores, so a cell's total rate is about one point's, whatever its points.
+    defaults above. Vmapped points share the cores, so a cell's total rate is about one
+    point's, whatever its points.
     """
     fraction, rate = progress(cell, results)
     if rate is None:
