@@ -56,6 +56,7 @@ from coherent_jax.runs import (
     truncate_metrics,
 )
 from coherent_jax.sweep_axis import vmap_points
+from coherent_jax.tb_events import EventWriter
 
 
 def run_keys(seed: int):
@@ -132,11 +133,9 @@ def _open_outputs(job: Job, start: int, resumed: bool):
             truncate_metrics(d / METRICS, start)
         files.append(open(d / METRICS, "a" if resumed else "w"))
         if cfg.tensorboard:
-            from tensorboardX import SummaryWriter
-
             # purge_step hides events a killed run wrote past the checkpoint.
             purge = start * cfg.steps_per_iteration + 1 if resumed else None
-            writers.append(SummaryWriter(str(d / "tb"), purge_step=purge, flush_secs=30))
+            writers.append(EventWriter(d / "tb", purge_step=purge))
         else:
             writers.append(None)
     return files, writers
@@ -349,17 +348,16 @@ def sink_metrics(run: Session, it: int, metrics: dict[str, Any]) -> None:
         if run.job.trackers:
             run.job.trackers[j].log(row, it)
         if w is not None:
-            for k, v in metrics.items():
-                if math.isfinite(v[j]):
-                    w.add_scalar(k, float(v[j]), env_steps)
+            w.add_scalars({k: float(v[j]) for k, v in metrics.items() if math.isfinite(v[j])}, env_steps)
 
 
 def save_checkpoint(run: Session) -> None:
     """Step 6, checkpoint: the whole state and the loop's state after ``run.done`` iterations.
 
     Every process gathers the state (a collective); only the one with the run
-    directory writes it, atomically, and flushes the TensorBoard writers so that
-    their events are not behind the checkpoint.
+    directory writes it, atomically. The metrics rows and TensorBoard events of those
+    iterations are already on disk (`sink_metrics` writes them through), so a run
+    killed at any point leaves none of them behind the checkpoint.
     """
     import jax
 
@@ -374,9 +372,6 @@ def save_checkpoint(run: Session) -> None:
         return
     blob = encode_checkpoint(job.cfg, run.done, run.done * job.cfg.steps_per_iteration, loop, state_bytes)
     atomic_write(job.run_dir / CHECKPOINT, blob)
-    for w in run.writers:
-        if w is not None:
-            w.flush()
 
 
 def show_progress(run: Session) -> None:

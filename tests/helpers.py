@@ -106,3 +106,53 @@ def commit_all(repo: Path, message: str = "start") -> list[str]:
     for args in (["init", "-q"], ["add", "-A"], ["commit", "-q", "-m", message]):
         subprocess.run(git + args, check=True, capture_output=True)
     return git
+
+
+def crc32c(data: bytes) -> int:
+    """CRC-32C (Castagnoli, reflected polynomial 0x82F63B78), bit by bit: a reference
+    for the event files' checksums that shares no code with tensorboardX's table."""
+    crc = 0xFFFFFFFF
+    for byte in data:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ (0x82F63B78 if crc & 1 else 0)
+    return crc ^ 0xFFFFFFFF
+
+
+def masked_crc32c(data: bytes) -> int:
+    """TFRecord's masked CRC: ((c >> 15 | c << 17) + 0xa282ead8) mod 2^32."""
+    c = crc32c(data)
+    return (((c >> 15) | (c << 17)) + 0xA282EAD8) & 0xFFFFFFFF
+
+
+def read_events(path: Path) -> list:
+    """The Events of one TensorBoard event file, every record whole and both its CRCs right."""
+    import struct
+
+    from tensorboardX.proto import event_pb2
+
+    data, pos, events = path.read_bytes(), 0, []
+    while pos < len(data):
+        assert pos + 12 <= len(data), f"{path}: a truncated record header at byte {pos}"
+        header = data[pos : pos + 8]
+        (length,) = struct.unpack("<Q", header)
+        (header_crc,) = struct.unpack("<I", data[pos + 8 : pos + 12])
+        assert header_crc == masked_crc32c(header), f"{path}: bad length CRC at byte {pos}"
+        end = pos + 12 + length
+        assert end + 4 <= len(data), f"{path}: a truncated record at byte {pos}"
+        body = data[pos + 12 : end]
+        assert struct.unpack("<I", data[end : end + 4])[0] == masked_crc32c(body), f"{path}: bad CRC"
+        events.append(event_pb2.Event.FromString(body))
+        pos = end + 4
+    return events
+
+
+def tensorboard_scalars(tb_dir: Path) -> dict[str, dict[int, float]]:
+    """tag -> {step: value} from every event file in `tb_dir`, in file-name order (later
+    files overwrite a step), each read by `read_events`."""
+    scalars: dict[str, dict[int, float]] = {}
+    for path in sorted(tb_dir.glob("events.out.tfevents.*")):
+        for event in read_events(path):
+            for value in event.summary.value:
+                scalars.setdefault(value.tag, {})[event.step] = value.simple_value
+    return scalars

@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import child_env, load_experiment
+from helpers import child_env, load_experiment, tensorboard_scalars
 
 from coherent_jax.config import parse_overrides
 from coherent_jax.runs import (
@@ -70,25 +70,6 @@ def wait_for_rows(proc, metrics, n, timeout=300.0):
             return
         time.sleep(0.002)
     raise AssertionError("no progress")
-
-
-def tensorboard_scalars(tb_dir: Path) -> dict[str, dict[int, float]]:
-    """tag -> {step: value} from every event file in `tb_dir` (TFRecord framing, parsed by hand)."""
-    import struct
-
-    from tensorboardX.proto import event_pb2
-
-    scalars: dict[str, dict[int, float]] = {}
-    for path in sorted(tb_dir.glob("events.out.tfevents.*")):
-        data = path.read_bytes()
-        pos = 0
-        while pos + 12 <= len(data):
-            (length,) = struct.unpack("<Q", data[pos : pos + 8])
-            event = event_pb2.Event.FromString(data[pos + 12 : pos + 12 + length])
-            pos += 12 + length + 4
-            for value in event.summary.value:
-                scalars.setdefault(value.tag, {})[event.step] = value.simple_value
-    return scalars
 
 
 def snapshot(path: Path) -> dict[str, str]:
