@@ -56,7 +56,6 @@ from coherent_jax.runs import (
     truncate_metrics,
 )
 from coherent_jax.sweep_axis import vmap_points
-from coherent_jax.tb_events import EventWriter
 
 
 def run_keys(seed: int):
@@ -133,6 +132,8 @@ def _open_outputs(job: Job, start: int, resumed: bool):
             truncate_metrics(d / METRICS, start)
         files.append(open(d / METRICS, "a" if resumed else "w"))
         if cfg.tensorboard:
+            from coherent_jax.tb_events import EventWriter
+
             # purge_step hides events a killed run wrote past the checkpoint.
             purge = start * cfg.steps_per_iteration + 1 if resumed else None
             writers.append(EventWriter(d / "tb", purge_step=purge))

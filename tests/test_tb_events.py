@@ -54,12 +54,11 @@ def test_events_written_before_a_sigkill_are_all_in_the_file(tmp_path):
     events of every iteration that returned are there."""
     script = textwrap.dedent(
         f"""
-        import os, signal, sys
+        import os, signal
         from coherent_jax.tb_events import EventWriter
         w = EventWriter({str(tmp_path / "tb")!r})
         for step in range(1, 201):
             w.add_scalars({{"a": step * 0.5, "b": -step}}, step)
-        print(w.path, flush=True)
         os.kill(os.getpid(), signal.SIGKILL)
         """
     )
