@@ -1,7 +1,8 @@
 """What a first hour of runs still hit: W&B online (row 9), a resume without a checkpoint
-(row 11). Seconds each: no learning runs, no network, no home."""
+(row 11), accelerators (row 15). Seconds each: no learning runs, no network, no home."""
 
 import json
+import re
 import signal
 import socket
 
@@ -9,6 +10,7 @@ import pytest
 
 from coherent_jax import launch, tracking
 from coherent_jax.config import parse_overrides
+from coherent_jax.envs.registry import PhysicsError, auto_physics, resolve_physics
 from coherent_jax.loop import StopRequest
 from coherent_jax.runs import write_config
 from coherent_jax.train import TrainCommand, main
@@ -159,3 +161,53 @@ def test_row11_resume_without_a_checkpoint_says_so_and_sets_the_rows_aside(tmp_p
         "metrics.jsonl.discarded-1",
         "metrics.jsonl.discarded-2",
     ]
+
+
+def test_row15_physics_auto_never_picks_the_host_callback_on_an_accelerator():
+    assert auto_physics(True, "cpu") == "native"
+    for backend in ("gpu", "cuda", "rocm", "tpu"):
+        assert auto_physics(True, backend) == "mjx"
+        assert auto_physics(False, backend) == "mjx"
+    assert auto_physics(False, "cpu") == "mjx"
+    for task in ("halfcheetah", "Hopper-v5", "brax-halfcheetah", "dmc-ball_in_cup"):
+        assert resolve_physics(task, "auto", backend="gpu") == "mjx"
+        assert resolve_physics(task, "native", backend="gpu") == "native"  # asked for: as given
+    assert resolve_physics("halfcheetah", "auto", backend="cpu") == "native"
+    assert resolve_physics("pointmass", "auto", backend="gpu") == "jax"
+    with pytest.raises(PhysicsError, match=r"physics=auto on gpu .*'humanoid'.*allowed: physics=native"):
+        resolve_physics("humanoid", "auto", backend="gpu")
+
+
+def _custom_calls(physics: str) -> set[str]:
+    """The custom-call targets of the lowered training iteration on `inverted_pendulum`."""
+    import jax
+
+    from coherent_jax.agents import make_trainer
+
+    cfg = parse_overrides(
+        [
+            "env=inverted_pendulum",
+            f"physics={physics}",
+            "num_envs=1",
+            "unroll_length=1",
+            "episode_length=4",
+            "eval_episodes=1",
+            "policy_hidden=[2]",
+            "value_hidden=[2]",
+            "ppo.num_epochs=1",
+            "ppo.num_minibatches=1",
+        ]
+    )
+    trainer = make_trainer(cfg)
+    assert trainer.env.physics == physics
+    state = jax.eval_shape(trainer.init, jax.random.PRNGKey(0))
+    text = jax.jit(trainer.iteration).lower(state).as_text()
+    return set(re.findall(r"custom_call @([\w.]+)", text))
+
+
+def test_row15_the_mjx_iteration_holds_no_host_callback_and_the_native_one_does():
+    callback = re.compile(r"python.*callback|callback.*python|host_callback")
+    native = _custom_calls("native")
+    assert any(callback.search(t) for t in native), native  # the check sees a callback where there is one
+    mjx = _custom_calls("mjx")
+    assert not any(callback.search(t) for t in mjx), mjx
