@@ -138,16 +138,19 @@ def wandb_environment(root: Path, environ: Mapping[str, str]) -> dict[str, str]:
 def session(root: Path) -> Iterator[None]:
     """W&B's process-wide state for the runs of one directory `root`: the variables of
     `wandb_environment` set while inside, and W&B's service (started with them) torn down
-    on leaving, so the next session starts its own."""
+    on leaving, so the next session starts its own. A W&B run the calling program had
+    already started (``wandb.run``, from Python) keeps its service: no teardown then."""
+    import wandb
+
+    had_run = wandb.run is not None
     added = wandb_environment(root, os.environ)
     os.environ.update(added)
     try:
         yield
     finally:
         try:
-            import wandb
-
-            wandb.teardown()
+            if not had_run:
+                wandb.teardown()
         finally:
             for key in added:
                 os.environ.pop(key, None)
