@@ -250,9 +250,12 @@ def evaluate_run(run_dir: Path, opts: EvalConfig) -> dict[str, Any]:
         video.write_video(path, frames, fps=1.0 / eval_env.dt)
         result.update({"video": str(path), "frames": len(frames)})
         if cfg.wandb:  # the run's own W&B run (its id in the run directory) gets the video
-            mirror = tracking.WandbRun.open(run_dir, None, run_dir.name)
-            mirror.video(path, step=None)
-            mirror.finish()
+            with tracking.session(run_dir):
+                mirror = tracking.WandbRun.open(
+                    run_dir, None, run_dir.name, init_timeout=cfg.wandb_init_timeout
+                )
+                mirror.video(path, step=None)
+                mirror.finish()
     return result
 
 
@@ -292,14 +295,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             gymnasium_id(cfg.env)
             check_gymnasium()
         if opts.video and cfg.wandb:
-            tracking.require()
+            tracking.preflight()
     except (ConfigError, CheckpointError, tracking.TrackingError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     print(f"[coherent_jax] evaluating {run_dir} ({opts.episodes} episodes)", flush=True)
     try:
         result = evaluate_run(run_dir, opts)
-    except (CheckpointError, PolicyError) as exc:
+    except (CheckpointError, PolicyError, tracking.TrackingError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     when = (

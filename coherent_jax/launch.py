@@ -18,8 +18,10 @@ it runs. The rest happens here, once, in the same order for both:
 
 `run` is steps 2-5 raising the bad input (`BAD_INPUT`) and a divergence, for the Python
 API (`coherent_jax.api`); `launch`, the command line's, reports them in one line with
-their exit statuses. A run with ``wandb=true`` needs the ``wandb`` package: checked in
-step 2, before anything is written (`coherent_jax.tracking`).
+their exit statuses. A run with ``wandb=true`` needs the ``wandb`` package (and, to log
+online, credentials): checked in step 2, before anything is written
+(`coherent_jax.tracking.preflight`); a W&B run that fails to start ends a new run with
+its directory removed again.
 
 `drive` and the summary helpers are the part of the run both commands' bodies share:
 the loop under a stop request, the timing fields of a summary, the line that says a
@@ -36,14 +38,22 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
-from coherent_jax import cli, multihost, runlock, tracking
+from coherent_jax import cli, multihost, rundir, runlock, tracking
 from coherent_jax.config import Config, ConfigError
 from coherent_jax.divergence import DivergenceError
 from coherent_jax.exit_codes import EXIT_BAD_INPUT, EXIT_DIVERGED, EXIT_OK, signal_status
 from coherent_jax.loop import PREFIX, StopRequest, run_loop
 from coherent_jax.loop_state import Job, Outcome
 from coherent_jax.quiet import quiet_imports
-from coherent_jax.runs import Checkpoint, CheckpointError, prepare_output_dir, record_versions, split_resume
+from coherent_jax.runs import (
+    METRICS,
+    Checkpoint,
+    CheckpointError,
+    prepare_output_dir,
+    read_metrics,
+    record_versions,
+    split_resume,
+)
 from coherent_jax.tracking import TrackingError
 
 
@@ -77,6 +87,9 @@ class Command(Protocol):
 
     def check_rows(self, run_dir: Path, plan: Any, checkpoint: Checkpoint, finished: bool) -> None:
         """The logged rows up to the checkpoint are whole; raises `ConfigError` otherwise."""
+
+    def outputs(self, run_dir: Path, plan: Any) -> list[Path]:
+        """The files and directories holding logged rows (``metrics.jsonl``, ``tb/``), per point."""
 
     def write_inputs(self, run_dir: Path, plan: Any, resumed: bool) -> None:
         """The config (and a sweep's grid) in the run directory, before ``versions.json``."""
@@ -150,21 +163,28 @@ def run(cmd: Command, argv: list[str], stop: StopRequest) -> Launched:
     """
     resume_dir, _ = split_resume(argv)
     try:
-        plan, run_dir, checkpoint, lock = prepare(cmd, argv)
+        plan, run_dir, checkpoint, lock, created = prepare(cmd, argv)
     except _Done as done:
         return Launched(done.status, done.run_dir, None)
-    with lock or contextlib.nullcontext():
-        summary = execute(cmd, plan, run_dir, resume_dir is not None, checkpoint, stop)
+    try:
+        with lock or contextlib.nullcontext():
+            summary = execute(cmd, plan, run_dir, resume_dir is not None, checkpoint, stop)
+    except TrackingError:  # W&B did not start: a new run leaves nothing behind, a resumed one its rows
+        if run_dir is not None and resume_dir is None:
+            rundir.discard_new_dir(run_dir, created)
+        raise
     status = exit_status(summary) if summary is not None else signal_status(stop.signum)
     return Launched(status, run_dir, summary)
 
 
 def prepare(cmd: Command, argv: list[str]):
-    """(plan, run_dir, checkpoint, lock) of the command line `argv`, every input checked.
+    """(plan, run_dir, checkpoint, lock, created) of the command line `argv`, every input checked.
 
     Several hosts: every process parses and reads the checkpoint; only process 0
-    (the writer) gets a run directory and its lock. Raises `_Done` when there is
-    nothing to run here (a supervised run ended, a resumed run is already complete).
+    (the writer) gets a run directory and its lock. ``created`` is the outermost
+    directory made for a new run (None: none made; `rundir.first_missing`). Raises
+    `_Done` when there is nothing to run here (a supervised run ended, a resumed run
+    is already complete).
     """
     resume_dir, rest = split_resume(argv)
     cli.check_unique(argv)
@@ -174,17 +194,18 @@ def prepare(cmd: Command, argv: list[str]):
         plan, run_dir = cmd.resume(resume_dir, rest)
     cfg = cmd.config(plan)
     if cfg.wandb:
-        tracking.require()
+        tracking.preflight()
     if multihost.needs_supervisor(cfg.distributed):
         raise _Done(multihost.supervise(cmd.module, argv))
     is_writer = cmd.check(plan)
     if resume_dir is None:
         if not is_writer:
-            return plan, None, None, None
+            return plan, None, None, None, None
         path = Path(cfg.run_dir) if cfg.run_dir else cmd.default_dir(cfg)
         runlock.refuse_if_held(path, "run_dir")
+        created = rundir.first_missing(path)
         run_dir = prepare_output_dir(path)
-        return plan, run_dir, None, runlock.acquire(run_dir, "run_dir")
+        return plan, run_dir, None, runlock.acquire(run_dir, "run_dir"), created
     checkpoint = cmd.resume_point(run_dir, plan)
     if checkpoint is not None:
         finished = checkpoint.iteration >= cfg.num_iterations and (run_dir / cmd.summary_file).exists()
@@ -193,7 +214,7 @@ def prepare(cmd: Command, argv: list[str]):
             print(f"{PREFIX} {run_dir} is already complete ({checkpoint.iteration} iterations)")
             raise _Done(EXIT_OK, run_dir)
     run_dir = run_dir if is_writer else None
-    return plan, run_dir, checkpoint, runlock.acquire(run_dir, "resume") if run_dir else None
+    return plan, run_dir, checkpoint, runlock.acquire(run_dir, "resume") if run_dir else None, None
 
 
 def execute(
@@ -206,6 +227,8 @@ def execute(
 ) -> dict[str, Any] | None:
     """Writes the run's config and versions and runs it (the input checked); returns its summary,
     None when a signal came before training started."""
+    if run_dir and resumed and checkpoint is None:
+        start_over(cmd, plan, run_dir)
     if run_dir:
         cmd.write_inputs(run_dir, plan, resumed)
         record_versions(run_dir, None if not resumed else (checkpoint.iteration if checkpoint else 0))
@@ -215,6 +238,21 @@ def execute(
         return None
     quiet_imports()
     return cmd.run(plan, run_dir, checkpoint, stop)
+
+
+def start_over(cmd: Command, plan: Any, run_dir: Path) -> None:
+    """A resume that found no checkpoint (a run stopped before its first) starts from iteration 0:
+    says so in one line on stderr, and sets the rows logged before aside
+    (`rundir.set_aside`) rather than overwriting them."""
+    outputs = cmd.outputs(run_dir, plan)
+    rows = sum(len(read_metrics(p)) for p in outputs if p.name == METRICS)
+    n, moved = rundir.set_aside(outputs if rows else [])
+    kept = f"; the {rows} rows logged before are set aside as {METRICS}.discarded-{n}" if moved else ""
+    print(
+        f"{PREFIX} resume found no checkpoint in {run_dir}; starting from iteration 0{kept}",
+        file=sys.stderr,
+        flush=True,
+    )
 
 
 def exit_status(summary: dict[str, Any]) -> int:

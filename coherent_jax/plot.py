@@ -48,7 +48,16 @@ KEYS: dict[str, cli.Key] = {
 }
 # Settings that do not change what a run computes: runs differing only in these
 # (and the seed) are seeds of one experiment.
-NOT_COMPARED = ("seed", "run_dir", "resume", "progress", "tensorboard", "wandb", "checkpoint_every")
+NOT_COMPARED = (
+    "seed",
+    "run_dir",
+    "resume",
+    "progress",
+    "tensorboard",
+    "wandb",
+    "wandb_init_timeout",
+    "checkpoint_every",
+)
 # Settings shown as bare values in a label (``ppo coherent``), the others as key=value.
 _BARE = ("algo", "explore")
 

@@ -8,6 +8,9 @@
 * `metrics_problem` compares a ``metrics.jsonl`` with the checkpoint's iteration: a
   file truncated or damaged (a line that is not a metrics row) would otherwise be
   reported as complete, or have its lost rows silently skipped by a resume.
+* `set_aside` keeps the rows of a resume that found no checkpoint (it starts over) as
+  ``metrics.jsonl.discarded-N``; `first_missing` and `discard_new_dir` remove a new run's
+  directory again when its start fails (W&B not starting).
 """
 
 from __future__ import annotations
@@ -90,3 +93,40 @@ def check_metrics(paths: list[Path], iteration: int, finished: bool) -> None:
                 f"invalid run directory {str(Path(path).parent)!r}: {problem} "
                 "(allowed: one row per iteration up to the checkpoint's)"
             )
+
+
+def first_missing(path: Path) -> Path | None:
+    """The outermost of `path` and its parents that does not exist yet (None: `path` exists):
+    what `coherent_jax.runs.prepare_output_dir` creates, and what `discard_new_dir` removes again."""
+    path = Path(path)
+    return next((p for p in [*reversed(path.parents), path] if not p.exists()), None)
+
+
+def discard_new_dir(path: Path, created: Path | None) -> None:
+    """Undoes a new run's start: removes `created` (from `first_missing`, taken before
+    `prepare_output_dir`), or, when `path` existed (empty) before, only what is in it now."""
+    import shutil
+
+    if created is not None:
+        shutil.rmtree(created, ignore_errors=True)
+        return
+    for entry in Path(path).iterdir():
+        if entry.is_dir() and not entry.is_symlink():
+            shutil.rmtree(entry, ignore_errors=True)
+        else:
+            entry.unlink(missing_ok=True)
+
+
+def set_aside(paths: list[Path]) -> tuple[int, list[Path]]:
+    """Renames each existing one of `paths` (files or directories) to ``NAME.discarded-N``, one
+    N for all, the smallest that renames over nothing; returns (N, the paths as renamed)."""
+    present = [Path(p) for p in paths if Path(p).exists()]
+    n = 1
+    while any(p.with_name(f"{p.name}.discarded-{n}").exists() for p in present):
+        n += 1
+    moved = []
+    for path in present:
+        target = path.with_name(f"{path.name}.discarded-{n}")
+        path.rename(target)
+        moved.append(target)
+    return n, moved

@@ -43,10 +43,20 @@ VERSIONS = "versions.json"
 FORMAT = "coherent_jax-checkpoint-1"
 # Fields that may differ between a run and its resumption: they change where and how
 # a run reports, or how long it goes on, never what its iterations compute.
-RESUMABLE_KEYS = ("run_dir", "progress", "resume", "checkpoint_every", "tensorboard", "wandb", "total_steps")
+RESUMABLE_KEYS = (
+    "run_dir",
+    "progress",
+    "resume",
+    "checkpoint_every",
+    "tensorboard",
+    "wandb",
+    "wandb_init_timeout",
+    "total_steps",
+)
 # Before total_steps became resumable it was fingerprinted: such checkpoints still
-# resume, at their own budget. (``wandb`` came later, never fingerprinted.)
-_LEGACY_RESUMABLE_KEYS = ("run_dir", "progress", "resume", "checkpoint_every", "tensorboard", "wandb")
+# resume, at their own budget. (``wandb`` and ``wandb_init_timeout`` came later, never
+# fingerprinted.)
+_LEGACY_RESUMABLE_KEYS = tuple(k for k in RESUMABLE_KEYS if k != "total_steps")
 VERSIONED_PACKAGES = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "brax", "flax", "optax", "numpy", "chex")
 
 

@@ -253,7 +253,8 @@ def run_sweep(
     With `resume` (a verified checkpoint of ``out_dir``) the grid continues after it.
     """
     job = sweep_job(plan, out_dir, env, eval_env)
-    with tracking.mirrored(_mirror_points(plan, job), out_dir.name if out_dir else None) as mirrors:
+    group = out_dir.name if out_dir else None
+    with tracking.mirrored(_mirror_points(plan, job), group, plan.base.wandb_init_timeout) as mirrors:
         out = launch.drive(dataclasses.replace(job, trackers=mirrors.runs), stop, resume)
         result = sweep_result(plan, out, resume is not None)
         if launch.report_stopped(out, out_dir):
@@ -423,6 +424,9 @@ class SweepCommand:
 
     def check_rows(self, run_dir: Path, plan: SweepPlan, checkpoint: Checkpoint, finished: bool) -> None:
         sweep_resume.check_rows(run_dir, [p.name for p in plan.points], checkpoint, finished)
+
+    def outputs(self, run_dir: Path, plan: SweepPlan) -> list[Path]:
+        return [run_dir / p.name / f for p in plan.points for f in (METRICS, "tb")]
 
     def write_inputs(self, run_dir: Path, plan: SweepPlan, resumed: bool) -> None:
         write_config(run_dir, dataclasses.replace(plan.base, run_dir=str(run_dir)))

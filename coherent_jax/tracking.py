@@ -11,7 +11,11 @@ sweep, grouped by the sweep's directory name):
 
 It never needs the network: unless ``WANDB_MODE`` is set in the environment, the mode
 is ``offline`` and everything stays in ``RUN_DIR/wandb/`` (``wandb sync RUN_DIR/wandb/offline-run-*``
-uploads it later). ``WANDB_MODE=online`` (after ``wandb login``) logs live.
+uploads it later). W&B's own cache, data and artifact directories (and, offline, its
+config directory) are pointed there too (`wandb_environment`), unless the user set them,
+so nothing is written under the home directory. ``WANDB_MODE=online`` (after ``wandb login``)
+logs live: `preflight` refuses it without credentials before the run directory exists, and
+a server that does not answer within ``wandb_init_timeout`` seconds ends the run in one line.
 
 The W&B run id is drawn once and kept in ``RUN_DIR/wandb-run.json``; ``resume=RUN_DIR``
 and ``evaluate`` reopen the same id with ``resume="allow"``, so a resumed run continues
@@ -21,17 +25,24 @@ bit-identically, so rows logged again for those steps carry the values already l
 
 from __future__ import annotations
 
+import configparser
 import contextlib
 import json
+import netrc
 import os
 import secrets
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlparse
 
 PROJECT = "coherent_jax"
 RUN_FILE = "wandb-run.json"
 INSTALL_HINT = 'wandb=true needs Weights & Biases: pip install -e ".[wandb]"'
+MODES = ("offline", "online", "disabled", "shared", "dryrun", "run")  # what W&B accepts
+ONLINE_MODES = ("online", "shared", "run")  # those that reach the server
+DEFAULT_SERVER = "https://api.wandb.ai"
+DEFAULT_INIT_TIMEOUT = 30.0  # seconds; the config's ``wandb_init_timeout``
 
 
 class TrackingError(RuntimeError):
@@ -56,6 +67,93 @@ def require() -> None:
 def mode() -> str:
     """``WANDB_MODE`` when the user set it, else ``offline``: a run never needs the network."""
     return os.environ.get("WANDB_MODE") or "offline"
+
+
+def check_mode(value: str) -> str:
+    """`value` if W&B accepts it as a mode; else raises `TrackingError` naming the allowed ones."""
+    if value not in MODES:
+        raise TrackingError(f"invalid value for WANDB_MODE: {value!r} (allowed: {', '.join(MODES)})")
+    return value
+
+
+def credentials(environ: Mapping[str, str]) -> str | None:
+    """Where W&B would find credentials for its server, without asking it; None when nowhere.
+
+    Looked up as ``wandb`` does: ``WANDB_API_KEY`` or ``WANDB_IDENTITY_TOKEN_FILE``, a
+    ``.netrc`` entry for the server's host (``NETRC``, else ``~/.netrc``), the ``api_key``
+    of W&B's settings file (``WANDB_CONFIG_DIR/settings``, else ``~/.config/wandb/settings``).
+    `environ` stands for the environment (``HOME`` included), so the lookup can be tested.
+    """
+    for name in ("WANDB_API_KEY", "WANDB_IDENTITY_TOKEN_FILE"):
+        if environ.get(name):
+            return name
+    home = Path(environ.get("HOME") or Path.home())
+    host = urlparse(environ.get("WANDB_BASE_URL") or DEFAULT_SERVER).hostname or ""
+    netrc_files = [Path(environ["NETRC"])] if environ.get("NETRC") else [home / ".netrc", home / "_netrc"]
+    for path in netrc_files:
+        with contextlib.suppress(OSError, netrc.NetrcParseError):
+            if path.is_file() and netrc.netrc(str(path)).authenticators(host):
+                return str(path)
+    config_dir = (
+        Path(environ["WANDB_CONFIG_DIR"]) if environ.get("WANDB_CONFIG_DIR") else home / ".config/wandb"
+    )
+    settings = configparser.ConfigParser()
+    with contextlib.suppress(OSError, configparser.Error):
+        settings.read(config_dir / "settings")
+        if settings.get("default", "api_key", fallback=""):
+            return str(config_dir / "settings")
+    return None
+
+
+def preflight(environ: Mapping[str, str] | None = None) -> None:
+    """What ``wandb=true`` needs, checked before anything is written: the package, a valid
+    ``WANDB_MODE`` and, to log online, credentials. Raises `TrackingError` in one line."""
+    environ = os.environ if environ is None else environ
+    require()
+    wanted = check_mode(environ.get("WANDB_MODE") or "offline")
+    if wanted in ONLINE_MODES and credentials(environ) is None:
+        raise TrackingError(
+            f"WANDB_MODE={wanted} needs W&B credentials and none were found (allowed: run `wandb login` "
+            "or set WANDB_API_KEY; or leave WANDB_MODE unset to log offline into RUN_DIR/wandb/)"
+        )
+
+
+def wandb_environment(root: Path, environ: Mapping[str, str]) -> dict[str, str]:
+    """The W&B variables a run sets (those the user has not): its mode, silence, its cache, data and
+    artifact directories under ``root/wandb/``; its config directory too unless it logs online
+    (online, the user's login and server settings live there)."""
+    wanted = environ.get("WANDB_MODE") or "offline"
+    dirs = {"WANDB_CACHE_DIR": "cache", "WANDB_DATA_DIR": "data", "WANDB_ARTIFACT_DIR": "artifacts"}
+    if wanted not in ONLINE_MODES:
+        dirs["WANDB_CONFIG_DIR"] = "config"
+    values = {
+        "WANDB_MODE": wanted,
+        "WANDB_SILENT": "true",  # W&B's own notices ("Loaded credentials ...") off the run's stderr
+        **{k: str(Path(root) / "wandb" / v) for k, v in dirs.items()},
+    }
+    return {k: v for k, v in values.items() if not environ.get(k)}
+
+
+@contextlib.contextmanager
+def session(root: Path) -> Iterator[None]:
+    """W&B's process-wide state for the runs of one directory `root`: the variables of
+    `wandb_environment` set while inside, and W&B's service (started with them) torn down
+    on leaving, so the next session starts its own. A W&B run the calling program had
+    already started (``wandb.run``, from Python) keeps its service: no teardown then."""
+    import wandb
+
+    had_run = wandb.run is not None
+    added = wandb_environment(root, os.environ)
+    os.environ.update(added)
+    try:
+        yield
+    finally:
+        try:
+            if not had_run:
+                wandb.teardown()
+        finally:
+            for key in added:
+                os.environ.pop(key, None)
 
 
 def _identity(run_dir: Path, name: str, group: str | None) -> dict[str, Any]:
@@ -83,29 +181,44 @@ class WandbRun:
         config: Mapping[str, Any] | None,
         name: str,
         group: str | None = None,
+        init_timeout: float = DEFAULT_INIT_TIMEOUT,
     ) -> WandbRun:
         """Starts (or, with an id in ``run_dir/RUN_FILE``, resumes) the W&B run of ``run_dir``.
 
         ``config`` is logged as the run's config (None: leave it as logged before,
-        for a process such as `evaluate` that only adds media).
+        for a process such as `evaluate` that only adds media). W&B gets `init_timeout`
+        seconds to start; any failure to start (no answer from the server, credentials
+        it refuses) raises `TrackingError` in one line.
         """
         require()
         import wandb
 
         identity = _identity(run_dir, name, group)
-        settings = wandb.Settings(silent=True, console="off", x_disable_stats=True)
-        run = wandb.init(
-            project=identity["project"],
-            id=identity["id"],
-            name=identity["name"],
-            group=identity["group"],
-            dir=str(run_dir),
-            mode=mode(),
-            resume="allow",
-            config=dict(config) if config is not None else None,
-            settings=settings,
-            reinit="create_new",
+        settings = wandb.Settings(
+            silent=True, console="off", x_disable_stats=True, init_timeout=float(init_timeout)
         )
+        try:
+            run = wandb.init(
+                project=identity["project"],
+                id=identity["id"],
+                name=identity["name"],
+                group=identity["group"],
+                dir=str(run_dir),
+                mode=check_mode(mode()),
+                resume="allow",
+                config=dict(config) if config is not None else None,
+                settings=settings,
+                reinit="create_new",
+            )
+        except TrackingError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - whatever stops W&B from starting means the same here
+            reason = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+            raise TrackingError(
+                f"W&B could not start the run of {str(run_dir)!r} (WANDB_MODE={mode()}, "
+                f"wandb_init_timeout={init_timeout:g} s): {reason} "
+                "(allowed: a reachable W&B server, or WANDB_MODE unset to log offline)"
+            ) from None
         return cls(run)
 
     def log(self, row: Mapping[str, float | None], step: int) -> None:
@@ -143,17 +256,28 @@ class Mirrors:
 
 @contextlib.contextmanager
 def mirrored(
-    points: Sequence[tuple[Path, Mapping[str, Any], str]], group: str | None = None
+    points: Sequence[tuple[Path, Mapping[str, Any], str]],
+    group: str | None = None,
+    init_timeout: float = DEFAULT_INIT_TIMEOUT,
 ) -> Iterator[Mirrors]:
     """Opens one `WandbRun` per (directory, config, name) of `points`, and finishes them all on exit.
 
     Finished with their summaries when the caller set them (the run completed), else
-    without (stopped, diverged: a resume continues the same W&B runs). Nothing is opened
-    for no points, so a run without ``wandb=true`` never imports ``wandb``.
+    without (stopped, diverged: a resume continues the same W&B runs); a run that fails
+    to open finishes those opened before it. W&B's files go under the points' common
+    directory (`session`). Nothing is opened for no points, so a run without
+    ``wandb=true`` never imports ``wandb``.
     """
-    mirrors = Mirrors([WandbRun.open(d, config, name, group) for d, config, name in points])
-    try:
+    mirrors = Mirrors([])
+    if not points:
         yield mirrors
-    finally:
-        for j, run in enumerate(mirrors.runs):
-            run.finish(mirrors.summaries[j] if mirrors.summaries else None)
+        return
+    root = Path(os.path.commonpath([str(Path(d).absolute()) for d, _, _ in points]))
+    with session(root):
+        try:
+            for d, config, name in points:
+                mirrors.runs.append(WandbRun.open(d, config, name, group, init_timeout))
+            yield mirrors
+        finally:
+            for j, run in enumerate(mirrors.runs):
+                run.finish(mirrors.summaries[j] if mirrors.summaries else None)

@@ -86,8 +86,9 @@ def train(
     """
     from coherent_jax.agents import make_trainer
 
-    trainer = make_trainer(cfg)
-    with tracking.mirrored(_mirror_points(cfg, run_dir)) as mirrors:
+    # W&B first: a server that does not answer ends the run before the slow imports and builds.
+    with tracking.mirrored(_mirror_points(cfg, run_dir), init_timeout=cfg.wandb_init_timeout) as mirrors:
+        trainer = make_trainer(cfg)
         job = Job(
             cfg=cfg,
             trainer=trainer,
@@ -179,6 +180,9 @@ class TrainCommand:
 
     def check_rows(self, run_dir: Path, plan: Config, checkpoint: Checkpoint, finished: bool) -> None:
         rundir.check_metrics([run_dir / METRICS], checkpoint.iteration, finished)
+
+    def outputs(self, run_dir: Path, plan: Config) -> list[Path]:
+        return [run_dir / METRICS, run_dir / "tb"]
 
     def write_inputs(self, run_dir: Path, plan: Config, resumed: bool) -> None:
         if not resumed:

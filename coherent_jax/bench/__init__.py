@@ -30,6 +30,7 @@ IGNORED = (
     "checkpoint_every",
     "tensorboard",
     "wandb",
+    "wandb_init_timeout",
     "progress",
     "total_steps",
     "eval_every",

@@ -138,6 +138,13 @@ class Config:
         '(pip install -e ".[wandb]"; docs/runs.md)',
         group="output",
     )
+    wandb_init_timeout: float = field(
+        30.0,
+        "seconds W&B may take to start its run (WANDB_MODE=online: reach the server) before "
+        "the run is refused",
+        group="output",
+        check=POSITIVE,
+    )
     # --- physics backend
     physics: str = field(
         "auto",

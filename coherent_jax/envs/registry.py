@@ -272,22 +272,44 @@ class PhysicsError(ValueError):
     """A physics backend that does not exist or does not support the task."""
 
 
-def resolve_physics(task: str, physics: str) -> str:
+def auto_physics(has_native: bool, backend: str) -> str:
+    """What ``physics=auto`` picks for a MuJoCo task: native MuJoCo on a CPU when the task has it
+    (faster there, see ``python -m coherent_jax.bench physics``), else MJX.
+
+    On an accelerator (any `backend` but ``cpu``) always MJX: native MuJoCo is stepped on
+    the host through a callback, which would put a host round trip into every step of the
+    compiled iteration.
+    """
+    return "native" if has_native and backend == "cpu" else "mjx"
+
+
+def resolve_physics(task: str, physics: str, backend: str | None = None) -> str:
     """The backend a task runs on: ``mjx`` or ``native`` (own-pipeline tasks keep theirs).
 
-    Gymnasium's tasks and the user's own (``MODULE:NAME``) run on native MuJoCo with ``auto``
-    and ``native``, and their own model on MJX with ``mjx`` (`coherent_jax.envs.mjx_physics`)
-    except where MJX cannot run it (refused with the reason). Brax's re-creations and
-    Playground's tasks: ``auto`` picks native MuJoCo on a CPU for those that have it (faster there, see
-    ``python -m coherent_jax.bench physics``) and MJX on accelerators. Raises
-    `PhysicsError` with a one-line message otherwise. Only ``auto`` on such a task asks
-    JAX for its backend; everything else is decided from the registry.
+    ``native`` and ``mjx`` are taken as given where the task has them: Gymnasium's tasks and
+    the user's own (``MODULE:NAME``) run on native MuJoCo, or their own model on MJX
+    (`coherent_jax.envs.mjx_physics`) except where MJX cannot run it (refused with the
+    reason); Brax's re-creations and Playground's tasks on MJX, or native MuJoCo for those
+    that have it. ``auto`` is `auto_physics` of the task and `backend` (default: JAX's, asked
+    only then): on an accelerator it never picks the host callback, and a task MJX cannot run
+    is refused there, naming ``physics=native``. Raises `PhysicsError` with a one-line message.
     """
     spec = check_task(task)
     if physics not in PHYSICS:
         raise PhysicsError(f"unknown physics {physics!r}; valid: {', '.join(PHYSICS)}")
-    if spec.backend == "native":
-        if physics != "mjx":
+    if spec.backend == "native":  # Gymnasium's tasks and the user's: they all have native MuJoCo
+        if physics == "auto":
+            backend = backend or _jax_backend()
+            if auto_physics(True, backend) == "native":
+                return "native"
+            if spec.gymnasium_id in MJX_REFUSAL:
+                raise PhysicsError(
+                    f"physics=auto on {backend} does not support env {task!r}: MJX cannot run it "
+                    f"({MJX_REFUSAL[spec.gymnasium_id]}), and native MuJoCo would step on the host "
+                    "(allowed: physics=native, to accept that)"
+                )
+            return "mjx"
+        if physics == "native":
             return "native"
         if spec.gymnasium_id in MJX_REFUSAL:
             raise PhysicsError(f"physics=mjx does not support env {task!r}: {MJX_REFUSAL[spec.gymnasium_id]}")
@@ -299,10 +321,15 @@ def resolve_physics(task: str, physics: str) -> str:
     if spec.backend != "mjx":
         return spec.backend
     if physics == "auto":
-        import jax
-
-        return "native" if spec.native and jax.default_backend() == "cpu" else "mjx"
+        return auto_physics(spec.native, backend or _jax_backend())
     return physics
+
+
+def _jax_backend() -> str:
+    """JAX's default backend (``cpu``, ``gpu``, ``tpu``)."""
+    import jax
+
+    return jax.default_backend()
 
 
 def make_brax_env(name: str, **kwargs: Any):
