@@ -21,7 +21,7 @@ from typing import Any
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from coherent_jax.config.checks import ConfigError, validate
+from coherent_jax.config.checks import ConfigError, sweep_item, unknown_key, validate
 from coherent_jax.config.schema import FIELDS, GROUPS, LEGACY_KEYS, SECTIONS, SWEEPABLE, Config
 from coherent_jax.presets import ALGO_DEFAULTS, dotted_items, help_lines, layered_base
 
@@ -110,9 +110,14 @@ def parse_overrides(overrides: Sequence[str], base: Config | None = None) -> Con
         if "=" not in item or item.startswith("="):
             raise ConfigError(f"malformed override {item!r}: expected key=value")
         key, text = (s.strip() for s in item.split("=", 1))
+        value = _check_yaml(key, text)
+        refusal = sweep_item(key, value, text)
+        if refusal is not None:
+            raise refusal
         if key not in FIELDS:
-            raise ConfigError(f"unknown key {key!r}; valid keys: {', '.join(sorted(FIELDS))}")
-        _check_yaml(key, text)
+            raise unknown_key(key, FIELDS)
+        if isinstance(value, dict):  # env=os: reads as a mapping, which no key takes
+            raise ConfigError(f"invalid value for {key!r}: {text!r} (allowed: {_expected_one(key)})")
         if key in chosen:
             chosen[key] = text
     base = layered_base(base if base is not None else Config(), **chosen)
@@ -121,15 +126,26 @@ def parse_overrides(overrides: Sequence[str], base: Config | None = None) -> Con
         cfg = OmegaConf.to_object(merged)
     except OmegaConfBaseException as exc:
         key = getattr(exc, "full_key", None) or "?"
-        field = FIELDS.get(key)
-        expected = _type_name(field.type) if field is not None else "a valid value"
-        if field is not None and "choices" in field.metadata:
-            expected = ", ".join(str(c) for c in field.metadata["choices"] if c)
-        elif field is not None and "allowed" in field.metadata:
-            expected = field.metadata["allowed"]
         msg = str(exc).splitlines()[0]
-        raise ConfigError(f"invalid value for {key!r}: {msg} (allowed: {expected})") from None
+        raise ConfigError(f"invalid value for {key!r}: {msg} (allowed: {_expected(key)})") from None
     return validate(cfg)
+
+
+def _expected_one(key: str) -> str:
+    """What `key` takes, said briefly for a value that is no value at all (a mapping)."""
+    if key == "env":  # ``env=os:``: a task of the user's without its attribute
+        return "MODULE:NAME or path/to/file.py:NAME, NAME the task's attribute, or a registered task (--help)"
+    return _expected(key)
+
+
+def _expected(key: str) -> str:
+    """What `key` takes, as a refusal names it: its choices, its declared range, or its type."""
+    field = FIELDS.get(key)
+    if field is None:
+        return "a valid value"
+    if "choices" in field.metadata:
+        return ", ".join(str(c) for c in field.metadata["choices"] if c)
+    return field.metadata.get("allowed") or _type_name(field.type)
 
 
 def override_items(overrides: Mapping[str, Any]) -> list[str]:
@@ -194,12 +210,12 @@ def config_from(
     return parse_overrides(override_items({**(overrides or {}), **kwargs}), base=base)
 
 
-def _check_yaml(key: str, text: str) -> None:
-    """Raises `ConfigError` naming `key` if its value is not valid YAML (``[64,64``, ``{``)."""
+def _check_yaml(key: str, text: str) -> Any:
+    """`text` read as YAML; raises `ConfigError` naming `key` if it is not valid YAML (``[64,64``, ``{``)."""
     import yaml
 
     try:
-        yaml.safe_load(text)
+        return yaml.safe_load(text)
     except yaml.YAMLError as exc:
         problem = getattr(exc, "problem", None) or "malformed"
         raise ConfigError(
