@@ -67,7 +67,7 @@ BAD = [
     ("iterations", "malformed"),
     ("=3", "malformed"),
     ("nope=1", r"^unknown key 'nope'; --help lists every key$"),
-    ("iteration=3", r"^unknown key 'iteration' \(did you mean iterations, coherent\.integration\?\); --help lists"),
+    ("iteration=3", r"^unknown key 'iteration' \(did you mean iterations, coherent\.integration\?\); --help"),
     ("iterations=0", r"'iterations': '0' \(allowed: an integer >= 1\)"),
     ("iterations=2.5", "'iterations'"),
     ("budget=nan", "'budget'"),
