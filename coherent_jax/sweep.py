@@ -60,6 +60,7 @@ from coherent_jax.config import (
     validate,
     with_values,
 )
+from coherent_jax.envs.registry import task_label
 from coherent_jax.loop import PREFIX, StopRequest, to_float, write_params
 from coherent_jax.loop_state import Job, Outcome
 from coherent_jax.memory import check_memory
@@ -194,7 +195,7 @@ def make_plan(base: Config, axes: dict[str, list[Any]], seeds: list[int]) -> Swe
 
 def default_sweep_dir(cfg: Config) -> Path:
     stamp = time.strftime("%Y%m%d-%H%M%S")
-    return Path("runs") / f"sweep-{cfg.env}-{cfg.algo}-{cfg.explore}-{stamp}"
+    return Path("runs") / f"sweep-{task_label(cfg.env)}-{cfg.algo}-{cfg.explore}-{stamp}"
 
 
 def point_hparams(base_hparams: Any, point: Point) -> Any:

@@ -49,6 +49,7 @@ from typing import Any
 
 from coherent_jax import launch, multihost, rundir, tracking
 from coherent_jax.config import Config, help_text, parse_overrides
+from coherent_jax.envs.registry import task_label
 from coherent_jax.loop import PREFIX, StopRequest, to_float, write_params
 from coherent_jax.loop_state import Job, Outcome
 from coherent_jax.memory import check_memory
@@ -66,7 +67,7 @@ from coherent_jax.runs import (
 
 def default_run_dir(cfg: Config) -> Path:
     stamp = time.strftime("%Y%m%d-%H%M%S")
-    return Path("runs") / f"{cfg.env}-{cfg.algo}-{cfg.explore}-s{cfg.seed}-{stamp}"
+    return Path("runs") / f"{task_label(cfg.env)}-{cfg.algo}-{cfg.explore}-s{cfg.seed}-{stamp}"
 
 
 def train(

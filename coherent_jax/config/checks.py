@@ -51,7 +51,7 @@ def close_keys(key: str, valid: Iterable[str], n: int = 3) -> list[str]:
     """Up to `n` keys of `valid` close to `key` (difflib), closest first; a group's key also by
     its last part, so ``temperatur`` finds ``sac.temperature``."""
     valid = sorted(set(valid))
-    found = difflib.get_close_matches(key, valid, n=n, cutoff=0.6)
+    found = difflib.get_close_matches(key, valid, n=n, cutoff=0.7)
     by_name: dict[str, list[str]] = {}
     for name in valid:
         by_name.setdefault(name.rpartition(".")[2], []).append(name)
