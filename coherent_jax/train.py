@@ -57,6 +57,7 @@ from coherent_jax.runs import (
     METRICS,
     Checkpoint,
     atomic_write,
+    config_text,
     load_config,
     resume_config,
     resume_point,
@@ -192,18 +193,22 @@ class TrainCommand:
     def dir_line(self, run_dir: Path, plan: Config) -> str:
         return f"run dir {run_dir}"
 
+    def describe(self, plan: Config) -> str:
+        return config_text(plan)
+
     def run(
         self, plan: Config, run_dir: Path | None, checkpoint: Checkpoint | None, stop: StopRequest
     ) -> dict:
         return train(plan, run_dir, resume=checkpoint, stop=stop)
 
 
+def train_help(items: Sequence[str] = ()) -> str:
+    """``--help``: every option with the value `items` (the other arguments) resolve it to."""
+    return help_text(TrainCommand().parse(list(items)) if items else None, items)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    return launch.run_command(
-        list(sys.argv[1:] if argv is None else argv),
-        help_text,
-        lambda args, stop: launch.launch(TrainCommand(), args, stop),
-    )
+    return launch.run_command(list(sys.argv[1:] if argv is None else argv), train_help, TrainCommand())
 
 
 class _CallableModule(types.ModuleType):

@@ -257,18 +257,28 @@ def _algo_changes() -> dict[str, dict[str, Any]]:
     return out
 
 
-def help_text() -> str:
-    """Every option with its default and a one-line description, in sections and groups;
-    a default another algorithm changes says so (``[algo=sac: 8]``)."""
+def help_text(cfg: Config | None = None, given: Sequence[str] = ()) -> str:
+    """Every option with its value and a one-line description, in sections and groups; a
+    default another algorithm changes says so (``[algo=sac: 8]``).
+
+    The values are the defaults, or with `cfg` its values: ``preset=thesis --help`` shows
+    what the items `given` (which resolve to `cfg`) make of each key."""
     changes = _algo_changes()
     legacy = {new: old for old, new in LEGACY_KEYS.items()}
-    lines = ["usage: python -m coherent_jax.train [key=value ...]", "", *help_lines(_is_default)]
+    lines = [
+        "usage: python -m coherent_jax.train [key=value ...]",
+        "dry_run=true (or --print-config) prints the resolved config and exits, writing nothing",
+        "",
+        *help_lines(_is_default),
+    ]
     lines.append(f"sweepable (a list runs a grid with coherent_jax.sweep): {', '.join(SWEEPABLE)}")
     lines.append(
         "a group's key is dotted (ppo.clip_eps=0.1); the flat keys of before (clip_eps=0.1) "
         "still work, with a note naming the new key"
     )
-    default = Config()
+    default = cfg if cfg is not None else Config()
+    if given:
+        lines += ["", f"values below: those of {' '.join(given)} (each key=value as it resolves)"]
     sections = [(s, [k for k, f in FIELDS.items() if f.metadata.get("group") == s]) for s in SECTIONS]
     group_help = {f.name: f.metadata["help"] for f in dataclasses.fields(Config) if f.name in GROUPS}
     sections += [(f"{g}.* ({group_help[g]})", [k for k in FIELDS if k.startswith(g + ".")]) for g in GROUPS]
