@@ -11,11 +11,11 @@ it runs. The rest happens here, once, in the same order for both:
    become a stop request (`run_command`);
 2. parse the arguments, or read the stored config for ``resume=DIR`` (`prepare`);
    a ``distributed=true`` command hands its work to the supervisor
-   (`coherent_jax.multihost.supervise`); a SAC run within its warm-up is warned of
-   (`coherent_jax.config.checks.warmup_warning`); the devices and the memory are checked;
+   (`coherent_jax.multihost.supervise`); the devices and the memory are checked;
 3. create the run directory (or check a resumed one's checkpoint and rows) and lock
    it (`coherent_jax.runlock`); bad input ends here with `EXIT_BAD_INPUT` and
-   nothing written;
+   nothing written; a SAC run within its warm-up is warned of
+   (`coherent_jax.config.checks.warmup_warning`);
 4. write the config and ``versions.json`` and drive the loop (`execute`);
 5. turn the summary into the exit status (`exit_status`).
 
@@ -222,6 +222,7 @@ def run(cmd: Command, argv: list[str], stop: StopRequest) -> Launched:
         plan, run_dir, checkpoint, lock = prepare(cmd, argv)
     except _Done as done:
         return Launched(done.status, done.run_dir, None)
+    warn(cmd.config(plan))  # every input accepted: what runs, but probably not as meant
     with lock or contextlib.nullcontext():
         summary = execute(cmd, plan, run_dir, resume_dir is not None, checkpoint, stop)
     status = exit_status(summary) if summary is not None else signal_status(stop.signum)
@@ -246,7 +247,6 @@ def prepare(cmd: Command, argv: list[str]):
         tracking.require()
     if multihost.needs_supervisor(cfg.distributed):
         raise _Done(multihost.supervise(cmd.module, argv))
-    warn(cfg)
     is_writer = cmd.check(plan)
     if resume_dir is None:
         if not is_writer:

@@ -10,9 +10,10 @@ import pytest
 import yaml
 from helpers import ROOT
 
-from coherent_jax import sweep, train
+from coherent_jax import launch, sweep, train
 from coherent_jax.config import ConfigError, parse_overrides
 from coherent_jax.config.checks import warmup_warning
+from coherent_jax.loop import StopRequest
 from coherent_jax.runs import stored_config
 
 EXAMPLE_FILE = ROOT / "examples" / "reacher_task.py"
@@ -172,3 +173,10 @@ def test_row13_sac_within_its_warmup_is_warned_of_naming_both_numbers(tmp_path, 
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [warning]
     assert os.listdir(tmp_path) == []
+    # A run warns too, once every input is accepted (training itself is left out here).
+    monkeypatch.setattr(launch, "execute", lambda *args: {"stopped_by": None})
+    with StopRequest() as stop:
+        done = launch.run(
+            train.TrainCommand(), ["preset=thesis", "algo=sac", "total_steps=5000", "env=pointmass"], stop
+        )
+    assert done.status == 0 and capsys.readouterr().err.strip().splitlines() == [warning]
