@@ -65,7 +65,7 @@ def unknown_key(key: str, valid: Iterable[str]) -> ConfigError:
     the full list is (``--help``), never the list itself."""
     close = close_keys(key, valid)
     hint = f" (did you mean {', '.join(close)}?)" if close else ""
-    return ConfigError(f"unknown key {key!r}{hint}; --help lists every key")
+    return ConfigError(f"unknown key {key!r}{hint}; valid keys: --help lists them all")
 
 
 def sweep_item(key: str, value: Any, text: str) -> ConfigError | None:
