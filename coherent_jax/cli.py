@@ -11,7 +11,7 @@ allowed-values text, help) and names the training-config keys it sets itself;
   fixes.
 
 Every problem is one `ConfigError` line naming the bad item and what is allowed: a
-malformed item, an unknown key (with the list of valid ones), a key the command
+malformed item, an unknown key (with up to three close ones and a pointer to ``--help``), a key the command
 sets itself, a bad value, a YAML syntax error in a config value. Parsing has no
 side effects, so a command that parses first refuses bad input before it runs or
 writes anything.
@@ -30,6 +30,7 @@ from typing import Any, NamedTuple
 import yaml
 
 from coherent_jax.config import FIELDS, Config, ConfigError, modern_items, parse_overrides
+from coherent_jax.config.checks import unknown_key
 
 
 @dataclasses.dataclass(frozen=True)
@@ -304,8 +305,7 @@ def parse_command(
             _check_config_syntax(key, text)
             config_items.append(item)
         else:
-            valid = sorted(set(keys) | valid_config)
-            raise ConfigError(f"unknown key {key!r}; valid keys: {', '.join(valid)}")
+            raise unknown_key(key, set(keys) | valid_config)
     cfg = None
     if config:
         fixed_items = [f"{k}={v}" for k, v in fixed.items() if v is not None]

@@ -6,13 +6,16 @@ A command (`coherent_jax.train`'s `TrainCommand`, `coherent_jax.sweep`'s
 plan, which checks the plan needs, what it writes besides the shared files and how
 it runs. The rest happens here, once, in the same order for both:
 
-1. ``--help``; SIGINT/SIGTERM become a stop request (`run_command`);
+1. ``--help`` (the values the other items resolve to) or a dry run (``dry_run=true``,
+   ``--print-config``: the resolved config printed, nothing written); SIGINT/SIGTERM
+   become a stop request (`run_command`);
 2. parse the arguments, or read the stored config for ``resume=DIR`` (`prepare`);
    a ``distributed=true`` command hands its work to the supervisor
    (`coherent_jax.multihost.supervise`); the devices and the memory are checked;
 3. create the run directory (or check a resumed one's checkpoint and rows) and lock
    it (`coherent_jax.runlock`); bad input ends here with `EXIT_BAD_INPUT` and
-   nothing written;
+   nothing written; a SAC run within its warm-up is warned of
+   (`coherent_jax.config.checks.warmup_warning`);
 4. write the config and ``versions.json`` and drive the loop (`execute`);
 5. turn the summary into the exit status (`exit_status`).
 
@@ -40,6 +43,7 @@ from typing import Any, Protocol
 
 from coherent_jax import cli, multihost, rundir, runlock, tracking
 from coherent_jax.config import Config, ConfigError
+from coherent_jax.config.checks import warmup_warning
 from coherent_jax.divergence import DivergenceError
 from coherent_jax.exit_codes import EXIT_BAD_INPUT, EXIT_DIVERGED, EXIT_OK, signal_status
 from coherent_jax.loop import PREFIX, StopRequest, run_loop
@@ -97,25 +101,90 @@ class Command(Protocol):
     def dir_line(self, run_dir: Path, plan: Any) -> str:
         """The start-up line naming the run directory."""
 
+    def describe(self, plan: Any) -> str:
+        """The plan as YAML, for a dry run: the config ``config.yaml`` would hold (and a sweep's grid)."""
+
     def run(self, plan: Any, run_dir: Path | None, checkpoint: Checkpoint | None, stop: StopRequest) -> dict:
         """Runs the plan; returns its summary (with ``stopped_by`` and, for a sweep, ``diverged``)."""
 
 
-def run_command(
-    argv: list[str], help_text: Callable[[], str], body: Callable[[list[str], StopRequest], int]
-) -> int:
-    """The entry of ``train`` and ``sweep``: ``--help``, else ``body(argv, stop)`` with SIGINT
-    and SIGTERM turned into a stop request; a Ctrl-C before the handler took over exits
-    130 without a traceback."""
-    if any(a in ("-h", "--help", "help") for a in argv):
-        print(help_text())
-        return EXIT_OK
+HELP_FLAGS = ("-h", "--help", "help")
+PRINT_CONFIG = "--print-config"  # the same as dry_run=true
+DRY_RUN = cli.Key(
+    default=False,
+    parse=cli.boolean,
+    allowed="true or false",
+    help="prints the resolved config and where the run would write, then exits; writes nothing",
+)
+
+
+def run_command(argv: list[str], help_text: Callable[[list[str]], str], cmd: Command) -> int:
+    """The entry of ``train`` and ``sweep``.
+
+    ``--help``: `help_text` of the other items (the values they resolve to: ``preset=thesis
+    --help`` shows the preset's). ``dry_run=true`` or ``--print-config``: the resolved
+    config (`describe`), nothing written. Otherwise `launch` with SIGINT and SIGTERM
+    turned into a stop request; a Ctrl-C before the handler took over exits 130 without
+    a traceback. Bad input in the first two is one line and exit status 2 as well.
+    """
+    items = [a for a in argv if a not in HELP_FLAGS]
+    if len(items) < len(argv):
+        return _print_or_refuse(lambda: help_text(items))
+    try:
+        items, dry_run = split_dry_run(items)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr, flush=True)
+        return EXIT_BAD_INPUT
+    if dry_run:
+        return _print_or_refuse(lambda: describe(cmd, items))
     with StopRequest() as stop:
         try:
-            return body(argv, stop)
+            return launch(cmd, items, stop)
         except KeyboardInterrupt:
             print(f"{PREFIX} interrupted", file=sys.stderr, flush=True)
             return signal_status(signal.SIGINT)
+
+
+def split_dry_run(argv: list[str]) -> tuple[list[str], bool]:
+    """(the items without ``dry_run=`` and ``--print-config``, whether to do a dry run); a bad
+    ``dry_run`` value or a second ``dry_run`` is a `ConfigError`."""
+    given = [a for a in argv if a == PRINT_CONFIG or a.split("=", 1)[0].strip() == "dry_run"]
+    cli.check_unique(given)
+    values = [i == PRINT_CONFIG or cli.parse_value("dry_run", cli.split_item(i)[1], DRY_RUN) for i in given]
+    return [a for a in argv if a not in given], any(values)
+
+
+def _print_or_refuse(make_text: Callable[[], str]) -> int:
+    """Prints ``make_text()`` and returns 0; bad input is one line on stderr and status 2."""
+    try:
+        text = make_text()
+    except BAD_INPUT as exc:
+        print(f"error: {exc}", file=sys.stderr, flush=True)
+        return EXIT_BAD_INPUT
+    print(text, flush=True)
+    return EXIT_OK
+
+
+def describe(cmd: Command, argv: list[str]) -> str:
+    """What a dry run prints: the command's resolved plan as YAML (what ``config.yaml`` would
+    hold) and a comment naming where the run would write. The input is parsed and checked
+    as a run's is (a resume's stored config is read); nothing is created or written, and
+    the devices, the memory and the run directory are not checked."""
+    resume_dir, rest = split_resume(argv)
+    cli.check_unique(argv)
+    plan, run_dir = (cmd.parse(argv), None) if resume_dir is None else cmd.resume(resume_dir, rest)
+    cfg = cmd.config(plan)
+    warn(cfg)
+    where = run_dir or (Path(cfg.run_dir) if cfg.run_dir else cmd.default_dir(cfg))
+    verb = "continue in" if resume_dir else "write to"
+    return f"{cmd.describe(plan).rstrip()}\n# dry run: nothing written; the run would {verb} {where}"
+
+
+def warn(cfg: Config) -> None:
+    """The warnings of a config that runs but probably not as meant, one line each on stderr."""
+    warning = warmup_warning(cfg)
+    if warning is not None:
+        print(warning, file=sys.stderr, flush=True)
 
 
 # Bad input: reported in one line, exit status 2, nothing written.
@@ -166,6 +235,7 @@ def run(cmd: Command, argv: list[str], stop: StopRequest) -> Launched:
         plan, run_dir, checkpoint, lock, created = prepare(cmd, argv)
     except _Done as done:
         return Launched(done.status, done.run_dir, None)
+    warn(cmd.config(plan))  # every input accepted: what runs, but probably not as meant
     try:
         with lock or contextlib.nullcontext():
             summary = execute(cmd, plan, run_dir, resume_dir is not None, checkpoint, stop)

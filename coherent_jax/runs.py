@@ -450,11 +450,16 @@ def stored_config(cfg: Config) -> dict[str, Any]:
     return to_dict(dataclasses.replace(cfg, resume=""))
 
 
-def write_config(run_dir: Path, cfg: Config) -> None:
-    """The run's resolved config as ``config.yaml`` (`stored_config`)."""
+def config_text(cfg: Config) -> str:
+    """The text of ``config.yaml`` for `cfg` (`stored_config` as YAML)."""
     from omegaconf import OmegaConf
 
-    atomic_write(run_dir / CONFIG, OmegaConf.to_yaml(stored_config(cfg)).encode())
+    return OmegaConf.to_yaml(stored_config(cfg))
+
+
+def write_config(run_dir: Path, cfg: Config) -> None:
+    """The run's resolved config as ``config.yaml`` (`config_text`)."""
+    atomic_write(run_dir / CONFIG, config_text(cfg).encode())
 
 
 def split_resume(argv: list[str]) -> tuple[str | None, list[str]]:

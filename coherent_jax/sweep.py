@@ -44,6 +44,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 from coherent_jax import cli, launch, limits, multihost, rundir, sweep_resume, tracking
 from coherent_jax.agents.trainer import Trainer
 from coherent_jax.config import (
@@ -60,6 +62,7 @@ from coherent_jax.config import (
     validate,
     with_values,
 )
+from coherent_jax.envs.registry import task_label
 from coherent_jax.loop import PREFIX, StopRequest, to_float, write_params
 from coherent_jax.loop_state import Job, Outcome
 from coherent_jax.memory import check_memory
@@ -67,6 +70,7 @@ from coherent_jax.runs import (
     METRICS,
     Checkpoint,
     atomic_write,
+    config_text,
     resume_point,
     stored_config,
     write_config,
@@ -194,7 +198,7 @@ def make_plan(base: Config, axes: dict[str, list[Any]], seeds: list[int]) -> Swe
 
 def default_sweep_dir(cfg: Config) -> Path:
     stamp = time.strftime("%Y%m%d-%H%M%S")
-    return Path("runs") / f"sweep-{cfg.env}-{cfg.algo}-{cfg.explore}-{stamp}"
+    return Path("runs") / f"sweep-{task_label(cfg.env)}-{cfg.algo}-{cfg.explore}-{stamp}"
 
 
 def point_hparams(base_hparams: Any, point: Point) -> Any:
@@ -368,28 +372,28 @@ def sweep_result(plan: SweepPlan, out: Outcome, resumed: bool) -> dict[str, Any]
     }
 
 
-def sweep_help() -> str:
+def sweep_help(items: Sequence[str] = ()) -> str:
+    """``--help``: the sweep's options, then every training option with the value `items` (the
+    other arguments) resolve it to."""
+    base = parse_sweep(items).base if items else None
     return "\n".join(
         [
             "usage: python -m coherent_jax.sweep [key=value ...] [seeds=N] [KEY=[v1,v2,...] ...]",
             f"keys that take a list of values (the grid's axes): {', '.join(AXIS_KEYS)}",
             "resume=SWEEP_DIR continues a stopped sweep (total_steps=N extends a finished one)",
             "run_dir: the sweep's directory (one sub-directory per point, plus sweep.csv and sweep.json)",
+            "dry_run=true (or --print-config): prints the resolved config and the grid, writes nothing",
             "",
             "sweep options:",
             *cli.help_lines(SWEEP_KEYS),
             "",
-            help_text().split("\n", 1)[1],
+            help_text(base, items).split("\n", 1)[1],
         ]
     )
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    return launch.run_command(
-        list(sys.argv[1:] if argv is None else argv),
-        sweep_help,
-        lambda args, stop: launch.launch(SweepCommand(), args, stop),
-    )
+    return launch.run_command(list(sys.argv[1:] if argv is None else argv), sweep_help, SweepCommand())
 
 
 class SweepCommand:
@@ -436,6 +440,10 @@ class SweepCommand:
 
     def dir_line(self, run_dir: Path, plan: SweepPlan) -> str:
         return f"sweep dir {run_dir}: {len(plan.points)} points"
+
+    def describe(self, plan: SweepPlan) -> str:
+        grid = {"grid": {"axes": plan.axes, "seeds": plan.seeds, "points": len(plan.points)}}
+        return config_text(plan.base) + yaml.safe_dump(grid, sort_keys=False, default_flow_style=None)
 
     def run(
         self, plan: SweepPlan, run_dir: Path | None, checkpoint: Checkpoint | None, stop: StopRequest

@@ -49,6 +49,7 @@ from typing import Any
 
 from coherent_jax import launch, multihost, rundir, tracking
 from coherent_jax.config import Config, help_text, parse_overrides
+from coherent_jax.envs.registry import task_label
 from coherent_jax.loop import PREFIX, StopRequest, to_float, write_params
 from coherent_jax.loop_state import Job, Outcome
 from coherent_jax.memory import check_memory
@@ -56,6 +57,7 @@ from coherent_jax.runs import (
     METRICS,
     Checkpoint,
     atomic_write,
+    config_text,
     load_config,
     resume_config,
     resume_point,
@@ -66,7 +68,7 @@ from coherent_jax.runs import (
 
 def default_run_dir(cfg: Config) -> Path:
     stamp = time.strftime("%Y%m%d-%H%M%S")
-    return Path("runs") / f"{cfg.env}-{cfg.algo}-{cfg.explore}-s{cfg.seed}-{stamp}"
+    return Path("runs") / f"{task_label(cfg.env)}-{cfg.algo}-{cfg.explore}-s{cfg.seed}-{stamp}"
 
 
 def train(
@@ -195,18 +197,22 @@ class TrainCommand:
     def dir_line(self, run_dir: Path, plan: Config) -> str:
         return f"run dir {run_dir}"
 
+    def describe(self, plan: Config) -> str:
+        return config_text(plan)
+
     def run(
         self, plan: Config, run_dir: Path | None, checkpoint: Checkpoint | None, stop: StopRequest
     ) -> dict:
         return train(plan, run_dir, resume=checkpoint, stop=stop)
 
 
+def train_help(items: Sequence[str] = ()) -> str:
+    """``--help``: every option with the value `items` (the other arguments) resolve it to."""
+    return help_text(TrainCommand().parse(list(items)) if items else None, items)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    return launch.run_command(
-        list(sys.argv[1:] if argv is None else argv),
-        help_text,
-        lambda args, stop: launch.launch(TrainCommand(), args, stop),
-    )
+    return launch.run_command(list(sys.argv[1:] if argv is None else argv), train_help, TrainCommand())
 
 
 class _CallableModule(types.ModuleType):

@@ -1,8 +1,9 @@
 """A task of your own: a 2-link planar arm reaching a target (``examples/tasks/reacher.xml``).
 
-Train it with ``python -m coherent_jax.train env=examples.reacher_task:reacher`` from the
-repository's root (or with this folder's parent on PYTHONPATH); docs/tasks.md explains the
-contract. Bodies of the model, as MuJoCo numbers them: 0 the world, 1 the upper arm, 2 the
+Train it with ``python -m coherent_jax.train env=examples/reacher_task.py:reacher`` from the
+repository's root (from elsewhere, this file's path from there), or by module,
+``env=examples.reacher_task:reacher``, with the root on PYTHONPATH; docs/tasks.md explains
+the contract. Bodies of the model, as MuJoCo numbers them: 0 the world, 1 the upper arm, 2 the
 forearm, 3 the fingertip, 4 the target. qpos = (shoulder, elbow, target x, target y).
 
 * observation (10): cos and sin of the two joint angles, their velocities, the target's

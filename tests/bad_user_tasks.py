@@ -7,6 +7,7 @@ from pathlib import Path
 
 import jax.numpy as jnp
 
+from coherent_jax.envs.user_task import MjcfTask
 from examples.reacher_task import reacher
 
 not_a_task = 3
@@ -22,12 +23,17 @@ reset_short = dataclasses.replace(reacher, reset_noise=lambda key, q, nv: (q[:2]
 terminate_vector = dataclasses.replace(reacher, terminate=lambda k: k.qpos > 10.0)
 
 
-def invalid_mjcf():
+def invalid_mjcf() -> MjcfTask:
     """A task whose MJCF is not a model MuJoCo compiles (a function returning the task)."""
     path = Path(tempfile.mkdtemp()) / "broken.xml"
     path.write_text("<mujoco><worldbody><body><joint type='wobbly'/></body></worldbody></mujoco>")
     return dataclasses.replace(reacher, mjcf=path)
 
 
-def raises():
+def raises() -> MjcfTask:
     raise RuntimeError("the definition failed")
+
+
+def unannotated():
+    """A function that would make a task but does not say so: refused without being called."""
+    raise RuntimeError("called although not declared to make a task")

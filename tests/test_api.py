@@ -58,7 +58,7 @@ def test_config_from_overrides_layers_like_the_command_line():
 @pytest.mark.parametrize(
     "config, message",
     [
-        ({"ppo.clip": 0.2}, r"^unknown key 'ppo\.clip'; valid keys: .*ppo\.clip_eps"),
+        ({"ppo.clip": 0.2}, r"^unknown key 'ppo\.clip' \(did you mean ppo\.clip_eps\?\); valid keys: --help"),
         ({"lr": "fast"}, r"^invalid value for 'lr': .*\(allowed: a number\)$"),
         ({"lr": -1.0}, r"^invalid value for 'lr': -1\.0"),
         ({"env": "mars"}, r"^invalid value for 'env': .*pointmass"),

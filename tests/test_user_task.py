@@ -45,7 +45,7 @@ def test_bad_definition_is_refused_naming_the_task_and_the_problem(name, problem
     assert "\n" not in msg
 
 
-NOT_THE_FORM = ["examples.reacher_task", "a:b:c", "examples/reacher_task.py:reacher", "1x:task"]
+NOT_THE_FORM = ["examples.reacher_task", "a:b:c", "examples/reacher_task.txt:reacher", "1x:task"]
 
 
 @pytest.mark.parametrize("env", NOT_THE_FORM)

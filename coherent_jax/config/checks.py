@@ -4,15 +4,22 @@ Each declared check comes from the field's metadata (`coherent_jax.config.declar
 what cannot be declared on one field (a value that depends on another: a divisor of
 ``num_envs``, a pair of settings a strategy refuses) is one named function below. The
 first problem raises `ConfigError`, one line naming the key and what is allowed. No JAX.
+
+The refusals every entry point shares are here too, so that they read the same
+everywhere: an unknown key (`unknown_key`: the key, up to three close ones, a pointer to
+``--help``), a sweep's item given to a single run (`sweep_item`), and the warning of a
+SAC run too short to leave its warm-up (`warmup_warning`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import difflib
+from collections.abc import Iterable
 from typing import Any
 
 from coherent_jax import limits
-from coherent_jax.config.schema import ENV_ALLOWED, FIELDS, Config, get_value
+from coherent_jax.config.schema import ENV_ALLOWED, FIELDS, SWEEPABLE, Config, get_value
 from coherent_jax.envs.registry import (
     NATIVE_TASKS,
     TASKS,
@@ -34,6 +41,65 @@ class ConfigError(ValueError):
 def check(cond: bool, key: str, value: Any, allowed: str) -> None:
     if not cond:
         raise ConfigError(f"invalid value for {key!r}: {value!r} (allowed: {allowed})")
+
+
+# ------------------------------------------------------------------ refusals every entry point shares
+SWEEP_COMMAND = "python -m coherent_jax.sweep"
+
+
+def close_keys(key: str, valid: Iterable[str], n: int = 3) -> list[str]:
+    """Up to `n` keys of `valid` close to `key` (difflib), closest first; a group's key also by
+    its last part, so ``temperatur`` finds ``sac.temperature``."""
+    valid = sorted(set(valid))
+    found = difflib.get_close_matches(key, valid, n=n, cutoff=0.7)
+    by_name: dict[str, list[str]] = {}
+    for name in valid:
+        by_name.setdefault(name.rpartition(".")[2], []).append(name)
+    for name in difflib.get_close_matches(key.rpartition(".")[2], list(by_name), n=n, cutoff=0.75):
+        found += by_name[name]
+    return list(dict.fromkeys(found))[:n]
+
+
+def unknown_key(key: str, valid: Iterable[str]) -> ConfigError:
+    """The one-line refusal of an unknown key: the key, up to three close valid keys and where
+    the full list is (``--help``), never the list itself."""
+    close = close_keys(key, valid)
+    hint = f" (did you mean {', '.join(close)}?)" if close else ""
+    return ConfigError(f"unknown key {key!r}{hint}; valid keys: --help lists them all")
+
+
+def sweep_item(key: str, value: Any, text: str) -> ConfigError | None:
+    """The refusal of what only a sweep takes, given to a single run: ``seeds=N``, or a list
+    (``lr=[1e-3,3e-4]``) for a key that holds one value (a list setting takes a list of
+    lists); None for anything else. `value` is `text` read as YAML."""
+    if key == "seeds":
+        return ConfigError(
+            f"invalid key 'seeds': {text} (allowed: seed=N, the one seed of a single run; "
+            f"{SWEEP_COMMAND} seeds={text} runs several)"
+        )
+    field = FIELDS.get(key)
+    if field is None or not isinstance(value, list):
+        return None
+    if "list" in str(field.type) and not any(isinstance(v, list) for v in value):
+        return None  # one value of a list setting: policy_hidden=[64,64]
+    if key in (*SWEEPABLE, "seed"):
+        where = f"{SWEEP_COMMAND} {key}={text} runs one point per value"
+    else:
+        where = "it sets shapes or the program, so a sweep cannot vary it either"
+    return ConfigError(f"invalid value for {key!r}: {text!r} is a list (allowed: one value; {where})")
+
+
+def warmup_warning(cfg: Config) -> str | None:
+    """The one-line warning of a SAC run that ends within its warm-up, where every action is
+    uniformly random (it may be a deliberate smoke run, so it is not refused); None otherwise."""
+    steps = cfg.num_iterations * cfg.steps_per_iteration
+    if cfg.algo != "sac" or steps > cfg.sac.warmup_steps:
+        return None
+    return (
+        f"warning: total_steps={cfg.total_steps} ({steps} env steps) is within sac.warmup_steps="
+        f"{cfg.sac.warmup_steps}: every action is uniformly random, none is the policy's "
+        "(raise total_steps or lower sac.warmup_steps)"
+    )
 
 
 def _declared(cfg: Config) -> None:

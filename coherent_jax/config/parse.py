@@ -21,7 +21,7 @@ from typing import Any
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from coherent_jax.config.checks import ConfigError, validate
+from coherent_jax.config.checks import ConfigError, sweep_item, unknown_key, validate
 from coherent_jax.config.schema import FIELDS, GROUPS, LEGACY_KEYS, SECTIONS, SWEEPABLE, Config
 from coherent_jax.presets import ALGO_DEFAULTS, dotted_items, help_lines, layered_base
 
@@ -110,9 +110,14 @@ def parse_overrides(overrides: Sequence[str], base: Config | None = None) -> Con
         if "=" not in item or item.startswith("="):
             raise ConfigError(f"malformed override {item!r}: expected key=value")
         key, text = (s.strip() for s in item.split("=", 1))
+        value = _check_yaml(key, text)
+        refusal = sweep_item(key, value, text)
+        if refusal is not None:
+            raise refusal
         if key not in FIELDS:
-            raise ConfigError(f"unknown key {key!r}; valid keys: {', '.join(sorted(FIELDS))}")
-        _check_yaml(key, text)
+            raise unknown_key(key, FIELDS)
+        if isinstance(value, dict):  # env=os: reads as a mapping, which no key takes
+            raise ConfigError(f"invalid value for {key!r}: {text!r} (allowed: {_expected_one(key)})")
         if key in chosen:
             chosen[key] = text
     base = layered_base(base if base is not None else Config(), **chosen)
@@ -121,15 +126,26 @@ def parse_overrides(overrides: Sequence[str], base: Config | None = None) -> Con
         cfg = OmegaConf.to_object(merged)
     except OmegaConfBaseException as exc:
         key = getattr(exc, "full_key", None) or "?"
-        field = FIELDS.get(key)
-        expected = _type_name(field.type) if field is not None else "a valid value"
-        if field is not None and "choices" in field.metadata:
-            expected = ", ".join(str(c) for c in field.metadata["choices"] if c)
-        elif field is not None and "allowed" in field.metadata:
-            expected = field.metadata["allowed"]
         msg = str(exc).splitlines()[0]
-        raise ConfigError(f"invalid value for {key!r}: {msg} (allowed: {expected})") from None
+        raise ConfigError(f"invalid value for {key!r}: {msg} (allowed: {_expected(key)})") from None
     return validate(cfg)
+
+
+def _expected_one(key: str) -> str:
+    """What `key` takes, said briefly for a value that is no value at all (a mapping)."""
+    if key == "env":  # ``env=os:``: a task of the user's without its attribute
+        return "MODULE:NAME or path/to/file.py:NAME, NAME the task's attribute, or a registered task (--help)"
+    return _expected(key)
+
+
+def _expected(key: str) -> str:
+    """What `key` takes, as a refusal names it: its choices, its declared range, or its type."""
+    field = FIELDS.get(key)
+    if field is None:
+        return "a valid value"
+    if "choices" in field.metadata:
+        return ", ".join(str(c) for c in field.metadata["choices"] if c)
+    return field.metadata.get("allowed") or _type_name(field.type)
 
 
 def override_items(overrides: Mapping[str, Any]) -> list[str]:
@@ -194,12 +210,12 @@ def config_from(
     return parse_overrides(override_items({**(overrides or {}), **kwargs}), base=base)
 
 
-def _check_yaml(key: str, text: str) -> None:
-    """Raises `ConfigError` naming `key` if its value is not valid YAML (``[64,64``, ``{``)."""
+def _check_yaml(key: str, text: str) -> Any:
+    """`text` read as YAML; raises `ConfigError` naming `key` if it is not valid YAML (``[64,64``, ``{``)."""
     import yaml
 
     try:
-        yaml.safe_load(text)
+        return yaml.safe_load(text)
     except yaml.YAMLError as exc:
         problem = getattr(exc, "problem", None) or "malformed"
         raise ConfigError(
@@ -241,18 +257,28 @@ def _algo_changes() -> dict[str, dict[str, Any]]:
     return out
 
 
-def help_text() -> str:
-    """Every option with its default and a one-line description, in sections and groups;
-    a default another algorithm changes says so (``[algo=sac: 8]``)."""
+def help_text(cfg: Config | None = None, given: Sequence[str] = ()) -> str:
+    """Every option with its value and a one-line description, in sections and groups; a
+    default another algorithm changes says so (``[algo=sac: 8]``).
+
+    The values are the defaults, or with `cfg` its values: ``preset=thesis --help`` shows
+    what the items `given` (which resolve to `cfg`) make of each key."""
     changes = _algo_changes()
     legacy = {new: old for old, new in LEGACY_KEYS.items()}
-    lines = ["usage: python -m coherent_jax.train [key=value ...]", "", *help_lines(_is_default)]
+    lines = [
+        "usage: python -m coherent_jax.train [key=value ...]",
+        "dry_run=true (or --print-config) prints the resolved config and exits, writing nothing",
+        "",
+        *help_lines(_is_default),
+    ]
     lines.append(f"sweepable (a list runs a grid with coherent_jax.sweep): {', '.join(SWEEPABLE)}")
     lines.append(
         "a group's key is dotted (ppo.clip_eps=0.1); the flat keys of before (clip_eps=0.1) "
         "still work, with a note naming the new key"
     )
-    default = Config()
+    default = cfg if cfg is not None else Config()
+    if given:
+        lines += ["", f"values below: those of {' '.join(given)} (each key=value as it resolves)"]
     sections = [(s, [k for k, f in FIELDS.items() if f.metadata.get("group") == s]) for s in SECTIONS]
     group_help = {f.name: f.metadata["help"] for f in dataclasses.fields(Config) if f.name in GROUPS}
     sections += [(f"{g}.* ({group_help[g]})", [k for k in FIELDS if k.startswith(g + ".")]) for g in GROUPS]

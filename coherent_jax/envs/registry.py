@@ -24,6 +24,7 @@ import dataclasses
 import re
 import warnings
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 from coherent_jax.quiet import quiet_stdio
@@ -232,14 +233,33 @@ class TaskDefinitionError(ValueError):
 
 
 # ``env=MODULE:NAME``: attribute NAME of the importable module MODULE is a task of the user's
-# (`coherent_jax.envs.user_task`), imported only when the task is built or checked.
-_USER_TASK = re.compile(r"[A-Za-z_]\w*(\.[A-Za-z_]\w*)*:[A-Za-z_]\w*")
-USER_TASK_FORM = "MODULE:NAME (a task of your own, docs/tasks.md)"
+# (`coherent_jax.envs.user_task`), imported only when the task is built or checked;
+# ``env=path/to/file.py:NAME``: the same, of the Python file at that path.
+_USER_TASK = re.compile(r"(?P<source>[A-Za-z_]\w*(\.[A-Za-z_]\w*)*|[^:]+\.py):(?P<name>[A-Za-z_]\w*)")
+USER_TASK_FORM = "MODULE:NAME or path/to/file.py:NAME (a task of your own, docs/tasks.md)"
 
 
 def is_user_task(name: str) -> bool:
-    """Whether `name` has the form ``MODULE:NAME`` (``examples.reacher_task:reacher``)."""
+    """Whether `name` has the form ``MODULE:NAME`` (``examples.reacher_task:reacher``) or
+    ``FILE.py:NAME`` (``examples/reacher_task.py:reacher``)."""
     return isinstance(name, str) and _USER_TASK.fullmatch(name) is not None
+
+
+def user_task_parts(name: str) -> tuple[str, str, bool]:
+    """(module or file, attribute, whether it is a file's path) of a user's task `name`."""
+    match = _USER_TASK.fullmatch(name)
+    if match is None:
+        raise TaskDefinitionError(f"task {name!r}: not of the form {USER_TASK_FORM}")
+    source = match.group("source")
+    return source, match.group("name"), source.endswith(".py")
+
+
+def task_label(name: str) -> str:
+    """`name` as a file name can hold it: a file's task by the file's stem (``reacher_task:reacher``)."""
+    if not is_user_task(name):
+        return name
+    source, attr, is_file = user_task_parts(name)
+    return f"{Path(source).stem}:{attr}" if is_file else name
 
 
 def check_task(name: str) -> TaskSpec:

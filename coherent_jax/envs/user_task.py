@@ -1,25 +1,34 @@
-"""Tasks of the user's own: an MJCF file and JAX formulas, named ``env=MODULE:NAME``.
+"""Tasks of the user's own: an MJCF file and JAX formulas, named ``env=MODULE:NAME`` or
+``env=path/to/file.py:NAME``.
 
 A user task is a `MjcfTask`: an MJCF file, the `Kinematics` fields its formulas read,
 and its observation, reward and termination as pure JAX functions of those fields,
 the contract of the built-in tasks (`coherent_jax.envs.task.NativeTask`). ``NAME`` is an
-attribute of the importable module ``MODULE`` that is a `MjcfTask` or a function of no
-arguments returning one. It runs on native MuJoCo and on MJX like Gymnasium's tasks.
+attribute of the importable module ``MODULE`` (or of the Python file at that path) that
+is a `MjcfTask`, a subclass of it, or a function of no arguments annotated to return
+one (`task_maker`): what the attribute is is checked before it is called, so no other
+callable is ever run. It runs on native MuJoCo and on MJX like Gymnasium's tasks.
 
 `load_user_task` imports it once per process and checks it before anything runs: the
-module and attribute exist, the fields are `Kinematics` fields, the MJCF compiles and
-has actuators, and at a state drawn from the reset distribution and after one step
-with zero action, traced by JAX as training traces them, the observation is a finite
-vector, the reward a finite scalar and the termination a boolean scalar. A problem
-raises `TaskDefinitionError` in one line naming the task and the problem.
+module (or file) and attribute exist, the attribute is a task or declared to make one,
+the fields are `Kinematics` fields, the MJCF compiles and has actuators, and at a state
+drawn from the reset distribution and after one step with zero action, traced by JAX
+as training traces them, the observation is a finite vector, the reward a finite scalar
+and the termination a boolean scalar. A problem raises `TaskDefinitionError` in one
+line naming the task and the problem.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
 import importlib
+import importlib.util
+import inspect
 import os
+import sys
+import typing
 from collections.abc import Callable
 from typing import Any, NamedTuple, NoReturn
 
@@ -27,7 +36,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from coherent_jax.envs.registry import TaskDefinitionError, TaskSpec, is_user_task
+from coherent_jax.envs.registry import (
+    USER_TASK_FORM,
+    TaskDefinitionError,
+    TaskSpec,
+    is_user_task,
+    user_task_parts,
+)
 from coherent_jax.envs.task import (
     POST_CONSTRAINT_FIELDS,
     Kinematics,
@@ -87,25 +102,86 @@ def _first_line(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text[0] if text else ''}".rstrip(": ")
 
 
+# What ``NAME`` may be, said in every refusal of another kind of attribute.
+TASK_RULE = (
+    "an MjcfTask, a subclass of it, or a function of no arguments annotated '-> MjcfTask'; "
+    "nothing else is called (docs/tasks.md)"
+)
+
+
 def _definition(name: str) -> MjcfTask:
-    """The `MjcfTask` that ``MODULE:NAME`` names: imported, looked up, called if a function."""
+    """The `MjcfTask` that ``MODULE:NAME`` (or ``FILE.py:NAME``) names: imported, looked up, and
+    called only if it is declared to make a task (`task_maker`)."""
     fail = functools.partial(_fail, name)
-    module_name, attr = name.split(":")
-    try:
-        module = importlib.import_module(module_name)
-    except Exception as exc:  # any error of the user's module is a bad task definition
-        fail(f"cannot import module {module_name!r} ({_first_line(exc)}; is it on PYTHONPATH?)")
+    source, attr, is_file = user_task_parts(name)
+    module = _import_file(name, source) if is_file else _import_module(name, source)
     if not hasattr(module, attr):
-        fail(f"module {module_name!r} has no attribute {attr!r}")
+        fail(f"{'file' if is_file else 'module'} {source!r} has no attribute {attr!r}")
     task = getattr(module, attr)
-    if callable(task) and not isinstance(task, MjcfTask):
-        try:
-            task = task()
-        except Exception as exc:
-            fail(f"{attr}() raised {_first_line(exc)}")
+    if isinstance(task, MjcfTask):
+        return task
+    problem = task_maker(task)
+    if problem is not None:
+        fail(f"{attr} is {problem}, not {TASK_RULE}")
+    try:
+        task = task()
+    except Exception as exc:
+        fail(f"{attr}() raised {_first_line(exc)}")
     if not isinstance(task, MjcfTask):
-        fail(f"{attr} is of type {type(task).__name__}, not an MjcfTask or a function returning one")
+        fail(f"{attr}() returned a {type(task).__name__}, not an MjcfTask")
     return task
+
+
+def task_maker(obj: Any) -> str | None:
+    """None if `obj` may be called to make a task: a subclass of `MjcfTask`, or a Python function
+    whose parameters all have defaults and whose return annotation resolves to `MjcfTask` (or a
+    subclass). Otherwise what it is, for the refusal. Nothing is called here, so a callable that
+    is not declared to make a task (``os:system``) is never run."""
+    if inspect.isclass(obj):
+        return None if issubclass(obj, MjcfTask) else f"the class {obj.__name__}"
+    if not inspect.isfunction(obj):
+        return f"of type {type(obj).__name__}"
+    required = [
+        p.name
+        for p in inspect.signature(obj).parameters.values()
+        if p.default is p.empty and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
+    ]
+    if required:
+        return f"a function of arguments ({', '.join(required)})"
+    try:
+        returns = typing.get_type_hints(obj).get("return")
+    except Exception:  # an annotation that does not resolve (a name imported only for type checkers)
+        returns = None
+    if not (inspect.isclass(returns) and issubclass(returns, MjcfTask)):
+        return "a function without the return annotation '-> MjcfTask'"
+    return None
+
+
+def _import_module(name: str, module_name: str) -> Any:
+    try:
+        return importlib.import_module(module_name)
+    except Exception as exc:  # any error of the user's module is a bad task definition
+        _fail(name, f"cannot import module {module_name!r} ({_first_line(exc)}; is it on PYTHONPATH?)")
+
+
+def _import_file(name: str, path: str) -> Any:
+    """The Python file at `path` (from the working directory), imported once per process as a
+    module of its own (named after its absolute path, so two files of one name do not clash)."""
+    full = os.path.abspath(path)
+    if not os.path.isfile(full):
+        _fail(name, f"file {path!r} not found (from {os.getcwd()})")
+    module_name = "coherent_jax_task_" + hashlib.sha1(full.encode()).hexdigest()[:16]
+    if module_name in sys.modules:
+        return sys.modules[module_name]
+    spec = importlib.util.spec_from_file_location(module_name, full)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[module_name] = module  # dataclasses of the file look their module up there
+    try:
+        spec.loader.exec_module(module)
+    except Exception as exc:
+        del sys.modules[module_name]
+        _fail(name, f"cannot import file {path!r} ({_first_line(exc)})")
+    return module
 
 
 def _fail(name: str, problem: str) -> NoReturn:
@@ -255,7 +331,7 @@ def load_user_task(name: str) -> LoadedTask:
     """Task ``MODULE:NAME``, imported and checked (see the module's docstring); once per process.
     Raises `TaskDefinitionError` naming the task and the problem."""
     if not is_user_task(name):
-        _fail(name, "not of the form MODULE:NAME")
+        _fail(name, f"not of the form {USER_TASK_FORM}")
     task = _definition(name)
     fields = _checked_settings(name, task)
     loaded = _checked_model(name, task)
