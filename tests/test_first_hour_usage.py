@@ -74,15 +74,22 @@ def readme_python_blocks() -> list[str]:
 
 
 def test_row2_readme_python_snippets_run_as_written(tmp_path):
-    """Each ```python block of the README runs unchanged, in a fresh directory, in seconds."""
+    """Each ```python block of the README runs unchanged, in a fresh directory, in seconds;
+    the quickstart's ``action`` is the task's (pointmass: 2 numbers)."""
     blocks = readme_python_blocks()
     assert blocks, "the README has no ```python block"
+    shapes = []
     for i, code in enumerate(blocks):
         assert "preset=" not in code and "total_steps=" in code, "a snippet must train a small budget"
         script = tmp_path / f"readme_{i}.py"
         script.write_text(code)
+        # Runs the file as written, then reports the shape of the action it made, if any.
+        show = (
+            f"import runpy; ns = runpy.run_path({str(script)!r}); "
+            "print(getattr(ns.get('action'), 'shape', None))"
+        )
         proc = subprocess.run(
-            [sys.executable, str(script)],
+            [sys.executable, "-c", show],
             cwd=tmp_path,
             env=child_env(),
             capture_output=True,
@@ -90,6 +97,8 @@ def test_row2_readme_python_snippets_run_as_written(tmp_path):
             timeout=300,
         )
         assert proc.returncode == 0, proc.stderr[-3000:]
+        shapes.append(proc.stdout.strip().splitlines()[-1])
+    assert "(2,)" in shapes, shapes  # the quickstart acts on the task
     assert list((tmp_path / "runs").iterdir()), "the snippet trained no run"
 
 
