@@ -19,7 +19,7 @@ A sweep's root directory is refused with the list of its points.
 ``gymnasium.make(<the task's Gymnasium id>)``, and prints Gymnasium's return beside
 ours over the same number of episodes: the policy that training evaluates, acting on
 each observation exactly as in training (`gymnasium_returns`). Only Gymnasium's own
-tasks have a Gymnasium id; it needs ``gymnasium[mujoco]`` (the ``test`` extra).
+tasks have a Gymnasium id; it needs ``gymnasium[mujoco]`` (the ``gym`` extra: ``pip install -e ".[gym]"``).
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ from coherent_jax.exit_codes import EXIT_BAD_INPUT
 from coherent_jax.runs import CHECKPOINT, CheckpointError, decode_checkpoint, load_config
 
 ENGINES = ("jax", "gymnasium")
-GYMNASIUM_EXTRA = 'pip install -e ".[test]"'
+GYMNASIUM_EXTRA = 'pip install -e ".[gym]"'
 
 KEYS: dict[str, cli.Key] = {
     "episodes": cli.Key(
@@ -130,7 +130,7 @@ def check_gymnasium() -> None:
     except Exception as exc:  # noqa: BLE001 - ImportError or gymnasium's DependencyNotInstalled
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise ConfigError(
-            f"engine=gymnasium needs gymnasium[mujoco] ({reason}): install the test extra, {GYMNASIUM_EXTRA}"
+            f"engine=gymnasium needs gymnasium[mujoco] ({reason}): install the gym extra, {GYMNASIUM_EXTRA}"
         ) from None
 
 

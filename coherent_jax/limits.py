@@ -11,7 +11,8 @@
   write position.
 
 `counter_problem` is called by `coherent_jax.config.validate`, so every entry point
-refuses such a config before anything is written.
+refuses such a config before anything is written; `rounding_note` is what a run says at
+its start when ``total_steps`` is rounded up to whole iterations.
 """
 
 from __future__ import annotations
@@ -55,3 +56,19 @@ def counter_problem(cfg: Any) -> tuple[str, Any, str] | None:
                 f"write position (here {cfg.sac.buffer_size} + {per_iteration})",
             )
     return None
+
+
+def rounding_note(cfg: Any) -> str | None:
+    """The line a run prints at its start when ``total_steps`` is not a whole number of
+    iterations: training runs whole iterations of ``num_envs * unroll_length`` env steps,
+    so it stops at the next multiple (``total_steps=50000`` at 64 envs x 64 steps runs
+    13 iterations, 53,248 steps). None when nothing is rounded."""
+    per_iteration = cfg.steps_per_iteration
+    total = cfg.num_iterations * per_iteration
+    if total == cfg.total_steps:
+        return None
+    return (
+        f"total_steps={cfg.total_steps} is rounded up to whole iterations of num_envs * unroll_length"
+        f" = {cfg.num_envs} * {cfg.unroll_length} = {per_iteration:,} env steps: "
+        f"{cfg.num_iterations:,} iterations, {total:,} env steps"
+    )

@@ -40,6 +40,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from coherent_jax import limits
 from coherent_jax.agents.trainer import Trainer
 from coherent_jax.divergence import DivergenceError, PointView, check_finite
 from coherent_jax.loop_state import Job, Outcome, Programs, Session
@@ -168,6 +169,9 @@ def start_session(job: Job, resume: Checkpoint | None, t_start: float) -> Sessio
     # The engine `physics=auto` resolved to (trainers keep their training env in `.env`).
     physics = getattr(getattr(trainer, "env", None), "physics", cfg.physics)
     devices_note = f" on {num_devices} devices" if num_devices > 1 else ""
+    note = limits.rounding_note(cfg)
+    if note:
+        print(f"{PREFIX} {note}" + (" per point" if job.points else ""), flush=True)
     print(f"{PREFIX} {job.label} physics={physics}: compiling{devices_note} ...", flush=True)
 
     t_compile = time.perf_counter()
@@ -385,9 +389,18 @@ def show_progress(run: Session) -> None:
     run.bar.set_postfix(
         sps=f"{n * run.done * steps / max(run.loop.train_s, 1e-9):.0f}",
         ret=f"{np.mean(run.last_return[live]):.1f}" if live else "nan",
-        eval=f"{np.nanmean(run.last_eval['eval/episode_return']):.1f}" if run.last_eval else "nan",
+        eval=eval_text(run.last_eval),
         refresh=False,
     )
+
+
+def eval_text(last_eval: dict[str, Any]) -> str:
+    """The progress bar's last evaluation return (mean over points): ``-`` before the first."""
+    import numpy as np
+
+    if not last_eval:
+        return "-"
+    return f"{np.nanmean(last_eval['eval/episode_return']):.1f}"
 
 
 def close_outputs(run: Session) -> None:

@@ -1,7 +1,8 @@
 """Learning curves and aggregate scores: ``python -m coherent_jax.plot RUN_DIR... [out=plots]``.
 
-Each argument is a run directory (``config.yaml`` + ``metrics.jsonl``) or a folder
-whose sub-directories are runs (a sweep's ``p003-beta=0.1-seed=1/`` points too).
+Each argument is a run directory (``config.yaml`` + ``metrics.jsonl``), a sweep's
+directory (its points, ``p003-beta=0.1-seed=1/``, are the runs), or a folder whose
+sub-directories are runs and sweeps (such as ``runs/``).
 
 * Runs are averaged only with runs of the same resolved config but for the seed
   (and the settings that do not change what is computed: `NOT_COMPARED`); each such
@@ -38,6 +39,7 @@ import numpy as np
 from coherent_jax import cli
 from coherent_jax.config import ConfigError, to_dict
 from coherent_jax.exit_codes import EXIT_BAD_INPUT
+from coherent_jax.rundir import is_sweep, sweep_points
 from coherent_jax.runs import CONFIG, METRICS, load_config, read_metrics
 
 KEYS: dict[str, cli.Key] = {
@@ -114,23 +116,34 @@ def parse_plot_args(argv: Sequence[str]) -> tuple[list[Path], dict[str, Any]]:
     return paths, settings
 
 
+def runs_in(path: Path) -> list[Path]:
+    """The run directories `path` itself holds: a sweep's points (its root has
+    ``grid.json`` beside the shared ``config.yaml``, which is no run), the run it is, or none."""
+    if is_sweep(path):
+        return sweep_points(path)
+    return [path] if (path / CONFIG).is_file() else []
+
+
 def find_runs(paths: Sequence[Path]) -> list[Path]:
-    """The run directories named by `paths` (each a run or a folder of runs)."""
+    """The run directories named by `paths`, each a run, a sweep, or a folder of runs and
+    sweeps (such as ``runs/``); a run named twice is taken once."""
     runs: list[Path] = []
     for path in paths:
         if not path.is_dir():
             raise ConfigError(f"invalid run directory {str(path)!r}: not a directory")
-        if (path / CONFIG).is_file():
-            runs.append(path)
-            continue
-        inner = sorted(p for p in path.iterdir() if (p / CONFIG).is_file())
-        if not inner:
+        found = runs_in(path)
+        if not found and not (path / CONFIG).is_file():
+            found = [run for child in sorted(path.iterdir()) if child.is_dir() for run in runs_in(child)]
+        if not found:
             raise ConfigError(
                 f"invalid run directory {str(path)!r}: no {CONFIG} in it or in its sub-directories "
-                "(allowed: a training run's directory or a folder of them)"
+                "(allowed: a training run's directory, a sweep's, or a folder of them)"
             )
-        runs.extend(inner)
-    return runs
+        runs.extend(found)
+    unique: dict[Path, Path] = {}
+    for run in runs:
+        unique.setdefault(run.resolve(), run)
+    return list(unique.values())
 
 
 def _flatten(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:

@@ -1,30 +1,49 @@
 """Train from Python, read the run, and act with its policy (docs/api.md).
 
-    python examples/train_and_act.py [RUN_DIR]
+    python examples/train_and_act.py [--run-dir DIR] [--total-steps N]
 
 Trains PPO with coherent exploration on ``pointmass`` (the analytic test task, which
 compiles fastest), prints the evaluation returns the run logged, then loads the policy
 back from the run directory and steps the task with it from Python, one numpy
 observation batch at a time: the deterministic episodes an evaluation runs.
+
+Each run writes a new directory, ``runs/example-pointmass-<time>`` (``-2``, ``-3``, ...
+if that exists), so the example can be run again and again; ``--run-dir`` names one,
+which must be new or empty. ``--total-steps`` sets the budget (default 20,480: 10
+iterations of 32 envs x 64 steps; ``--total-steps 2048`` is one iteration).
 """
 
 from __future__ import annotations
 
+import argparse
 import sys
+import time
+from pathlib import Path
 
 import numpy as np
 
 import coherent_jax
 
 
-def main(run_dir: str = "runs/example-pointmass") -> None:
+def fresh_run_dir(root: Path = Path("runs"), stamp: str | None = None) -> Path:
+    """A run directory that does not exist yet: ``ROOT/example-pointmass-<time>``, with
+    ``-2``, ``-3``, ... added when a run of the same second has it."""
+    base = root / f"example-pointmass-{stamp or time.strftime('%Y%m%d-%H%M%S')}"
+    path, n = base, 1
+    while path.exists():
+        n += 1
+        path = base.with_name(f"{base.name}-{n}")
+    return path
+
+
+def main(run_dir: str | None = None, total_steps: int = 20_480) -> None:
     cfg = coherent_jax.Config.from_overrides(
         env="pointmass",
         explore="coherent",
-        total_steps=20_480,  # 10 iterations of 32 envs x 64 steps
+        total_steps=total_steps,
         num_envs=32,
         eval_every=2,
-        run_dir=run_dir,
+        run_dir=str(run_dir or fresh_run_dir()),
         progress=False,
         **{"coherent.beta": 0.1},
     )
@@ -59,5 +78,18 @@ def rollout(policy, episodes: int, seed: int) -> np.ndarray:
     return returns
 
 
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    """``--run-dir`` and ``--total-steps``; argparse exits with status 2 on a bad value."""
+    parser = argparse.ArgumentParser(description="Train on pointmass from Python, then act with the policy.")
+    parser.add_argument("--run-dir", default=None, help="a new or empty directory (default: a fresh one)")
+    parser.add_argument("--total-steps", type=int, default=20_480, help="env steps to train (default 20480)")
+    return parser.parse_args(argv)
+
+
 if __name__ == "__main__":
-    main(*sys.argv[1:2])
+    args = parse_args(sys.argv[1:])
+    try:
+        main(args.run_dir, args.total_steps)
+    except coherent_jax.ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)

@@ -86,7 +86,7 @@ def test_gymnasium_missing_names_the_extra(tmp_path, capsys, monkeypatch):
     monkeypatch.setitem(sys.modules, "gymnasium.envs.mujoco.mujoco_env", None)
     assert main([str(run), "engine=gymnasium"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "gymnasium[mujoco]" in err[0] and '".[test]"' in err[0], err
+    assert len(err) == 1 and "gymnasium[mujoco]" in err[0] and '".[gym]"' in err[0], err
 
 
 @pytest.mark.parametrize(

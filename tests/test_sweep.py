@@ -84,7 +84,7 @@ def test_sweep_point_equals_single_run(tmp_path):
     other = read_rows(out / names[6] / "metrics.jsonl")
     assert other[-1]["train/value_loss"] != pytest.approx(expected[-1]["train/value_loss"], rel=1e-3)
 
-    # Aggregate: mean and population std over the two seeds, recomputed from the point summaries.
+    # Aggregate: mean and sample std (ddof 1) over the two seeds, recomputed from the point summaries.
     summaries = {n: json.loads((out / n / "summary.json").read_text()) for n in names}
     result = json.loads((out / "sweep.json").read_text())
     assert result["num_points"] == 8 and result["seeds"] == [0, 1]
@@ -95,7 +95,7 @@ def test_sweep_point_equals_single_run(tmp_path):
         assert (row["ppo.ent_coef"], row["lr"]) == (ent_coef, pytest.approx(lr))
         assert row["seeds"] == 2
         assert row["final_eval_return_mean"] == pytest.approx(returns.mean(), rel=1e-9)
-        assert row["final_eval_return_std"] == pytest.approx(returns.std(), rel=1e-9, abs=1e-12)
+        assert row["final_eval_return_std"] == pytest.approx(returns.std(ddof=1), rel=1e-9, abs=1e-12)
     csv_lines = (out / "sweep.csv").read_text().splitlines()
     assert csv_lines[0].startswith("ppo.ent_coef,lr,seeds,final_eval_return_mean") and len(csv_lines) == 5
 

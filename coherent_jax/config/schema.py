@@ -72,7 +72,12 @@ class Config:
         group="run",
         check=(lambda v: 0 <= v <= limits.MAX_SEED, limits.SEED_ALLOWED),
     )
-    total_steps: int = field(2_000_000, "environment steps to train for", group="run", check=COUNT)
+    total_steps: int = field(
+        2_000_000,
+        "environment steps to train for, rounded up to whole iterations of num_envs * unroll_length",
+        group="run",
+        check=COUNT,
+    )
     # --- collection
     num_envs: int = field(64, "parallel environments", group="collection", check=COUNT)
     unroll_length: int = field(

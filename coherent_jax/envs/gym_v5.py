@@ -37,7 +37,7 @@ def _assets_dir() -> str:
     if spec is None or not spec.submodule_search_locations:
         raise GymnasiumMissingError(
             "Gymnasium's MuJoCo tasks load their MJCF files from the gymnasium package: "
-            "pip install gymnasium==1.4.0"
+            'pip install -e ".[gym]"'
         )
     return os.path.join(spec.submodule_search_locations[0], "envs", "mujoco", "assets")
 
