@@ -15,14 +15,20 @@ the default ``exact`` the chain restarts at every 64-step segment, so beta 0 wou
 fresh draw every 64 steps (16 per episode), not trajectory-based exploration; ``stored``
 runs the chain on but its gradient is not that of any process that ran.
 
-**The budget.** One seed of PPO with action noise ran at about 42k env steps/s here
-(2 shared cores, 64 envs, 4,096 env steps per iteration; 35 s of compilation), coherent
-with the episode gradient at ``CLASSIC_EPISODE_RATE``. The suite is 30 points of the
-other strategies and 15 of coherent (three beta x 5 seeds, one vmapped sweep). At
-`CLASSIC_STEPS` per seed the whole suite needs about 70 minutes on the 2 cores
-(`estimated_minutes`), about 250 episodes per seed: enough for the strategies that find
-the goal to learn to reach it (published runs find it within 100k-300k steps when they
-find it at all), while a strategy that has not found it by then is not close to.
+**The budget.** Measured here first, one seed each at small budgets (2 cores shared
+with other jobs, load average about 10): PPO with action noise ran at 41.6k env steps/s
+with the default 64 envs and 24.9k with 16; coherent with the episode gradient at beta 0
+at 350 env steps/s with 64 envs and 910 with 16 (its loss re-infers each segment's
+episode prefix, up to 1,024 steps, so its cost grows with the envs that carry one). Every
+cell therefore runs 16 envs (the same for every strategy): 2.6x the coherent cell's rate,
+and four PPO updates per 4,096 env steps where 64 envs give one. At `CLASSIC_STEPS` =
+200k steps per seed (about 12 episodes per env, 195 PPO iterations) the coherent grid (15
+points, whose vmapped sweep runs at about one point's rate) needs about 55 minutes, the
+six other cells about 6 together at `cells.STRATEGY_COST`, and compiling the seven sweeps
+about 10: about 71 minutes for the suite (`estimated_minutes`), inside 60-90 with room
+for a slower vmap of the 15 points. RL Baselines3 Zoo's tuned PPO solves the task in 20k
+steps when its exploration finds the goal, so 200k steps leave every strategy room to
+find it and to learn to reach it.
 
 **Goal reached.** The task terminates exactly when the car reaches the flag, so the
 runs log the fraction of episodes that did (``train/goal_reached`` among the training
@@ -49,22 +55,25 @@ CLASSIC_BETAS = (0.0, 0.01, 0.1)
 CLASSIC_COHERENT = ("coherent.gradient=episode",)
 CLASSIC_BETA_TAG = "beta-episode"  # not the sparse suite's "beta": another kind of cell
 CLASSIC_SEEDS = 5
-CLASSIC_STEPS = 300_000
-# Env steps/s of one seed, measured on this machine (see the module's docstring).
-CLASSIC_ACTION_RATE = 42_000.0
-CLASSIC_EPISODE_RATE = 3_000.0
+CLASSIC_STEPS = 200_000
+CLASSIC_SETTINGS = ("num_envs=16",)  # every cell (the module's docstring)
+# Env steps/s of one seed at 16 envs, measured on this machine (the module's docstring),
+# and minutes to compile one cell's sweep.
+CLASSIC_ACTION_RATE = 24_900.0
+CLASSIC_EPISODE_RATE = 910.0
+COMPILE_MINUTES = 1.5
 
 
 def classic_cells() -> list[Cell]:
     """One cell per strategy (5 seeds), and coherent's three beta as one grid cell."""
     base = [f"env={CLASSIC_TASK}", "algo=ppo"]
-    steps = f"total_steps={CLASSIC_STEPS}"
+    steps = (f"total_steps={CLASSIC_STEPS}", *CLASSIC_SETTINGS)
     cells = [
-        Cell("classic", f"{CLASSIC_TASK}/ppo/{s}", (*base, f"explore={s}", steps), CLASSIC_SEEDS)
+        Cell("classic", f"{CLASSIC_TASK}/ppo/{s}", (*base, f"explore={s}", *steps), CLASSIC_SEEDS)
         for s in CLASSIC_STRATEGIES
     ]
     betas = "[" + ",".join(f"{b:g}" for b in CLASSIC_BETAS) + "]"
-    coherent = (*base, "explore=coherent", steps, f"coherent.beta={betas}", *CLASSIC_COHERENT)
+    coherent = (*base, "explore=coherent", *steps, f"coherent.beta={betas}", *CLASSIC_COHERENT)
     cells.append(Cell("classic", f"{CLASSIC_TASK}/ppo/coherent-{CLASSIC_BETA_TAG}", coherent, CLASSIC_SEEDS))
     return cells
 
@@ -106,10 +115,11 @@ def classic_lines(done: list[Cell], results: Path, label) -> list[str]:
 def estimated_minutes(action_rate: float = CLASSIC_ACTION_RATE) -> float:
     """Minutes the whole suite needs on this machine at the measured rates: the strategies'
     cells at the action rate over their `cells.STRATEGY_COST`, coherent's at the episode
-    gradient's rate (vmapped points share the cores: a cell's rate is one point's)."""
+    gradient's rate (vmapped points share the cores: a cell's rate is one point's), and
+    each cell's compilation."""
     from cells import STRATEGY_COST
 
-    seconds = 0.0
+    seconds = 60 * COMPILE_MINUTES * len(classic_cells())
     for cell in classic_cells():
         explore = cell.setting("explore")
         cost = STRATEGY_COST.get(explore, 1.0)
