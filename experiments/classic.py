@@ -19,16 +19,16 @@ runs the chain on but its gradient is not that of any process that ran.
 with other jobs, load average about 10): PPO with action noise ran at 41.6k env steps/s
 with the default 64 envs and 24.9k with 16; coherent with the episode gradient at beta 0
 at 350 env steps/s with 64 envs and 910 with 16 (its loss re-infers each segment's
-episode prefix, up to 1,024 steps, so its cost grows with the envs that carry one). Every
-cell therefore runs 16 envs (the same for every strategy): 2.6x the coherent cell's rate,
-and four PPO updates per 4,096 env steps where 64 envs give one. At `CLASSIC_STEPS` =
+episode prefix of up to 1,024 steps; why fewer envs run faster per env step was not
+analysed). Every cell therefore runs 16 envs (the same for every strategy): 2.6x the
+coherent cell's rate, and four PPO iterations per 4,096 env steps where 64 envs run one. At `CLASSIC_STEPS` =
 200k steps per seed (about 12 episodes per env, 195 PPO iterations) the coherent grid (15
 points, whose vmapped sweep runs at about one point's rate) needs about 55 minutes, the
 six other cells about 6 together at `cells.STRATEGY_COST`, and compiling the seven sweeps
 about 10: about 71 minutes for the suite (`estimated_minutes`), inside 60-90 with room
-for a slower vmap of the 15 points. RL Baselines3 Zoo's tuned PPO solves the task in 20k
-steps when its exploration finds the goal, so 200k steps leave every strategy room to
-find it and to learn to reach it.
+for a slower vmap of the 15 points. RL Baselines3 Zoo trains its tuned PPO (with gSDE)
+for 20k steps on this task, so 200k steps leave every strategy room to find the goal and
+to learn to reach it; a strategy that has not found it by then is reported as such.
 
 **Goal reached.** The task terminates exactly when the car reaches the flag, so the
 runs log the fraction of episodes that did (``train/goal_reached`` among the training

@@ -181,3 +181,14 @@ def test_row3_evaluate_runs_the_policy_in_gymnasium(tmp_path, capsys, task):
     assert result["gymnasium_episode_length_mean"] == result["episode_length_mean"]
     spread = np.sqrt((result["return_std"] ** 2 + result["gymnasium_return_std"] ** 2) / 2)
     assert abs(result["gymnasium_return_mean"] - result["return_mean"]) <= max(3 * spread, 1.0), result
+
+
+def test_row3_registry_names_their_gymnasium_ids_and_builds_them_as_jax_envs():
+    """Gymnasium ids for evaluate's engine=gymnasium; pure JAX (no MuJoCo physics to choose)."""
+    from coherent_jax.envs.registry import CLASSIC_IDS, brax_counterpart, resolve_physics
+
+    assert CLASSIC_IDS == {v: k for k, v in IDS.items()}
+    for task in IDS:
+        assert brax_counterpart(task) == task and resolve_physics(task, "auto") == "jax"
+        assert make_brax_env(task).backend == "jax"
+    assert brax_counterpart("hopper") == "brax-hopper"

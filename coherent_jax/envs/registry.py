@@ -244,7 +244,7 @@ def brax_counterpart(name: str) -> str:
     """The Brax environment closest to task ``name``: itself, or for a Gymnasium task its
     Brax re-creation (``halfcheetah`` and ``HalfCheetah-v5`` -> ``brax-halfcheetah``)."""
     spec = check_task(name)
-    if spec.backend != "native":
+    if not spec.gymnasium_id or spec.backend != "native":  # not one of Gymnasium's MuJoCo tasks
         return name
     short = next(k for k, v in SHORT_NAMES.items() if v == spec.gymnasium_id)
     return f"brax-{short}"
