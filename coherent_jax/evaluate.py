@@ -12,8 +12,9 @@ are printed. With ``video=true`` it also renders the first episode
 ``video_path`` is given (``video_path`` without ``video=true`` is refused); the physics
 states come from inside the jitted evaluation, so the video shows exactly the episodes
 whose returns are printed; a run trained with ``wandb=true`` also logs the video to its
-W&B run (`coherent_jax.tracking`). `pointmass` has no MuJoCo model and refuses ``video=true``.
-A sweep's root directory is refused with the list of its points.
+W&B run (`coherent_jax.tracking`). The pure-JAX tasks (`pointmass`, the classic ones)
+have no MuJoCo model and refuse ``video=true``. A sweep's root directory is refused with
+the list of its points.
 
 ``engine=gymnasium`` also runs the policy in Gymnasium itself,
 ``gymnasium.make(<the task's Gymnasium id>)``, and prints Gymnasium's return beside
