@@ -16,19 +16,21 @@ fresh draw every 64 steps (16 per episode), not trajectory-based exploration; ``
 runs the chain on but its gradient is not that of any process that ran.
 
 **The budget.** Measured here first, one seed each at small budgets (2 cores shared
-with other jobs, load average about 10): PPO with action noise ran at 41.6k env steps/s
-with the default 64 envs and 24.9k with 16; coherent with the episode gradient at beta 0
-at 350 env steps/s with 64 envs and 910 with 16 (its loss re-infers each segment's
-episode prefix of up to 1,024 steps; why fewer envs run faster per env step was not
-analysed). Every cell therefore runs 16 envs (the same for every strategy): 2.6x the
-coherent cell's rate, and four PPO iterations per 4,096 env steps where 64 envs run one. At `CLASSIC_STEPS` =
-200k steps per seed (about 12 episodes per env, 195 PPO iterations) the coherent grid (15
-points, whose vmapped sweep runs at about one point's rate) needs about 55 minutes, the
-six other cells about 6 together at `cells.STRATEGY_COST`, and compiling the seven sweeps
-about 10: about 71 minutes for the suite (`estimated_minutes`), inside 60-90 with room
-for a slower vmap of the 15 points. RL Baselines3 Zoo trains its tuned PPO (with gSDE)
-for 20k steps on this task, so 200k steps leave every strategy room to find the goal and
-to learn to reach it; a strategy that has not found it by then is reported as such.
+with other jobs, load average 8-10): PPO with action noise ran at 41.6k env steps/s with
+the default 64 envs and 24.9k with 16; coherent with the episode gradient at beta 0 at
+350 env steps/s with 64 envs and 910 with 16 (its loss re-infers each segment's episode
+prefix of up to 1,024 steps; why fewer envs run faster per env step was not analysed).
+Every cell therefore runs 16 envs (the same for every strategy): 2.6x the coherent
+cell's rate, and four PPO iterations per 4,096 env steps where 64 envs run one. The
+coherent grid cell itself (15 points vmapped, one episode cycle of 16 iterations) then
+ran at 990 env steps/s over all points, about one point's rate, after 35 s of
+compilation. At `CLASSIC_STEPS` = 200k steps per seed (about 12 episodes per env, 195
+PPO iterations) that cell needs about 51 minutes, the six other cells about 6 together
+at `cells.STRATEGY_COST`, and compiling the seven sweeps at most 10: about 67 minutes
+for the suite (`estimated_minutes`), inside 60-90 with room for a busier machine. RL
+Baselines3 Zoo trains its tuned PPO (with gSDE) for 20k steps on this task, so 200k
+steps leave every strategy room to find the goal and to learn to reach it; a strategy
+that has not found it by then is reported as such.
 
 **Goal reached.** The task terminates exactly when the car reaches the flag, so the
 runs log the fraction of episodes that did (``train/goal_reached`` among the training
@@ -57,10 +59,10 @@ CLASSIC_BETA_TAG = "beta-episode"  # not the sparse suite's "beta": another kind
 CLASSIC_SEEDS = 5
 CLASSIC_STEPS = 200_000
 CLASSIC_SETTINGS = ("num_envs=16",)  # every cell (the module's docstring)
-# Env steps/s of one seed at 16 envs, measured on this machine (the module's docstring),
-# and minutes to compile one cell's sweep.
+# Env steps/s at 16 envs measured on this machine (the module's docstring): one seed of
+# action noise, and the coherent grid cell over all its points; minutes to compile a cell.
 CLASSIC_ACTION_RATE = 24_900.0
-CLASSIC_EPISODE_RATE = 910.0
+CLASSIC_EPISODE_RATE = 990.0
 COMPILE_MINUTES = 1.5
 
 
