@@ -192,3 +192,18 @@ def test_row3_registry_names_their_gymnasium_ids_and_builds_them_as_jax_envs():
         assert brax_counterpart(task) == task and resolve_physics(task, "auto") == "jax"
         assert make_brax_env(task).backend == "jax"
     assert brax_counterpart("hopper") == "brax-hopper"
+
+
+def test_row3_evaluate_without_gymnasium_names_it_in_one_line(tmp_path, capsys, monkeypatch):
+    """A classic task needs Gymnasium alone (not gymnasium[mujoco]); refused before evaluating."""
+    import sys
+
+    from test_evaluate import make_fake_run
+
+    run = make_fake_run(tmp_path / "run", ["env=pendulum", "num_envs=2", "ppo.num_minibatches=1"])
+    monkeypatch.setitem(sys.modules, "gymnasium.envs.classic_control", None)
+    assert main([str(run), "engine=gymnasium"]) == 2
+    captured = capsys.readouterr()
+    err = captured.err.strip().splitlines()
+    assert len(err) == 1 and "needs gymnasium (" in err[0] and '".[test]"' in err[0], err
+    assert "evaluating" not in captured.out
