@@ -12,14 +12,17 @@ are printed. With ``video=true`` it also renders the first episode
 ``video_path`` is given (``video_path`` without ``video=true`` is refused); the physics
 states come from inside the jitted evaluation, so the video shows exactly the episodes
 whose returns are printed; a run trained with ``wandb=true`` also logs the video to its
-W&B run (`coherent_jax.tracking`). `pointmass` has no MuJoCo model and refuses ``video=true``.
-A sweep's root directory is refused with the list of its points.
+W&B run (`coherent_jax.tracking`). The pure-JAX tasks (`pointmass`, the classic ones)
+have no MuJoCo model and refuse ``video=true``. A sweep's root directory is refused with
+the list of its points.
 
 ``engine=gymnasium`` also runs the policy in Gymnasium itself,
 ``gymnasium.make(<the task's Gymnasium id>)``, and prints Gymnasium's return beside
 ours over the same number of episodes: the policy that training evaluates, acting on
 each observation exactly as in training (`gymnasium_returns`). Only Gymnasium's own
-tasks have a Gymnasium id; it needs ``gymnasium[mujoco]`` (the ``gym`` extra: ``pip install -e ".[gym]"``).
+tasks have a Gymnasium id: its MuJoCo tasks, which need ``gymnasium[mujoco]`` (the ``gym``
+extra: ``pip install -e ".[gym]"``), and the classic ``mountain_car_continuous`` and
+``pendulum`` (``MountainCarContinuous-v0``, ``Pendulum-v1``), which need Gymnasium alone.
 """
 
 from __future__ import annotations
@@ -123,15 +126,41 @@ def gymnasium_id(env: str) -> str:
     return TASKS[env].gymnasium_id
 
 
-def check_gymnasium() -> None:
-    """Raises `ConfigError` in one line when Gymnasium's MuJoCo tasks cannot be made."""
+def check_gymnasium(env: str = "") -> None:
+    """Raises `ConfigError` in one line when Gymnasium's env of task ``env`` cannot be made:
+    a classic task needs Gymnasium, a MuJoCo task (or none named) ``gymnasium[mujoco]``."""
+    from coherent_jax.envs.registry import CLASSIC_IDS, check_task
+
+    classic = bool(env) and check_task(env).gymnasium_id in CLASSIC_IDS
     try:
-        import gymnasium.envs.mujoco.mujoco_env  # noqa: F401 - needs mujoco (gymnasium[mujoco])
+        if classic:
+            import gymnasium.envs.classic_control  # noqa: F401
+        else:
+            import gymnasium.envs.mujoco.mujoco_env  # noqa: F401 - needs mujoco (gymnasium[mujoco])
     except Exception as exc:  # noqa: BLE001 - ImportError or gymnasium's DependencyNotInstalled
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        extra = "gymnasium" if classic else "gymnasium[mujoco]"
         raise ConfigError(
-            f"engine=gymnasium needs gymnasium[mujoco] ({reason}): install the gym extra, {GYMNASIUM_EXTRA}"
+            f"engine=gymnasium needs {extra} ({reason}): install the gym extra, {GYMNASIUM_EXTRA}"
         ) from None
+
+
+def gymnasium_action_map(env: str, space):
+    """(action [..., p] in [-1, 1]) -> the action Gymnasium's env of task ``env`` receives: the
+    task's own map onto the action space ``space`` (`control` for a MuJoCo task; for a classic
+    task `to_bounds`, centre + a * half-width, as `coherent_jax.envs.classic` maps it)."""
+    import numpy as np
+
+    from coherent_jax.envs.registry import CLASSIC_IDS
+    from coherent_jax.envs.task import control, to_bounds
+
+    gym_id = gymnasium_id(env)
+    if gym_id in CLASSIC_IDS:
+        return lambda a: to_bounds(a, space.low, space.high)
+    from coherent_jax.envs.native import NATIVE_TASKS
+
+    ctrl_range = np.stack([space.low, space.high], axis=-1)
+    return lambda a: control(NATIVE_TASKS[gym_id], a, ctrl_range)
 
 
 def gymnasium_returns(policy, env: str, episode_length: int, episodes: int, seed: int):
@@ -141,8 +170,9 @@ def gymnasium_returns(policy, env: str, episode_length: int, episodes: int, seed
     in lockstep so that the policy runs once per step on the batch of observations. Each
     observation is cast to float32 (our observations' type) and passed through the
     run's normalisation inside `Policy.mean_action`; the action is clipped to [-1, 1]
-    and mapped onto Gymnasium's action space with the task's own map (`control`:
-    centre + a * half-width), exactly what `VecEnv.step` and the task do in training;
+    and mapped onto Gymnasium's action space with the task's own map
+    (`gymnasium_action_map`: centre + a * half-width), exactly what `VecEnv.step` and the
+    task do in training;
     SAC's tanh-squashed mean is already in [-1, 1]. An episode ends where Gymnasium's
     ``terminated`` or ``truncated`` (its time limit, here the run's ``episode_length``)
     says. Episode i is reset with the i-th word of ``SeedSequence(seed)``, so ``seed``
@@ -153,15 +183,11 @@ def gymnasium_returns(policy, env: str, episode_length: int, episodes: int, seed
     import jax.numpy as jnp
     import numpy as np
 
-    from coherent_jax.envs.native import NATIVE_TASKS
-    from coherent_jax.envs.task import control
-
     gym_id = gymnasium_id(env)
     envs = [_make_quietly(gymnasium, gym_id, episode_length) for _ in range(episodes)]
     space = envs[0].action_space
-    ctrl_range = np.stack([space.low, space.high], axis=-1)
-    task = NATIVE_TASKS[gym_id]
-    act = jax.jit(lambda p, o: control(task, jnp.clip(p.mean_action(o), -1.0, 1.0), ctrl_range))
+    to_space = gymnasium_action_map(env, space)
+    act = jax.jit(lambda p, o: to_space(jnp.clip(p.mean_action(o), -1.0, 1.0)))
     seeds = np.random.SeedSequence(seed).generate_state(episodes)
     obs = np.stack([e.reset(seed=int(s))[0] for e, s in zip(envs, seeds, strict=True)])
     returns, lengths = np.zeros(episodes), np.zeros(episodes, np.int64)
@@ -293,7 +319,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
         if opts.engine == "gymnasium":
             gymnasium_id(cfg.env)
-            check_gymnasium()
+            check_gymnasium(cfg.env)
         if opts.video and cfg.wandb:
             tracking.preflight()
     except (ConfigError, CheckpointError, tracking.TrackingError) as exc:

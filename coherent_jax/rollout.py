@@ -119,43 +119,66 @@ def evaluate_policy(
     terminates nor truncates within ``episode_length`` steps cannot exist, since
     the time limit always ends it.
     """
-    n = env.num_envs
-
-    def step(state, _):
-        env_state, returns, lengths, running = state
-        env_state, outcome = env.step(env_state, policy(env_state.obs))
-        returns = returns + jnp.where(running, outcome.reward, 0.0)
-        lengths = lengths + running.astype(jnp.int32)
-        running = jnp.logical_and(running, ~outcome.done)
-        return (env_state, returns, lengths, running), None
-
-    init = (env.reset(key), jnp.zeros((n,)), jnp.zeros((n,), jnp.int32), jnp.ones((n,), bool))
-    (_, returns, lengths, _), _ = jax.lax.scan(step, init, None, length=env.episode_length)
+    returns, lengths, _ = evaluate_episodes(env, policy, key)
     return returns, lengths
 
 
-def episode_metrics(data: Transition) -> dict[str, jax.Array]:
+def evaluate_episodes(
+    env: VecEnv, policy: Callable[[jax.Array], jax.Array], key: jax.Array
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """`evaluate_policy`'s episodes: (returns [n], lengths [n], terminated [n]), the last True
+    where the episode ended in a terminal state rather than at the time limit."""
+    n = env.num_envs
+
+    def step(state, _):
+        env_state, returns, lengths, terminated, running = state
+        env_state, outcome = env.step(env_state, policy(env_state.obs))
+        returns = returns + jnp.where(running, outcome.reward, 0.0)
+        lengths = lengths + running.astype(jnp.int32)
+        terminated = jnp.logical_or(terminated, jnp.logical_and(running, outcome.terminated))
+        running = jnp.logical_and(running, ~outcome.done)
+        return (env_state, returns, lengths, terminated, running), None
+
+    zeros = jnp.zeros((n,), bool)
+    init = (env.reset(key), jnp.zeros((n,)), jnp.zeros((n,), jnp.int32), zeros, ~zeros)
+    (_, returns, lengths, terminated, _), _ = jax.lax.scan(step, init, None, length=env.episode_length)
+    return returns, lengths, terminated
+
+
+def episode_metrics(data: Transition, goal: bool = False) -> dict[str, jax.Array]:
     """``train/*`` episode figures of one collected segment [T, n].
 
     episode_return: mean return of the episodes that ended in the segment (NaN if none).
+    goal_reached (a task whose termination is its goal, `TaskSpec.goal`, only): the fraction
+    of those episodes that reached it (NaN if none ended).
     """
     n_done = data.done.sum()
-    return {
-        "train/episode_return": jnp.where(
-            n_done > 0, jnp.sum(data.episode_return) / jnp.maximum(n_done, 1), jnp.nan
-        ),
+
+    def per_episode(total: jax.Array) -> jax.Array:
+        return jnp.where(n_done > 0, total / jnp.maximum(n_done, 1), jnp.nan)
+
+    metrics = {
+        "train/episode_return": per_episode(jnp.sum(data.episode_return)),
         "train/episodes": n_done.astype(jnp.float32),
         "train/reward_mean": data.reward.mean(),
     }
+    if goal:
+        metrics["train/goal_reached"] = per_episode(data.terminated.sum().astype(jnp.float32))
+    return metrics
 
 
 def evaluation_metrics(
     env: VecEnv, policy: Callable[[jax.Array], jax.Array], key: jax.Array
 ) -> dict[str, jax.Array]:
-    """``eval/*`` figures of one deterministic episode per env (`evaluate_policy`)."""
-    returns, lengths = evaluate_policy(env, policy, key)
-    return {
+    """``eval/*`` figures of one deterministic episode per env (`evaluate_policy`); on a task
+    whose termination is its goal (`VecEnv.goal`) also ``eval/goal_reached``, the fraction
+    of the episodes that reached it."""
+    returns, lengths, terminated = evaluate_episodes(env, policy, key)
+    metrics = {
         "eval/episode_return": returns.mean(),
         "eval/episode_return_std": returns.std(),
         "eval/episode_length": lengths.astype(jnp.float32).mean(),
     }
+    if env.goal:
+        metrics["eval/goal_reached"] = terminated.astype(jnp.float32).mean()
+    return metrics

@@ -40,6 +40,7 @@ TASK_RATE = {
     "dmc-acrobot_swingup_sparse": 20000.0,
     "dmc-ball_in_cup": 19000.0,  # native MuJoCo (physics=auto on a CPU); 11.9k on MJX
     "dmc-finger_turn_hard": 25000.0,  # native; 17.3k on MJX
+    "mountain_car_continuous": 24900.0,  # pure JAX, at the classic suite's 16 envs
 }
 # A2C/PPO iteration time relative to action noise. SAC's strategies cost about the same
 # as its action noise (HalfCheetah, one seed: coherent 0.93x, psne 1.05x): its updates

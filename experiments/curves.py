@@ -1,13 +1,18 @@
 """The curves the report reads, one compressed table per suite: ``RESULTS/SUITE/curves.csv.gz``.
 
 A sweep writes each point's learning curve to its ``metrics.jsonl``: every metric of
-every iteration, about 160 kB per seed of 1M env steps. `report.py` reads two of its
-columns: the evaluation return (`EVAL`) and the training return (`TRAIN`, for the
-sparse suite's first reward). A suite's table holds those of every point of its
-finished cells, one row per ``metrics.jsonl`` row that logged either of them::
+every iteration, about 160 kB per seed of 1M env steps. `report.py` reads four of its
+columns: the evaluation return (`EVAL`), the training return (`TRAIN`, for the sparse
+suite's first reward) and, on a task whose termination is its goal (the classic suite's
+MountainCar), the fractions of evaluation and training episodes that reached it
+(`EVAL_GOAL`, `TRAIN_GOAL`). A suite's table holds those of every point of its finished
+cells, one row per ``metrics.jsonl`` row that logged any of them::
 
-    cell,point,env_steps,eval/episode_return,train/episode_return
-    halfcheetah/ppo/action,p000-seed=0,4096,,-286.61676025390625
+    cell,point,env_steps,eval/episode_return,train/episode_return,eval/goal_reached,train/goal_reached
+    halfcheetah/ppo/action,p000-seed=0,4096,,-286.61676025390625,,
+
+A table written before the goal columns existed (`LEGACY_HEADER`) reads as one whose
+goal fields are all empty.
 
 An empty field is a metric that row did not log; a value is written as
 ``metrics.jsonl`` wrote it (Python's shortest repr of the float, which reads back to
@@ -40,8 +45,11 @@ from typing import Any
 TABLE = "curves.csv.gz"
 EVAL = "eval/episode_return"
 TRAIN = "train/episode_return"
-METRICS = (EVAL, TRAIN)  # report.py's METRIC and REACH_METRIC
+EVAL_GOAL = "eval/goal_reached"
+TRAIN_GOAL = "train/goal_reached"
+METRICS = (EVAL, TRAIN, EVAL_GOAL, TRAIN_GOAL)  # report.py's METRIC, REACH_METRIC, GOAL_METRICS
 HEADER = ("cell", "point", "env_steps", *METRICS)
+LEGACY_HEADER = HEADER[:5]  # the returns only
 LOG = "metrics.jsonl"
 
 # The small files of a cell that git keeps, beside its suite's table.
@@ -50,7 +58,7 @@ SWEEP_FILES = ("config.yaml", "grid.json", "sweep.csv", "sweep.json", "versions.
 RESUMED_VERSIONS = "versions-resumed-*.json"
 POINT_FILES = ("config.yaml", "summary.json")
 
-Row = tuple[str, str, int, float | None, float | None]  # cell, point, env steps, *METRICS
+Row = tuple[Any, ...]  # (cell, point, env steps, *METRICS): str, str, int, then float or None each
 
 
 def table_path(results: Path, suite: str) -> Path:
@@ -107,10 +115,11 @@ def encode(rows: Iterable[Row]) -> bytes:
 def decode(data: bytes) -> list[Row]:
     """The rows of a table's bytes (`encode`'s inverse)."""
     reader = csv.reader(io.StringIO(gzip.decompress(data).decode()))
-    header = next(reader, None)
-    if tuple(header or ()) != HEADER:
-        raise ValueError(f"not a curves table: header {header} (expected {list(HEADER)})")
-    return [(c, p, int(s), *(float(v) if v else None for v in vals)) for c, p, s, *vals in reader]
+    header = tuple(next(reader, None) or ())
+    if header not in (HEADER, LEGACY_HEADER):
+        raise ValueError(f"not a curves table: header {list(header)} (expected {list(HEADER)})")
+    pad = (None,) * (len(HEADER) - len(header))
+    return [(c, p, int(s), *(float(v) if v else None for v in vals), *pad) for c, p, s, *vals in reader]
 
 
 def read_table(path: Path) -> list[Row]:

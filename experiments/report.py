@@ -16,9 +16,12 @@ writes ``experiments/RESULTS.md`` with its figures in ``experiments/results/figu
 * env steps/s and wall time per cell, and the compute spent in all;
 * for each claim of the thesis, a verdict: *reproduced* when the 95% interval of the
   probability of improvement lies above 0.5, *not reproduced* when it lies below,
-  *inconclusive* otherwise (on the sparse tasks, which the thesis did not run, and for
-  coherent against gSDE, pink and Lattice, which it did not compare, the comparison *holds* or
-  *does not hold*).
+  *inconclusive* otherwise (on the sparse tasks and MountainCar, which the thesis did not
+  run, and for coherent against gSDE, pink and Lattice, which it did not compare, the
+  comparison *holds* or *does not hold*);
+* on the sparse tasks, the seeds that ever reached the reward; on MountainCar (the
+  `classic` suite, `classic.py`), the seeds that ever reached the goal in training and
+  those whose final policy reaches it, beside the returns.
 
 The ablations are read beside the thesis suite's action and coherent cells of their task,
 and `beyond` (gSDE, pink at exponents 1 and 0.5, Lattice) beside every thesis strategy on the
@@ -52,7 +55,9 @@ _spec = importlib.util.spec_from_file_location("reproduce", ROOT / "experiments"
 reproduce = importlib.util.module_from_spec(_spec)
 sys.modules.setdefault("reproduce", reproduce)
 _spec.loader.exec_module(reproduce)
+import classic  # noqa: E402  (the classic suite's goal table)
 import curves  # noqa: E402  (beside reproduce.py, which put experiments/ on sys.path)
+import stats  # noqa: E402
 from stats import REPS, aggregate, auc, interval, normalised, probability_of_improvement  # noqa: E402,F401
 
 METRIC = "eval/episode_return"
@@ -60,16 +65,11 @@ BASELINES = ("action", "noisynet", "psne")
 
 
 # On the sparse tasks the reward is 0 outside the target set, so a training episode with
-# a positive return is one in which the exploration got there at least once.
+# a positive return is one in which the exploration got there at least once: a run first
+# reached the reward where its `REACH_METRIC` (the mean over the episodes an iteration
+# completed) is first above 0.
 REACH_METRIC = "train/episode_return"
-
-
-def reached_reward(run: plot.Run) -> float | None:
-    """Env steps at which `run` first completed an episode with positive return (its
-    `REACH_METRIC`, the mean over the episodes an iteration completed, above 0), or
-    None if it never did."""
-    hits = np.flatnonzero(np.nan_to_num(run.values, nan=0.0) > 0.0)
-    return float(run.steps[hits[0]]) if hits.size else None
+reached_reward = stats.first_positive
 
 
 def reach_rows(cell: reproduce.Cell, results: Path) -> list[str]:
@@ -145,9 +145,10 @@ def _label(cell: reproduce.Cell, run: plot.Run, suite: str | None = None) -> str
     return name
 
 
-def build(
-    results: Path, out: Path, suites: Sequence[str] = ("thesis", "ablations", "beyond", "sparse", "protocol")
-) -> str:
+SUITES = ("thesis", "ablations", "beyond", "sparse", "protocol", "classic")  # in RESULTS.md's order
+
+
+def build(results: Path, out: Path, suites: Sequence[str] = SUITES) -> str:
     """RESULTS.md's text: per suite its curves, cell table, provenance and aggregates, then the
     verdicts on the claims, the compute spent and the cells not finished."""
     lines = [
@@ -193,6 +194,8 @@ def suite_section(
     lines += provenance_lines([c for c in done if c.suite == suite], results)
     if suite == "sparse":
         lines += sparse_lines(done, results)
+    if suite == "classic":
+        lines += classic.classic_lines(done, results, _label)
     for algo in sorted(finals):
         for what, per_label in (("final return", finals[algo]), ("area under curve", aucs[algo])):
             for title, labels in label_groups(suite, per_label):
@@ -467,7 +470,7 @@ def _pairs(suite: str, norm: dict) -> list[tuple[str, str]]:
     newer = reproduce.BEYOND_LABELS
     candidates = newer if suite == "beyond" else (*BASELINES, *newer)
     others = [b for b in candidates if b in norm]
-    if suite == "sparse":  # coherent at each beta of its grid against every baseline
+    if suite in ("sparse", "classic"):  # coherent at each beta of its grid against every baseline
         return [(c, b) for c in sorted(norm) if c.startswith("beta=") for b in others]
     return [("coherent", b) for b in others if "coherent" in norm]
 
@@ -479,7 +482,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument(
         "--suites",
         nargs="+",
-        default=["thesis", "ablations", "beyond", "sparse", "protocol"],
+        default=list(SUITES),
         choices=list(reproduce.SUITES),
     )
     args = parser.parse_args(argv)

@@ -29,6 +29,7 @@ which checkpoints it).
     nohup python experiments/reproduce.py thesis > reproduce-thesis.log 2>&1 &
     python experiments/reproduce.py ablations --cells 'halfcheetah/ppo/*'
     python experiments/reproduce.py protocol --pack --commit
+    nohup python experiments/reproduce.py classic --commit > reproduce-classic.log 2>&1 &
 
 Exit status: 0 when every selected cell is done, 1 when a cell's sweep failed,
 2 for bad input (an unknown suite or cell, a refused results directory).
@@ -70,6 +71,7 @@ from cells import (  # noqa: E402, F401  (re-exported: the state of a cell is re
     status,
     sweep_command,
 )
+from classic import classic_cells  # noqa: E402  (the classic suite: MountainCar, its budget)
 
 RESULTS = ROOT / "experiments" / "results"
 
@@ -313,7 +315,8 @@ SMOKE_KEPT = ("coherent.", "beta=")  # the overrides of a full cell its smoke ce
 
 def smoke_cells() -> list[Cell]:
     cells = []
-    for full in (*thesis_cells(), *ablation_cells(), *beyond_cells(), *sparse_cells(), *protocol_cells()):
+    suites = (thesis_cells, ablation_cells, beyond_cells, sparse_cells, protocol_cells, classic_cells)
+    for full in (c for suite in suites for c in suite()):
         algo, explore = full.setting("algo"), full.setting("explore")
         extra = [o for o in full.overrides if o.startswith(SMOKE_KEPT)]
         steps = (
@@ -352,6 +355,7 @@ SUITES = {
     "beyond": beyond_cells,
     "sparse": sparse_cells,
     "protocol": protocol_cells,
+    "classic": classic_cells,
 }
 
 

@@ -82,3 +82,10 @@ def aggregate(norm: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
             "gap_high": float(high[1]),
         }
     return out
+
+
+def first_positive(run) -> float | None:
+    """Env steps at which the curve of `run` (a `coherent_jax.plot.Run`) is first above 0, or
+    None if it never is (NaN, an iteration that logged nothing, counts as not above)."""
+    hits = np.flatnonzero(np.nan_to_num(run.values, nan=0.0) > 0.0)
+    return float(run.steps[hits[0]]) if hits.size else None

@@ -49,6 +49,9 @@ BRAX_SIZES = {
     "brax-reacher": (11, 2),
     "brax-swimmer": (8, 2),
     "pointmass": (6, 2),
+    # Gymnasium's classic tasks in pure JAX, with Brax's interface (test_classic_tasks.py).
+    "mountain_car_continuous": (2, 1),
+    "pendulum": (3, 1),
 }
 # The Brax tasks whose MJX programs test_native_physics.py compiles to hold native
 # MuJoCo to MJX step by step; it also makes the registry smoke test's checks of them

@@ -2,6 +2,7 @@
 what `--commit` adds. Cells are laid out as finished sweeps write them; no training runs.
 """
 
+import gzip
 import json
 import shutil
 import subprocess
@@ -188,11 +189,12 @@ def _runs(cells, results, metric):
 
 def test_curves_table_round_trips_what_the_report_reads(tmp_path):
     report = _report()
-    assert {report.METRIC, report.REACH_METRIC} == set(curves.METRICS)
+    assert {report.METRIC, report.REACH_METRIC, *report.classic.GOAL_METRICS} == set(curves.METRICS)
+    sparse_metrics = (report.METRIC, report.REACH_METRIC)  # the classic suite's: its own test
     cells = reproduce.select("sparse", ["dmc-ball_in_cup/ppo/action", "dmc-ball_in_cup/ppo/psne"])
     for cell in cells:
         _fake_finished_cell(cell, tmp_path)
-    from_logs = {m: _runs(cells, tmp_path, m) for m in curves.METRICS}
+    from_logs = {m: _runs(cells, tmp_path, m) for m in sparse_metrics}
     reach = [row for c in cells for row in report.reach_rows(c, tmp_path)]
     table = curves.build(tmp_path, "sparse")
     data = table.read_bytes()
@@ -209,7 +211,7 @@ def test_curves_table_round_trips_what_the_report_reads(tmp_path):
     # Without the logs the report reads the same curves, bit for bit, from the table.
     for path in tmp_path.glob("sparse/**/metrics.jsonl"):
         path.unlink()
-    assert {m: _runs(cells, tmp_path, m) for m in curves.METRICS} == from_logs
+    assert {m: _runs(cells, tmp_path, m) for m in sparse_metrics} == from_logs
     assert [row for c in cells for row in report.reach_rows(c, tmp_path)] == reach
     # A finished cell whose logs are gone keeps its rows when the table is rebuilt.
     assert curves.build(tmp_path, "sparse").read_bytes() == data
@@ -281,3 +283,68 @@ def test_a_cell_present_only_as_compact_data_is_done(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.split()[:3] == ["hopper/a2c/action", "done", "100.0%"]
     assert len(report.cell_runs(done, clone)) == 2
+
+
+def _fake_classic_cell(cell, results, reach: bool):
+    """A finished classic cell of 2 seeds (per beta of a grid): returns and goal fractions as a
+    sweep logs them; seeds that `reach` first reach the goal in training at 8,192 env steps
+    and end with a policy that reaches it."""
+    d = fake_sweep(cell, results, finished=True)
+    shutil.rmtree(d / "sweep" / "seed=0")
+    betas = [0.0, 0.01, 0.1] if cell.setting("explore") == "coherent" else [None]
+    for i, (beta, seed) in enumerate((b, s) for b in betas for s in range(2)):
+        point = d / "sweep" / f"p{i:03d}-seed={seed}"
+        point.mkdir()
+        extra = "" if beta is None else f"coherent:\n  beta: {beta}\n"
+        explore = cell.setting("explore")
+        text = f"seed: {seed}\nenv: mountain_car_continuous\nexplore: {explore}\n{extra}"
+        (point / "config.yaml").write_text(text)
+        hit = 1.0 if reach else 0.0
+        rows = [
+            {"env_steps": 4096, "train/episode_return": -30.0, "train/goal_reached": 0.0},
+            {"env_steps": 8192, "train/episode_return": -5.0 + 80 * hit, "train/goal_reached": 0.5 * hit},
+            {"env_steps": 12288, "train/goal_reached": None, "train/episode_return": None},
+            {"env_steps": 12288, "eval/episode_return": 90.0 * hit - seed, "eval/goal_reached": hit},
+        ]
+        (point / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+        (point / "summary.json").write_text(json.dumps({"seed": seed}))
+
+
+def test_row4_report_counts_the_seeds_that_reach_mountain_cars_goal(tmp_path, monkeypatch):
+    """The classic suite's section: per strategy the seeds that reached the goal in training
+    (and when first), the seeds whose final policy reaches it, and coherent's verdicts at each
+    beta against the other strategies. Figures and bootstrap intervals are stubbed (minutes
+    of work, tested elsewhere): the probability of improvement is the plain one."""
+    report = _report()
+    monkeypatch.setattr(report, "curve_figures", lambda *args: [])
+    monkeypatch.setattr(report, "aggregate_table", lambda *args: [])
+
+    def plain_poi(x, y):
+        p = float(np.mean(x[:, None, :] > y[None, :, :]))
+        return {"p": p, "low": p, "high": p}
+
+    monkeypatch.setattr(report, "probability_of_improvement", plain_poi)
+    for name, reach in (("*/ppo/action", False), ("*/ppo/pink", True), ("*/ppo/coherent-beta-episode", True)):
+        _fake_classic_cell(reproduce.select("classic", [name])[0], tmp_path, reach)
+    text = report.build(tmp_path, tmp_path / "RESULTS.md", ["classic"])
+    assert "## Suite `classic`" in text
+    assert "| action | 0 of 2 | - | 0 of 2 |" in text
+    assert "| pink | 2 of 2 | 8,192 | 2 of 2 |" in text
+    for beta in ("0", "0.01", "0.1"):
+        assert f"| beta={beta} | 2 of 2 | 8,192 | 2 of 2 |" in text
+    assert "classic, ppo, final return: beta=0 improves on action (1 task(s)) | 1.00" in text
+    assert "| holds |" in text and "beta=0.1 improves on pink" in text
+    # The curves table keeps the goal columns: without the logs the report reads the same.
+    curves.update_table(tmp_path, "classic", [c.name for c in reproduce.select("classic", [])])
+    for path in tmp_path.glob("classic/**/metrics.jsonl"):
+        path.unlink()
+    assert report.build(tmp_path, tmp_path / "RESULTS.md", ["classic"]) == text
+
+
+def test_row4_curves_table_of_returns_only_still_reads(tmp_path):
+    """A table written before the goal columns existed reads with empty goal fields."""
+    legacy = "cell,point,env_steps,eval/episode_return,train/episode_return\nc,p,4096,,1.5\n"
+    data = gzip.compress(legacy.encode(), mtime=0)
+    assert curves.decode(data) == [("c", "p", 4096, None, 1.5, None, None)]
+    with pytest.raises(ValueError, match="not a curves table"):
+        curves.decode(gzip.compress(b"cell,point,env_steps,other\n"))

@@ -89,6 +89,31 @@ def test_sparse_suite_runs_every_strategy_on_four_sparse_control_tasks():
         assert len(coherent.setting("beta").strip("[]").split(",")) >= 3
 
 
+def test_row4_classic_suite_runs_every_strategy_on_mountain_car():
+    """PPO with every on-policy strategy on MountainCarContinuous, 5 seeds each; coherent at beta
+    0, 0.01 and 0.1 with the episode gradient (beta 0: one draw per episode); every cell a valid
+    sweep; the budget's estimate 60-90 minutes."""
+    import classic
+
+    from coherent_jax.config import EXPLORES, SUPPORTED_ALGOS
+    from coherent_jax.sweep import parse_sweep
+
+    cells = reproduce.select("classic", [])
+    on_policy = {e for e in EXPLORES if "ppo" in SUPPORTED_ALGOS[e]}
+    assert {c.setting("explore") for c in cells} == on_policy and len(cells) == len(on_policy)
+    for cell in cells:
+        task = ("mountain_car_continuous", "ppo", 5)
+        assert (cell.setting("env"), cell.setting("algo"), cell.seeds) == task
+        assert cell.setting("total_steps") == str(classic.CLASSIC_STEPS)
+        sweep = parse_sweep([*cell.overrides, f"seeds={cell.seeds}"])
+        assert sweep.base.env == "mountain_car_continuous" and sweep.base.total_steps == classic.CLASSIC_STEPS
+    (coherent,) = [c for c in cells if c.setting("explore") == "coherent"]
+    assert coherent.setting("coherent.beta") == "[0,0.01,0.1]"
+    assert coherent.setting("coherent.gradient") == "episode"
+    assert coherent.env_steps == 15 * classic.CLASSIC_STEPS
+    assert 60 <= classic.estimated_minutes() <= 90
+
+
 def test_ablations_vary_one_component_each():
     from coherent_jax.config import Config
 
@@ -116,7 +141,7 @@ def test_ablations_vary_one_component_each():
 def test_smoke_has_one_cell_per_kind_of_cell():
     smoke = reproduce.smoke_cells()
     kinds = {reproduce.smoke_kind(c) for c in smoke}
-    suites = ("thesis", "ablations", "beyond", "sparse", "protocol")
+    suites = ("thesis", "ablations", "beyond", "sparse", "protocol", "classic")
     full = [c for s in suites for c in reproduce.SUITES[s]()]
     # Pointmass in place of each task, tiny budgets: the smoke kind of a full cell keeps
     # its algorithm, strategy, override keys and grids.
@@ -126,6 +151,7 @@ def test_smoke_has_one_cell_per_kind_of_cell():
     names = {c.name for c in smoke}
     assert {"pointmass/ppo/coherent-beta0", "pointmass/ppo/coherent-beta", "pointmass/sac/psne"} <= names
     assert {"pointmass/ppo/coherent-stored", "pointmass/ppo/coherent-episode"} <= names
+    assert "pointmass/ppo/coherent-beta-episode" in names  # the classic suite's coherent grid
     (grid,) = [c for c in smoke if c.name == "pointmass/ppo/coherent-beta"]
     assert grid.setting("beta").startswith("[")
 

@@ -209,7 +209,7 @@ class OnPolicyTrainer:
         new_params, opt_state, metrics = self._update(params, state.opt_state, hp, batch, k_perm)
         n = self.env.num_envs
 
-        metrics.update(episode_metrics(data))
+        metrics.update(episode_metrics(data, self.env.goal))
         var_t = targets.var()
         metrics["train/explained_variance"] = 1.0 - (targets - values).var() / (var_t + 1e-8)
         if cfg.ppo.normalize_rewards:

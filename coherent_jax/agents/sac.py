@@ -347,7 +347,7 @@ class SACTrainer:
         metrics["train/updates_applied"] = jnp.where(ready, float(self.num_updates), 0.0)
         metrics["train/warmup"] = warm.astype(jnp.float32)
         metrics["train/buffer_size"] = buffer.size.astype(jnp.float32)
-        metrics.update(episode_metrics(data))
+        metrics.update(episode_metrics(data, self.env.goal))
 
         new_state = state.replace(
             params=params,

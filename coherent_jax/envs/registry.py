@@ -1,5 +1,5 @@
 """Registry of tasks by name: Gymnasium's MuJoCo v5 tasks, Brax's re-creations, the
-DeepMind Control Suite, a test task.
+DeepMind Control Suite, Gymnasium's classic exploration tasks, a test task.
 
 * The standard tasks papers report on are Gymnasium's MuJoCo v5 tasks, registered by
   their Gymnasium ids (``HalfCheetah-v5``, ...) and by the short names a user types
@@ -14,6 +14,8 @@ DeepMind Control Suite, a test task.
   Playground's MJX ports (``playground`` on PyPI, imported only when such a task is
   built): dm_control's tasks with rewards in [0, 1] per step, 1000-step episodes and
   no terminations, several of them sparse, where exploration matters most.
+* Gymnasium's ``MountainCarContinuous-v0`` and ``Pendulum-v1`` (``mountain_car_continuous``,
+  ``pendulum``), step for step in pure JAX (`coherent_jax.envs.classic`).
 * A task of the user's own, ``env=MODULE:NAME``: an MJCF file and JAX formulas
   (`coherent_jax.envs.user_task`), run like Gymnasium's tasks on native MuJoCo or MJX.
 """
@@ -59,10 +61,13 @@ class TaskSpec:
       backend: ``native`` for Gymnasium's tasks (native MuJoCo); for Brax's, its physics
         pipeline: ``mjx`` except where Brax has no MJX model; ``jax`` for an analytic
         task with no physics engine.
-      gymnasium_id: the Gymnasium id of a Gymnasium task.
+      gymnasium_id: the Gymnasium id of a Gymnasium task (MuJoCo's on native MuJoCo, or a
+        classic task in pure JAX, backend ``jax``).
       playground_id: the MuJoCo Playground id of a DeepMind Control Suite task.
       native: whether native MuJoCo runs it (its formulas: `coherent_jax.envs.gym_v5`,
         `coherent_jax.envs.brax_native`, `coherent_jax.envs.dmc_native`).
+      goal: the task terminates exactly when it reaches its goal, so the fraction of episodes
+        that terminate is logged as ``train/goal_reached`` and ``eval/goal_reached``.
     """
 
     brax_name: str
@@ -73,6 +78,7 @@ class TaskSpec:
     gymnasium_id: str = ""
     playground_id: str = ""
     native: bool = False
+    goal: bool = False
 
 
 _GYM_DESCRIPTIONS = {
@@ -210,6 +216,28 @@ TASKS: Mapping[str, TaskSpec] = {
     "pointmass": TaskSpec(
         "pointmass", None, description="analytic 2D point mass to a goal (6 obs, 2 act)", backend="jax"
     ),
+    # Gymnasium's classic exploration tasks, step for step in pure JAX (`coherent_jax.envs.classic`).
+    "mountain_car_continuous": TaskSpec(
+        "mountain_car_continuous",
+        None,
+        episode_length=999,
+        description="Gymnasium MountainCarContinuous-v0 in JAX: reach the hilltop, goal pays (2 obs, 1 act)",
+        backend="jax",
+        gymnasium_id="MountainCarContinuous-v0",
+        goal=True,
+    ),
+    "pendulum": TaskSpec(
+        "pendulum",
+        None,
+        episode_length=200,
+        description="Gymnasium Pendulum-v1 in JAX: swing up and hold, dense cost (3 obs, 1 act)",
+        backend="jax",
+        gymnasium_id="Pendulum-v1",
+    ),
+}
+# The classic tasks by Gymnasium id (Gymnasium's own env, not MuJoCo: `coherent_jax.evaluate`).
+CLASSIC_IDS: Mapping[str, str] = {
+    spec.gymnasium_id: name for name, spec in TASKS.items() if spec.backend == "jax" and spec.gymnasium_id
 }
 
 
@@ -217,7 +245,7 @@ def brax_counterpart(name: str) -> str:
     """The Brax environment closest to task ``name``: itself, or for a Gymnasium task its
     Brax re-creation (``halfcheetah`` and ``HalfCheetah-v5`` -> ``brax-halfcheetah``)."""
     spec = check_task(name)
-    if not spec.gymnasium_id:
+    if not spec.gymnasium_id or spec.backend != "native":  # not one of Gymnasium's MuJoCo tasks
         return name
     short = next(k for k, v in SHORT_NAMES.items() if v == spec.gymnasium_id)
     return f"brax-{short}"
@@ -360,16 +388,17 @@ def make_brax_env(name: str, **kwargs: Any):
     spec = check_task(name)
     if spec.playground_id:
         return make_playground_env(spec.playground_id, **kwargs)
+    if spec.backend == "jax":  # this package's own pure-JAX tasks
+        from coherent_jax.envs.classic import CLASSIC_TASKS
+        from coherent_jax.envs.pointmass import PointMass
+
+        return {"pointmass": PointMass, **CLASSIC_TASKS}[spec.brax_name](**kwargs)
     if spec.gymnasium_id:
         short = next(s for s, g in SHORT_NAMES.items() if g == spec.gymnasium_id)
         raise UnknownTaskError(
             f"env {name!r} is Gymnasium's {spec.gymnasium_id} on native MuJoCo, not a Brax env; "
             f"Brax's re-creation is 'brax-{short}'"
         )
-    if spec.backend == "jax":  # this package's own pure-JAX tasks
-        from coherent_jax.envs.pointmass import PointMass
-
-        return {"pointmass": PointMass}[spec.brax_name](**kwargs)
     # Brax prints a warning for its optional Warp backend on import; it is noise here.
     with quiet_stdio():
         from brax import envs as brax_envs

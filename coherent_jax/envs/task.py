@@ -122,8 +122,16 @@ def control(task: NativeTask, action: jax.Array, ctrl_range) -> jax.Array:
     low, high = np.asarray(ctrl_range, np.float32).T
     if task.brax_scaling:
         return (ctrl + 1.0) * (high - low) * 0.5 + low
-    # centre + a * half-width: exactly a * high for the symmetric ranges of every task.
-    return (high + low) / 2 + ctrl * ((high - low) / 2)
+    return to_bounds(ctrl, low, high)
+
+
+def to_bounds(action: jax.Array, low, high) -> jax.Array:
+    """``action`` in [-1, 1] mapped affinely onto [low, high] as centre + a * half-width
+    (float32): exactly ``a * high`` on a symmetric range, the action Gymnasium's env
+    receives, and ``a`` itself on [-1, 1]. Every task that maps the agent's action onto
+    its bounds Gymnasium's way uses this (`control`, `coherent_jax.envs.classic`)."""
+    low, high = np.asarray(low, np.float32), np.asarray(high, np.float32)
+    return (high + low) / 2 + action.astype(jnp.float32) * ((high - low) / 2)
 
 
 @struct.dataclass

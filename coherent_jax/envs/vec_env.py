@@ -127,6 +127,8 @@ class VecEnv:
             self.observation_size, self.action_size = env_sizes(self.env)
             self._batch_reset, self._batch_step = jax.vmap(self.env.reset), jax.vmap(self.env.step)
         self.dt = float(self.env.dt)
+        # The task terminates exactly at its goal: rollouts log the fraction that reach it.
+        self.goal = spec.goal
 
     def _reset_physics(self, key: jax.Array):
         return self._batch_reset(jax.random.split(key, self.num_envs))
