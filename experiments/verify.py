@@ -37,7 +37,6 @@ import curves
 from cells import Cell, cell_dir, cell_state
 
 from coherent_jax.config import modern_items
-from coherent_jax.provenance import cpu_info, git_state
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = "verify.json"  # beside the suites, in the results directory
@@ -175,15 +174,16 @@ def verify_cell(cell: Cell, results: Path, iterations: int = DEFAULT_ITERATIONS,
             tail = (done.stderr or done.stdout).strip().splitlines()[-1:] or ["no output"]
             raise RuntimeError(f"the re-run of {cell.name!r} exited {done.returncode}: {tail[0]}")
         now = _values(curves.cell_rows(cell.name, Path(scratch) / "sweep"))
-    here = {**git_state(ROOT), **cpu_info()}
+        # What the re-run recorded of its code and machine (as every sweep does).
+        here = json.loads((Path(scratch) / "sweep" / "versions.json").read_text())
     return {
         **compare(committed, now, spi),
         "cell": cell_provenance(cell, results),
         "verified_at": {
-            "commit": here["git_commit"],
-            "dirty": here["git_dirty"],
-            "cpu": here["cpu_model"],
-            "cpu_vector_isa": here["cpu_vector_isa"],
+            "commit": here.get("git_commit"),
+            "dirty": here.get("git_dirty"),
+            "cpu": here.get("cpu_model"),
+            "cpu_vector_isa": here.get("cpu_vector_isa"),
             "date": time.strftime("%Y-%m-%d"),
         },
         "iterations_run": n,
