@@ -13,7 +13,8 @@ writes ``experiments/RESULTS.md`` with its figures in ``experiments/results/figu
   task (min-max over all cells of that task), IQM and optimality gap with 95%
   stratified-bootstrap intervals, and the probability that coherent exploration
   improves on each baseline, for final score and for area under the curve;
-* env steps/s and wall time per cell, and the compute spent in all;
+* env steps/s and wall time per cell, and the compute spent in all; a † on the cells that
+  the code at HEAD no longer reproduces bit for bit (``RESULTS/verify.json``, `verify`);
 * for each claim of the thesis, a verdict: *reproduced* when the 95% interval of the
   probability of improvement lies above 0.5, *not reproduced* when it lies below,
   *inconclusive* otherwise (on the sparse tasks, which the thesis did not run, and for
@@ -53,6 +54,7 @@ reproduce = importlib.util.module_from_spec(_spec)
 sys.modules.setdefault("reproduce", reproduce)
 _spec.loader.exec_module(reproduce)
 import curves  # noqa: E402  (beside reproduce.py, which put experiments/ on sys.path)
+import verify  # noqa: E402
 from stats import REPS, aggregate, auc, interval, normalised, probability_of_improvement  # noqa: E402,F401
 
 METRIC = "eval/episode_return"
@@ -271,6 +273,7 @@ def cell_table(suite: str, done: list[reproduce.Cell], runs: dict[str, list[plot
     finals: dict[str, dict[str, dict[str, np.ndarray]]] = defaultdict(lambda: defaultdict(dict))
     aucs: dict[str, dict[str, dict[str, np.ndarray]]] = defaultdict(lambda: defaultdict(dict))
     walls: list[float] = []
+    entries = verify.load(results)  # a cell HEAD no longer reproduces bit for bit is marked
     for c in done:
         rs = runs[c.name]
         f = np.array([r.values[-1] for r in rs])
@@ -282,14 +285,14 @@ def cell_table(suite: str, done: list[reproduce.Cell], runs: dict[str, list[plot
         summary = json.loads((reproduce.cell_dir(c, results) / "sweep" / "sweep.json").read_text())
         wall = float(summary.get("wall_s", 0.0))
         walls.append(wall if c.suite == suite else 0.0)
-        name = c.name if c.suite == suite else f"{c.name} ({c.suite} suite)"
+        name = (c.name if c.suite == suite else f"{c.name} ({c.suite} suite)") + verify.mark(c, entries)
         fm, fl, fh = interval(f)
         am, al, ah = interval(a)
         lines.append(
             f"| {name} | {len(rs)} | {fm:.0f} ({fl:.0f}, {fh:.0f}) | {am:.0f} ({al:.0f}, {ah:.0f}) | "
             f"{summary.get('sweep_env_steps_per_s', float('nan')):.0f} | {wall / 3600:.2f} h |"
         )
-    lines.append("")
+    lines += [*verify.footnote(done, entries), ""]
     return lines, finals, aucs, walls
 
 

@@ -220,6 +220,11 @@ def mark(cell: Cell, entries: dict[str, Any]) -> str:
     return f" {MARK}" if entry and entry["result"].startswith("differs") else ""
 
 
+def footnote(cells: Sequence[Cell], entries: dict[str, Any]) -> list[str]:
+    """`FOOTNOTE` (one line) under a table in which `mark` marked a cell, else nothing."""
+    return ["", FOOTNOTE] if any(mark(c, entries) for c in cells) else []
+
+
 def run(cells: Sequence[Cell], results: Path, iterations: int = DEFAULT_ITERATIONS) -> int:
     """``--verify``: each finished cell in turn, its entry saved as soon as it is known.
 

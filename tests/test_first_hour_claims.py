@@ -4,13 +4,14 @@ Each test is named after the row of the issue it settles and fails if the claim 
 checks is removed or stops holding.
 """
 
-import json
 import re
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
+from cell_fakes import fake_sweep, reproduce
+from helpers import load_experiment
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -119,3 +120,58 @@ def test_row10_sweep_point_matches_its_single_run_to_rounding_not_bits():
         )
     runs_md = " ".join(_text("docs/runs.md").split())
     assert "reassociation" in runs_md and "-165.0" in runs_md
+
+
+# ---------------------------------------------------------------- row 14: committed results at HEAD
+def test_row14_verify_names_the_first_differing_iteration_and_report_marks_the_cell(tmp_path):
+    """`reproduce.py SUITE --verify` compares every committed value bit for bit and names
+    the first iteration that differs; RESULTS.md's table marks that cell with a dagger;
+    the committed verify.json and docs/development.md say what changed bits and when."""
+    verify = load_experiment("verify")
+    committed = {("p000-seed=0", 4096, "x"): [1.5], ("p000-seed=0", 8192, "x"): [2.5]}
+    same = verify.compare(committed, {k: list(v) for k, v in committed.items()}, 4096)
+    assert same["result"] == "bit-identical" and same["values_compared"] == 2
+    off = {**committed, ("p000-seed=0", 8192, "x"): [np.nextafter(2.5, 3.0)]}
+    differs = verify.compare(committed, off, 4096)
+    assert differs["result"] == "differs from iteration 2"
+    assert differs["first_difference"]["now"] == np.nextafter(2.5, 3.0)
+    missing = verify.compare(committed, {("p000-seed=0", 4096, "x"): [1.5]}, 4096)
+    assert missing["result"] == "differs from iteration 2"  # a value the re-run did not log
+
+    report = load_experiment("report")
+    cells = [reproduce.select("thesis", [n])[0] for n in ("hopper/ppo/coherent", "hopper/ppo/action")]
+    for cell in cells:
+        fake_sweep(cell, tmp_path, finished=True)
+    entry = {"result": "differs from iteration 2", "cell": {"commit": "commit unknown"}}
+    verify.save(tmp_path, {"thesis/hopper/ppo/coherent": entry})
+    run = report.plot.Run(tmp_path, "hopper", "ppo", "x", 0, np.array([1.0, 2.0]), np.array([3.0, 4.0]), {})
+    table = report.cell_table("thesis", cells, {c.name: [run] for c in cells}, tmp_path)[0]
+    rows = {line.split(" | ")[0] for line in table if line.startswith("| hopper")}
+    assert rows == {f"| hopper/ppo/coherent {verify.MARK}", "| hopper/ppo/action"}
+    assert verify.FOOTNOTE in table
+
+    out = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "experiments" / "reproduce.py"),
+            "thesis",
+            "--verify",
+            "--iterations",
+            "0",
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert out.returncode == 2 and "'--iterations': 0" in out.stderr
+
+    entries = verify.load(ROOT / "experiments" / "results")
+    assert len(entries) >= 4
+    for name, e in entries.items():
+        assert e["result"] == "bit-identical" or e["result"].startswith("differs from iteration"), name
+        assert e["cell"]["commit"] == "commit unknown" or re.fullmatch(r"[0-9a-f]{40}", e["cell"]["commit"])
+    development = " ".join(_text("docs/development.md").split())
+    assert "Changes bits:" in development and "git log --grep" in development
+    assert "83f2dde" in development
+    # The cells development.md cites are as verify.json has them.
+    assert entries["thesis/hopper/ppo/coherent"]["result"] == "differs from iteration 2"
+    assert entries["thesis/hopper/ppo/action"]["result"] == "bit-identical"
