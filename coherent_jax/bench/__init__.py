@@ -16,7 +16,8 @@ and ``format_table(result)``.
 * `processes`: one training process with N devices against N processes of one device
   (``distributed=true`` over loopback), each a fresh ``python -m coherent_jax.train``.
 
-`measure` holds what every suite records (times, memory, machine, JSON).
+`measure` holds what every suite records (times, memory, machine, JSON). Each suite's
+``COST`` says how long it took at its defaults, and where (``--help`` prints it).
 """
 
 SUITES = ("throughput", "coherent", "sac", "strategies", "physics", "standard", "gradient", "processes")

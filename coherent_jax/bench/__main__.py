@@ -19,14 +19,19 @@ def suite_module(name: str) -> ModuleType:
 
 
 def help_text() -> str:
-    """Every suite's own settings with their defaults."""
+    """Every suite's cost at its defaults (`COST`, measured) and its own settings with their defaults."""
     lines = [
         "usage: python -m coherent_jax.bench [SUITE] [key=value ...]",
         f"suites: {', '.join(SUITES)} (default: {DEFAULT_SUITE})",
     ]
     for name in SUITES:
         module = suite_module(name)
-        lines += ["", f"{name} suite options (key=default):", *cli.help_lines(module.KEYS)]
+        lines += [
+            "",
+            f"{name} suite COST: {module.COST}",
+            f"{name} suite options (key=default):",
+            *cli.help_lines(module.KEYS),
+        ]
         fixed = getattr(module, "FIXED", None)
         if fixed is not None:
             ignored = getattr(module, "IGNORED_KEYS", IGNORED)
