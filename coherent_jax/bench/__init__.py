@@ -21,6 +21,8 @@ and ``format_table(result)``.
 """
 
 SUITES = ("throughput", "coherent", "sac", "strategies", "physics", "standard", "gradient", "processes")
+# Where each suite's ``COST`` (its wall time at its defaults) was measured; idle, it takes less.
+COST_MACHINE = "2026-12-06 on 2 cores of an Intel Xeon (avx512f) shared with other jobs (load average 3-12)"
 DEFAULT_SUITE = "throughput"  # what ``python -m coherent_jax.bench`` runs with no suite named
 # Training keys the in-process suites do not read (they time iterations: they write no run
 # directory, checkpoint or TensorBoard file, and run no fixed budget): refused, not ignored.

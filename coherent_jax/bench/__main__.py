@@ -8,7 +8,7 @@ from collections.abc import Sequence
 from types import ModuleType
 
 from coherent_jax import cli
-from coherent_jax.bench import DEFAULT_SUITE, IGNORED, SUITES
+from coherent_jax.bench import COST_MACHINE, DEFAULT_SUITE, IGNORED, SUITES
 from coherent_jax.config import ConfigError
 from coherent_jax.exit_codes import EXIT_BAD_INPUT
 
@@ -23,6 +23,7 @@ def help_text() -> str:
     lines = [
         "usage: python -m coherent_jax.bench [SUITE] [key=value ...]",
         f"suites: {', '.join(SUITES)} (default: {DEFAULT_SUITE})",
+        f"COST: each suite's wall time at its defaults, measured {COST_MACHINE}",
     ]
     for name in SUITES:
         module = suite_module(name)
