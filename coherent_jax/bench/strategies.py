@@ -35,7 +35,7 @@ def _strategy_list(text: str) -> list[str] | str:
 
 
 # How long the suite takes at its defaults (`python -m coherent_jax.bench --help` prints it).
-COST = "~13 min (762 s at a load average of 11-12; its 7 compiles are most of it)"
+COST = "~13 min (762 s measured; its seven compiles are most of it)"
 KEYS: dict[str, cli.Key] = {
     "strategies": cli.Key(
         _ALL,
