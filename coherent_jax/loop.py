@@ -62,8 +62,9 @@ from coherent_jax.sweep_axis import vmap_points
 def run_keys(seed: int):
     """(key, init_key) of a run: ``init_key`` starts the state, ``key`` is split once per evaluation.
 
-    A sweep derives each grid point's keys with this same function, so a point equals
-    the single run with its settings.
+    A sweep derives each grid point's keys with this same function, so a point runs the
+    single run's program with its settings: equal up to float rounding (the vmapped
+    batch reorders sums), which a chaotic task amplifies over training.
     """
     import jax
 

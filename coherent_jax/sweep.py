@@ -17,9 +17,11 @@ handling and divergence guard (a diverged point is named and marked, the others
 continue; exit status 3 at the end). A resume may restate the grid but not change it
 (`coherent_jax.sweep_resume`); the sweep's directory is locked while it runs, as a
 single run's is (`coherent_jax.runlock`). Each point derives its keys exactly as a
-single run does (`loop.run_keys`), so point i equals ``python -m
-coherent_jax.train`` with that point's settings. With several JAX devices the
-points are split over them (`sharding.point_shardings`).
+single run does (`loop.run_keys`), so point i runs the program of ``python -m
+coherent_jax.train`` with that point's settings, equal to it up to float rounding:
+the vmapped batch reorders float32 sums, and a chaotic task (HalfCheetah) amplifies
+that difference over training until the returns part (docs/runs.md, "Sweeps").
+With several JAX devices the points are split over them (`sharding.point_shardings`).
 
 Outputs, in ``run_dir`` (default ``runs/sweep-<env>-<algo>-<explore>-<time>``): the
 shared ``config.yaml`` and the grid (``grid.json``), ``versions.json``, the

@@ -13,7 +13,8 @@ writes ``experiments/RESULTS.md`` with its figures in ``experiments/results/figu
   task (min-max over all cells of that task), IQM and optimality gap with 95%
   stratified-bootstrap intervals, and the probability that coherent exploration
   improves on each baseline, for final score and for area under the curve;
-* env steps/s and wall time per cell, and the compute spent in all;
+* env steps/s and wall time per cell, and the compute spent in all; a † on the cells that
+  the code at HEAD no longer reproduces bit for bit (``RESULTS/verify.json``, `verify`);
 * for each claim of the thesis, a verdict: *reproduced* when the 95% interval of the
   probability of improvement lies above 0.5, *not reproduced* when it lies below,
   *inconclusive* otherwise (on the sparse tasks and MountainCar, which the thesis did not
@@ -58,6 +59,7 @@ _spec.loader.exec_module(reproduce)
 import classic  # noqa: E402  (the classic suite's goal table)
 import curves  # noqa: E402  (beside reproduce.py, which put experiments/ on sys.path)
 import stats  # noqa: E402
+import verify  # noqa: E402
 from stats import REPS, aggregate, auc, interval, normalised, probability_of_improvement  # noqa: E402,F401
 
 METRIC = "eval/episode_return"
@@ -191,7 +193,7 @@ def suite_section(
         lines += curve_figures(name, members, runs, results / "figures", out)
     table, finals, aucs, walls = cell_table(suite, done, runs, results)
     lines += table
-    lines += provenance_lines([c for c in done if c.suite == suite], results)
+    lines += verify.provenance_lines([c for c in done if c.suite == suite], results)
     if suite == "sparse":
         lines += sparse_lines(done, results)
     if suite == "classic":
@@ -274,6 +276,7 @@ def cell_table(suite: str, done: list[reproduce.Cell], runs: dict[str, list[plot
     finals: dict[str, dict[str, dict[str, np.ndarray]]] = defaultdict(lambda: defaultdict(dict))
     aucs: dict[str, dict[str, dict[str, np.ndarray]]] = defaultdict(lambda: defaultdict(dict))
     walls: list[float] = []
+    entries = verify.load(results)  # a cell HEAD no longer reproduces bit for bit is marked
     for c in done:
         rs = runs[c.name]
         f = np.array([r.values[-1] for r in rs])
@@ -285,14 +288,14 @@ def cell_table(suite: str, done: list[reproduce.Cell], runs: dict[str, list[plot
         summary = json.loads((reproduce.cell_dir(c, results) / "sweep" / "sweep.json").read_text())
         wall = float(summary.get("wall_s", 0.0))
         walls.append(wall if c.suite == suite else 0.0)
-        name = c.name if c.suite == suite else f"{c.name} ({c.suite} suite)"
+        name = (c.name if c.suite == suite else f"{c.name} ({c.suite} suite)") + verify.mark(c, entries)
         fm, fl, fh = interval(f)
         am, al, ah = interval(a)
         lines.append(
             f"| {name} | {len(rs)} | {fm:.0f} ({fl:.0f}, {fh:.0f}) | {am:.0f} ({al:.0f}, {ah:.0f}) | "
             f"{summary.get('sweep_env_steps_per_s', float('nan')):.0f} | {wall / 3600:.2f} h |"
         )
-    lines.append("")
+    lines += [*verify.footnote(done, entries), ""]
     return lines, finals, aucs, walls
 
 
@@ -366,46 +369,6 @@ def compute_lines(total_wall: float, missing: list[str], still_needed: float) ->
         ]
         lines += ["## Cells not finished", ""] + [f"- {m}" for m in missing] + [""]
     return lines
-
-
-def provenance_lines(cells: Sequence[reproduce.Cell], results: Path) -> list[str]:
-    """The commits and CPUs the cells' numbers came from, with how many cells each.
-
-    Read from each cell's ``sweep/versions.json`` and the ``versions-resumed-*.json`` a resume
-    on another commit or machine left beside it; a cell (or part of one) recorded before
-    these were kept counts as "not recorded", one run outside a git checkout as "no git
-    checkout". A cell computed in parts counts once under each.
-    """
-    commits: dict[str, int] = defaultdict(int)
-    cpus: dict[str, int] = defaultdict(int)
-    for cell in cells:
-        cell_commits, cell_cpus = set(), set()
-        for path in sorted((reproduce.cell_dir(cell, results) / "sweep").glob("versions*.json")):
-            try:
-                v = json.loads(path.read_text())
-            except (OSError, ValueError):
-                continue
-            commit, dirty = v.get("git_commit"), " with uncommitted changes" if v.get("git_dirty") else ""
-            isa = v.get("cpu_vector_isa") or "no AVX/SSE4.2"
-            cell_commits.add(
-                "not recorded"
-                if "git_commit" not in v
-                else f"`{commit[:12]}`{dirty}"
-                if commit
-                else "no git checkout"
-            )
-            cell_cpus.add(
-                f"{v['cpu_model'] or 'unknown CPU'} ({isa})" if "cpu_model" in v else "not recorded"
-            )
-        for label in cell_commits or {"not recorded"}:
-            commits[label] += 1
-        for label in cell_cpus or {"not recorded"}:
-            cpus[label] += 1
-
-    def counts(table: dict[str, int]) -> str:
-        return ", ".join(f"{k} ({n} cell{'s' if n > 1 else ''})" for k, n in sorted(table.items()))
-
-    return [f"Computed at commits: {counts(commits)}; on CPUs: {counts(cpus)}.", ""]
 
 
 def _reference_cells(suite: str, done: list[reproduce.Cell], results: Path) -> list[reproduce.Cell]:

@@ -30,8 +30,12 @@ which checkpoints it).
     python experiments/reproduce.py ablations --cells 'halfcheetah/ppo/*'
     python experiments/reproduce.py protocol --pack --commit
     nohup python experiments/reproduce.py classic --commit > reproduce-classic.log 2>&1 &
+    python experiments/reproduce.py thesis --verify 'hopper/ppo/*'   # does HEAD still compute them?
 
-Exit status: 0 when every selected cell is done, 1 when a cell's sweep failed,
+``--verify``: "bit-identical" or "differs from iteration N" per finished cell (`verify`).
+
+Exit status: 0 when every selected cell is done (with ``--verify``: bit-identical), 1 when
+a cell's sweep failed (with ``--verify``: a cell differs or was not verified),
 2 for bad input (an unknown suite or cell, a refused results directory).
 """
 
@@ -51,6 +55,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT / "experiments"), str(ROOT)]
 import carry  # noqa: E402
 import curves  # noqa: E402
+import verify  # noqa: E402
 from cells import (  # noqa: E402, F401  (re-exported: the state of a cell is read as reproduce.X)
     DEFAULT_RATE,
     EPISODE_GRADIENT_COST,
@@ -436,6 +441,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="git-commit each cell's compact results (small files, suite's curves table) when it "
         "finishes, or with --pack the carry files",
     )
+    parser.add_argument(
+        "--verify",
+        nargs="*",
+        metavar="CELL",
+        help="re-run the first iterations of each finished cell (or those named, glob) at HEAD and "
+        "compare them with the committed curves; writes RESULTS/verify.json",
+    )
+    parser.add_argument(
+        "--iterations",
+        type=int,
+        default=verify.DEFAULT_ITERATIONS,
+        help="with --verify: iterations re-run at least (default %(default)s)",
+    )
     args = parser.parse_args(argv)
     results = Path(args.results).resolve()
     try:
@@ -444,7 +462,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 f"invalid value for '--results': {args.results!r} is not a directory "
                 "(allowed: a results directory, existing or to be made)"
             )
-        cells = select(args.suite, args.cells)
+        cells = select(args.suite, [*args.cells, *(args.verify or [])])
         for cell in cells:
             check_cell_dir(cell, results)
     except ReproduceError as exc:
@@ -455,6 +473,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     if args.pack:
         return pack_cells(cells, results, args.commit)
+    if args.verify is not None:
+        return verify.run(cells, results, args.iterations)
     failed = []
     for cell in cells:
         state = cell_state(cell, results)

@@ -1,4 +1,4 @@
-"""Sweeps: one grid point equals the single run with its settings; bad grids are refused up front."""
+"""Sweeps: a grid point matches the single run with its settings (to rounding); bad grids are refused."""
 
 import json
 import signal

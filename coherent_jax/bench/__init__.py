@@ -16,10 +16,13 @@ and ``format_table(result)``.
 * `processes`: one training process with N devices against N processes of one device
   (``distributed=true`` over loopback), each a fresh ``python -m coherent_jax.train``.
 
-`measure` holds what every suite records (times, memory, machine, JSON).
+`measure` holds what every suite records (times, memory, machine, JSON). Each suite's
+``COST`` says how long it took at its defaults, and where (``--help`` prints it).
 """
 
 SUITES = ("throughput", "coherent", "sac", "strategies", "physics", "standard", "gradient", "processes")
+# Where each suite's ``COST`` (its wall time at its defaults) was measured; idle, it takes less.
+COST_MACHINE = "2026-12-06 on 2 cores of an Intel Xeon (avx512f) shared with other jobs (load average 3-12)"
 DEFAULT_SUITE = "throughput"  # what ``python -m coherent_jax.bench`` runs with no suite named
 # Training keys the in-process suites do not read (they time iterations: they write no run
 # directory, checkpoint or TensorBoard file, and run no fixed budget): refused, not ignored.

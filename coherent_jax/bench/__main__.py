@@ -8,7 +8,7 @@ from collections.abc import Sequence
 from types import ModuleType
 
 from coherent_jax import cli
-from coherent_jax.bench import DEFAULT_SUITE, IGNORED, SUITES
+from coherent_jax.bench import COST_MACHINE, DEFAULT_SUITE, IGNORED, SUITES
 from coherent_jax.config import ConfigError
 from coherent_jax.exit_codes import EXIT_BAD_INPUT
 
@@ -19,14 +19,20 @@ def suite_module(name: str) -> ModuleType:
 
 
 def help_text() -> str:
-    """Every suite's own settings with their defaults."""
+    """Every suite's cost at its defaults (`COST`, measured) and its own settings with their defaults."""
     lines = [
         "usage: python -m coherent_jax.bench [SUITE] [key=value ...]",
         f"suites: {', '.join(SUITES)} (default: {DEFAULT_SUITE})",
+        f"COST: each suite's wall time at its defaults, measured {COST_MACHINE}",
     ]
     for name in SUITES:
         module = suite_module(name)
-        lines += ["", f"{name} suite options (key=default):", *cli.help_lines(module.KEYS)]
+        lines += [
+            "",
+            f"{name} suite COST: {module.COST}",
+            f"{name} suite options (key=default):",
+            *cli.help_lines(module.KEYS),
+        ]
         fixed = getattr(module, "FIXED", None)
         if fixed is not None:
             ignored = getattr(module, "IGNORED_KEYS", IGNORED)

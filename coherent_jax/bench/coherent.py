@@ -43,6 +43,8 @@ from coherent_jax.bench.filter_cost import bench_filter
 from coherent_jax.config import Config, to_dict, validate, with_values
 
 _count = cli.int_at_least(1)
+# How long the suite takes at its defaults (`python -m coherent_jax.bench --help` prints it).
+COST = "over 15 min (stopped at 900 s in its q=256 filter rows, before its long-chain rows)"
 KEYS: dict[str, cli.Key] = {
     "iterations": cli.Key(5, _count, "an integer >= 1", "timed PPO iterations per strategy"),
     "out": cli.Key(

@@ -62,6 +62,8 @@ def _betas(text: str) -> list[float]:
     return values
 
 
+# How long the suite takes at its defaults (`python -m coherent_jax.bench --help` prints it).
+COST = "~100 s (97 s measured)"
 KEYS: dict[str, cli.Key] = {
     "betas": cli.Key([0.0, 0.01, 0.1, 1.0], _betas, "a list of numbers in [0, 1]", "chain coefficients"),
     "histories": cli.Key(

@@ -31,6 +31,8 @@ from coherent_jax import cli
 from coherent_jax.bench import IGNORED, measure
 from coherent_jax.config import Config, to_dict, validate, with_values
 
+# How long the suite takes at its defaults (`python -m coherent_jax.bench --help` prints it).
+COST = "~4 min (243 s measured)"
 KEYS: dict[str, cli.Key] = {
     "iterations": cli.Key(
         5, cli.int_at_least(1), "an integer >= 1", "timed iterations per strategy and mode"

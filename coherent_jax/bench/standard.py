@@ -25,6 +25,8 @@ from coherent_jax import cli
 from coherent_jax.bench import measure, physics
 from coherent_jax.envs.registry import SHORT_NAMES
 
+# How long the suite takes at its defaults (`python -m coherent_jax.bench --help` prints it).
+COST = "~20 min (1,174 s measured: 5 tasks x 2 thread counts)"
 KEYS: dict[str, cli.Key] = {
     "tasks": cli.Key(
         ["halfcheetah", "hopper", "walker2d", "ant", "humanoid"],

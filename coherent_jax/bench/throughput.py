@@ -22,6 +22,8 @@ from coherent_jax.config import Config, parse_overrides, to_dict
 
 # Rows besides the raw env; brax_ppo is Brax's own trainer.
 ROWS = ("ppo", "coherent_ppo", "sac", "coherent_sac", "brax_ppo")
+# How long the suite takes at its defaults (`python -m coherent_jax.bench --help` prints it).
+COST = "over 15 min (stopped at 900 s in round 2 of 9, the last with its ~75 s SAC rows)"
 KEYS: dict[str, cli.Key] = {
     "iterations": cli.Key(
         9, cli.int_at_least(1), "an integer >= 1", "timed iterations per row (after one warm-up)"

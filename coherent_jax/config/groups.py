@@ -140,7 +140,9 @@ class CoherentOptions(Group):
 
     beta: float = field(
         0.01,
-        "chain coefficient, 1 = step-based, 0 = trajectory-based",
+        "chain coefficient: 1 = fresh weights every step; 0 = one draw per chain, which restarts every "
+        "unroll_length steps under coherent.gradient=exact (the default) and at episode starts only "
+        "under gradient=episode or stored, integration=mc and algo=sac (docs/coherent.md)",
         check=UNIT,
         sweep=sweep((ALGOS, ("coherent",))),
         old="beta",

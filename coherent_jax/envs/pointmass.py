@@ -1,8 +1,9 @@
 """A point mass that must reach a target: an analytic task in pure JAX.
 
-No physics engine: it compiles in about a second, so tests of the training
-machinery (collection, losses, strategies, the CLI) run fast, while learning tests
-use the MuJoCo tasks. It follows Brax's ``Env`` interface, so the same wrappers apply.
+No physics engine: its whole training iteration compiles in 7-15 s on two shared
+cores (docs/tasks.md), so tests of the training machinery (collection, losses,
+strategies, the CLI) use it, while learning tests use the MuJoCo tasks. It follows
+Brax's ``Env`` interface, so the same wrappers apply.
 
     p_{t+1} = p_t + dt v_{t+1},   v_{t+1} = damping v_t + dt a_t,   a in [-1, 1]^2
     r_t     = -|p_{t+1} - g| - 0.01 |a_t|^2

@@ -9,7 +9,9 @@ its single-sample and all-layer ablations, Coherent-SAC's mean head) calls `chai
 so every w_t has marginal N(mu, diag(w_std^2)). With ``mean`` and ``std`` left out it is
 the standardised chain z = (w - mu) / w_std: z_0 = eps, z_t = (1 - beta) z_{t-1} +
 sqrt(2 beta - beta^2) eps. beta = 1 is step-based exploration (a fresh draw every
-step), beta = 0 trajectory-based (one draw per episode).
+step), beta = 0 one draw for as long as the chain runs unbroken: an episode where only
+episode starts restart it (``coherent.gradient=episode`` or ``stored``, the Monte Carlo
+forms, SAC), a segment of ``unroll_length`` steps under ``coherent.gradient=exact``.
 """
 
 from __future__ import annotations

@@ -9,7 +9,8 @@ per action dimension i (p of them):
     w_t   = (1 - beta) w_{t-1} + beta mu + sqrt(2 beta - beta^2) w_std * eps     (4.1-4.4)
 
 so every w_t has marginal N(mu, diag(w_std^2)); beta = 1 is step-based exploration
-(fresh weights each step), beta = 0 trajectory-based (one draw per episode).
+(fresh weights each step), beta = 0 one draw per chain (per episode, or per segment
+where ``coherent.gradient=exact`` restarts the chain at every segment start).
 
 The on-policy objective needs ``log p(a_t | a_<t, s_<=t)`` with w integrated out
 (4.18). The thesis computes it with a Kalman filter over the flattened (pq+p)-vector

@@ -1,0 +1,296 @@
+"""Does the code at HEAD still compute the committed cells bit for bit?
+
+``python experiments/reproduce.py SUITE --verify [CELL ...]`` re-runs each selected
+finished cell's first iterations at HEAD: the cell's own sweep (its overrides and
+seeds, one vmapped program, as `cells.sweep_command` runs it) with ``total_steps`` cut
+to a few iterations, in a scratch directory that is deleted afterwards. Every value the
+committed curves table (``RESULTS/SUITE/curves.csv.gz``) holds for those iterations is
+then compared, as a float, with what the re-run logged. Per cell it reports one of
+
+* ``bit-identical``: every compared value equal;
+* ``differs from iteration N``: the first iteration whose logged value differs (only
+  iterations that logged a return can be compared: an evaluation every ``eval_every``
+  iterations, a training return once an episode has ended);
+
+with the commit and CPU the cell recorded (``commit unknown`` for a cell made before
+runs recorded their commit), and writes that to ``RESULTS/verify.json`` (`OUT`), one
+entry per cell, merged with the entries already there. `report.py` marks with † the
+cells whose entry says they differ.
+
+A cell made on another CPU may differ for that reason alone: XLA compiles for the
+host's vector extensions, and float32 sums round differently between them.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from collections import defaultdict
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import curves
+from cells import Cell, cell_dir, cell_state
+
+from coherent_jax.config import modern_items
+
+ROOT = Path(__file__).resolve().parents[1]
+OUT = "verify.json"  # beside the suites, in the results directory
+DEFAULT_ITERATIONS = 3
+MARK = "†"
+FOOTNOTE = (
+    f"{MARK} The code at HEAD no longer reproduces this cell bit for bit "
+    "(`python experiments/reproduce.py SUITE --verify CELL`; experiments/results/verify.json)."
+)
+
+Values = dict[tuple[str, int, str], list[float]]  # (point, env steps, metric) -> values in log order
+
+
+def _values(rows: Sequence[curves.Row]) -> Values:
+    """The logged values of a cell's curve rows, keyed by point, env steps and metric."""
+    out: Values = {}
+    for _, point, steps, *values in rows:
+        for metric, v in zip(curves.METRICS, values, strict=True):
+            if v is not None:
+                out.setdefault((point, steps, metric), []).append(v)
+    return out
+
+
+def compare(committed: Values, now: Values, steps_per_iteration: int) -> dict[str, Any]:
+    """Every committed value against the re-run's at the same point, env step and metric.
+
+    A committed value the re-run did not log counts as a difference; values the re-run
+    logged beyond the committed ones (its final evaluation) are not compared.
+    """
+    compared, first = 0, None
+    for (point, steps, metric), values in sorted(committed.items(), key=lambda kv: (kv[0][1], kv[0])):
+        got = now.get((point, steps, metric), [])
+        for i, v in enumerate(values):
+            compared += 1
+            w = got[i] if i < len(got) else None
+            if w != v and first is None:
+                first = {
+                    "iteration": steps // steps_per_iteration,
+                    "env_steps": steps,
+                    "point": point,
+                    "metric": metric,
+                    "committed": v,
+                    "now": w,
+                }
+    iterations = sorted({s // steps_per_iteration for _, s, _ in committed})
+    if not compared:
+        result = "nothing to compare"
+    elif first is None:
+        result = "bit-identical"
+    else:
+        result = f"differs from iteration {first['iteration']}"
+        if first["iteration"] == iterations[0] and iterations[0] > 1:
+            result += " (the first compared)"
+    return {
+        "result": result,
+        "values_compared": compared,
+        "iterations_compared": iterations,
+        "first_difference": first,
+    }
+
+
+def _yaml_int(path: Path, key: str) -> int:
+    """An integer top-level key of a point's ``config.yaml`` (``key: value`` lines)."""
+    for line in path.read_text().splitlines():
+        k, _, v = line.partition(":")
+        if k == key:
+            return int(v.strip())
+    raise KeyError(f"{key!r} not in {path}")
+
+
+def steps_per_iteration(cell: Cell, results: Path) -> int:
+    """num_envs * unroll_length as the cell's first point resolved them."""
+    config = curves.point_dirs(cell_dir(cell, results) / "sweep")[0] / "config.yaml"
+    return _yaml_int(config, "num_envs") * _yaml_int(config, "unroll_length")
+
+
+def cell_provenance(cell: Cell, results: Path) -> dict[str, Any]:
+    """The commit and CPU a cell recorded (its sweep's ``versions.json``) and its resumes' commits."""
+    sweep = cell_dir(cell, results) / "sweep"
+    try:
+        v = json.loads((sweep / "versions.json").read_text())
+    except (OSError, ValueError):
+        v = {}
+    resumed = []
+    for path in sorted(sweep.glob("versions-resumed-*.json")):
+        try:
+            resumed.append(json.loads(path.read_text()).get("git_commit"))
+        except (OSError, ValueError):
+            resumed.append(None)
+    return {
+        "commit": v.get("git_commit") or "commit unknown",
+        "dirty": v.get("git_dirty"),
+        "cpu": v.get("cpu_model") or "CPU unknown",
+        "cpu_vector_isa": v.get("cpu_vector_isa"),
+        "resumed_at": resumed,
+    }
+
+
+def rerun_command(cell: Cell, run_dir: Path, total_steps: int) -> list[str]:
+    """The cell's sweep as `cells.sweep_command` starts it, cut to ``total_steps``."""
+    overrides = [f"total_steps={total_steps}" if o.startswith("total_steps=") else o for o in cell.overrides]
+    return [
+        sys.executable,
+        "-m",
+        "coherent_jax.sweep",
+        *modern_items(overrides, note=False),
+        f"seeds={cell.seeds}",
+        f"run_dir={run_dir}",
+        "progress=false",
+        "tensorboard=false",
+    ]
+
+
+def verify_cell(cell: Cell, results: Path, iterations: int = DEFAULT_ITERATIONS, log=print) -> dict[str, Any]:
+    """Re-runs a finished cell's first iterations at HEAD and compares them with its committed curves.
+
+    At least ``iterations`` iterations, and as many as it takes to reach the first
+    value the committed table holds (an evaluation every ``eval_every`` iterations).
+    """
+    spi = steps_per_iteration(cell, results)
+    table = [r for r in curves.read_table(curves.table_path(results, cell.suite)) if r[0] == cell.name]
+    if not table:
+        raise ValueError(f"cell {cell.name!r} has no rows in {curves.table_path(results, cell.suite)}")
+    first_logged = min(r[2] for r in table) // spi
+    n = max(iterations, first_logged)
+    committed = _values([r for r in table if r[2] <= n * spi])
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    with tempfile.TemporaryDirectory(prefix="verify-") as scratch:
+        cmd = rerun_command(cell, Path(scratch) / "sweep", n * spi)
+        log(f"[verify] {cell.suite} {cell.name}: {n} iterations: {' '.join(cmd[1:-3])} ...")
+        t0 = time.time()
+        done = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, env=env, check=False)
+        wall = time.time() - t0
+        if done.returncode != 0:
+            tail = (done.stderr or done.stdout).strip().splitlines()[-1:] or ["no output"]
+            raise RuntimeError(f"the re-run of {cell.name!r} exited {done.returncode}: {tail[0]}")
+        now = _values(curves.cell_rows(cell.name, Path(scratch) / "sweep"))
+        # What the re-run recorded of its code and machine (as every sweep does).
+        here = json.loads((Path(scratch) / "sweep" / "versions.json").read_text())
+    return {
+        **compare(committed, now, spi),
+        "cell": cell_provenance(cell, results),
+        "verified_at": {
+            "commit": here.get("git_commit"),
+            "dirty": here.get("git_dirty"),
+            "cpu": here.get("cpu_model"),
+            "cpu_vector_isa": here.get("cpu_vector_isa"),
+            "date": time.strftime("%Y-%m-%d"),
+        },
+        "iterations_run": n,
+        "wall_s": round(wall, 1),
+        "command": f"python experiments/reproduce.py {cell.suite} --verify {cell.name}",
+    }
+
+
+def line(name: str, entry: dict[str, Any]) -> str:
+    """One cell's result in one line: the verdict, the cell's commit and CPU."""
+    c = entry["cell"]
+    commit = c["commit"] if c["commit"] == "commit unknown" else f"commit {c['commit'][:12]}"
+    return f"{name}: {entry['result']} ({commit}, {c['cpu']}; {entry['values_compared']} values compared)"
+
+
+def load(results: Path) -> dict[str, Any]:
+    """``RESULTS/verify.json``'s entries by ``SUITE/CELL``; none if it does not exist."""
+    path = Path(results) / OUT
+    return json.loads(path.read_text())["cells"] if path.is_file() else {}
+
+
+def save(results: Path, entries: dict[str, Any]) -> Path:
+    """Writes the entries (sorted, atomically) to ``RESULTS/verify.json``."""
+    path = Path(results) / OUT
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps({"cells": dict(sorted(entries.items()))}, indent=1) + "\n")
+    tmp.replace(path)
+    return path
+
+
+def mark(cell: Cell, entries: dict[str, Any]) -> str:
+    """`MARK` (with a leading space) if the cell's verify entry says HEAD does not reproduce it."""
+    entry = entries.get(f"{cell.suite}/{cell.name}")
+    return f" {MARK}" if entry and entry["result"].startswith("differs") else ""
+
+
+def footnote(cells: Sequence[Cell], entries: dict[str, Any]) -> list[str]:
+    """`FOOTNOTE` (one line) under a table in which `mark` marked a cell, else nothing."""
+    return ["", FOOTNOTE] if any(mark(c, entries) for c in cells) else []
+
+
+def run(cells: Sequence[Cell], results: Path, iterations: int = DEFAULT_ITERATIONS) -> int:
+    """``--verify``: each finished cell in turn, its entry saved as soon as it is known.
+
+    Exit status 0 when every verified cell is bit-identical, 1 otherwise, 2 for bad input.
+    """
+    if iterations < 1:
+        print(
+            f"error: invalid value for '--iterations': {iterations} (allowed: an integer >= 1)",
+            file=sys.stderr,
+        )
+        return 2
+    status = 0
+    for cell in cells:
+        name = f"{cell.suite}/{cell.name}"
+        if cell_state(cell, results) != "done":
+            print(f"{name}: not finished, not verified")
+            status = 1
+            continue
+        try:
+            entry = verify_cell(cell, results, iterations)
+        except (RuntimeError, ValueError, OSError, KeyError, IndexError) as exc:
+            print(f"{name}: not verified: {exc}", file=sys.stderr)
+            status = 1
+            continue
+        save(results, {**load(results), name: entry})
+        print(line(name, entry), flush=True)
+        status |= entry["result"] != "bit-identical"
+    return status
+
+
+def provenance_lines(cells: Sequence[Cell], results: Path) -> list[str]:
+    """The commits and CPUs the cells' numbers came from, with how many cells each.
+
+    Read from each cell's ``sweep/versions.json`` and the ``versions-resumed-*.json`` a resume
+    on another commit or machine left beside it; a cell (or part of one) recorded before
+    these were kept counts as "not recorded", one run outside a git checkout as "no git
+    checkout". A cell computed in parts counts once under each.
+    """
+    commits: dict[str, int] = defaultdict(int)
+    cpus: dict[str, int] = defaultdict(int)
+    for cell in cells:
+        cell_commits, cell_cpus = set(), set()
+        for path in sorted((cell_dir(cell, results) / "sweep").glob("versions*.json")):
+            try:
+                v = json.loads(path.read_text())
+            except (OSError, ValueError):
+                continue
+            commit, dirty = v.get("git_commit"), " with uncommitted changes" if v.get("git_dirty") else ""
+            isa = v.get("cpu_vector_isa") or "no AVX/SSE4.2"
+            cell_commits.add(
+                "not recorded"
+                if "git_commit" not in v
+                else f"`{commit[:12]}`{dirty}"
+                if commit
+                else "no git checkout"
+            )
+            cell_cpus.add(
+                f"{v['cpu_model'] or 'unknown CPU'} ({isa})" if "cpu_model" in v else "not recorded"
+            )
+        for label in cell_commits or {"not recorded"}:
+            commits[label] += 1
+        for label in cell_cpus or {"not recorded"}:
+            cpus[label] += 1
+
+    def counts(table: dict[str, int]) -> str:
+        return ", ".join(f"{k} ({n} cell{'s' if n > 1 else ''})" for k, n in sorted(table.items()))
+
+    return [f"Computed at commits: {counts(commits)}; on CPUs: {counts(cpus)}.", ""]
