@@ -23,23 +23,23 @@ _limit_loaded_blas()
 __version__ = "0.1.0"
 
 # The Python API (docs/api.md), imported on first use: ``import coherent_jax`` stays free of
-# JAX, which only training and the policy need. ``train`` is the module `coherent_jax.train`,
-# callable as `coherent_jax.api.train` (the command line and the function share the name).
+# JAX, which only training and the policy need. ``coherent_jax.train`` is the command-line
+# module (``python -m coherent_jax.train``); the function that trains is ``learn``.
 _LAZY = {
+    "learn": "coherent_jax.api",
     "Config": "coherent_jax.config",
     "ConfigError": "coherent_jax.config",
+    "make_config": "coherent_jax.config",
     "load_policy": "coherent_jax.api",
     "TrainResult": "coherent_jax.api",
     "PolicyFunction": "coherent_jax.api",
 }
-__all__ = ["__version__", "train", *_LAZY]
+__all__ = ["__version__", *_LAZY]
 
 
 def __getattr__(name: str):
     import importlib
 
-    if name == "train":
-        return importlib.import_module("coherent_jax.train")  # binds the attribute itself
     if name not in _LAZY:
         raise AttributeError(f"module 'coherent_jax' has no attribute {name!r}")
     value = getattr(importlib.import_module(_LAZY[name]), name)

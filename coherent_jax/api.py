@@ -1,15 +1,15 @@
-"""The Python API: ``coherent_jax.train(config)`` and ``coherent_jax.load_policy(run_dir)``.
+"""The Python API: ``coherent_jax.learn(config)`` and ``coherent_jax.load_policy(run_dir)``.
 
     import coherent_jax
 
-    cfg = coherent_jax.Config.from_overrides(env="hopper", preset="thesis", explore="coherent")
-    result = coherent_jax.train(cfg)                # or train({"env": "hopper", ...})
+    cfg = coherent_jax.make_config(env="hopper", preset="thesis", explore="coherent")
+    result = coherent_jax.learn(cfg)                # or learn({"env": "hopper", ...})
     result.run_dir, result.metrics[-1], result.summary["final_eval_return"]
     action = result.policy(obs)                     # numpy in, numpy out
     policy = coherent_jax.load_policy("runs/hopper-...")   # any run directory, later
 
-`train` is ``python -m coherent_jax.train`` called from Python: the same launch path
-(`coherent_jax.launch.run`: checks, run directory, lock, config, loop, summary), the same
+`learn` is ``python -m coherent_jax.train`` called from Python: the same launch path
+(`coherent_jax.run.launch.run`: checks, run directory, lock, config, loop, summary), the same
 files and lines, the same refusals raised instead of printed. `load_policy` is the
 policy evaluation acts with (`coherent_jax.policy.load_policy`, what ``python -m
 coherent_jax.evaluate`` reads), as a plain function of observations.
@@ -73,12 +73,12 @@ def load_policy(run_dir: str | Path) -> PolicyFunction:
     Read from ``checkpoint.msgpack`` (verified against ``config.yaml``), else from
     ``params.msgpack``, as ``python -m coherent_jax.evaluate`` reads it; see
     `PolicyFunction` for what the action is. Needs JAX (the policy is the run's Flax
-    module). Raises `ConfigError`, `coherent_jax.runs.CheckpointError` or
+    module). Raises `ConfigError`, `coherent_jax.run.runs.CheckpointError` or
     `coherent_jax.policy.PolicyError` in one line for a directory that holds no usable policy.
     """
     from coherent_jax.envs.vec_env import VecEnv
     from coherent_jax.policy import load_policy as read_policy
-    from coherent_jax.runs import load_config
+    from coherent_jax.run.runs import load_config
 
     run_dir = Path(run_dir)
     cfg = load_config(run_dir)
@@ -88,7 +88,7 @@ def load_policy(run_dir: str | Path) -> PolicyFunction:
 
 
 class TrainResult(NamedTuple):
-    """What `train` returns.
+    """What `learn` returns.
 
     Attributes:
       policy: the final policy (`load_policy` of the run directory); None if the run was
@@ -120,30 +120,30 @@ def _items(config: Config | Mapping[str, Any] | None) -> list[str]:
     )
 
 
-def train(config: Config | Mapping[str, Any] | None = None) -> TrainResult:
+def learn(config: Config | Mapping[str, Any] | None = None) -> TrainResult:
     """Trains as ``python -m coherent_jax.train`` does and returns the `TrainResult`.
 
-    ``config`` is a `Config` (`Config.from_overrides`) or a mapping of overrides
+    ``config`` is a `Config` (`make_config`) or a mapping of overrides
     (``{"env": "hopper", "ppo.clip_eps": 0.1}``, a group's keys dotted or nested);
     ``{"resume": run_dir}`` continues a run. Raises, before anything is written,
     `ConfigError` (a bad key or value, a busy or unusable run directory),
-    `coherent_jax.runs.CheckpointError` (a checkpoint that does not fit) or
-    `coherent_jax.tracking.TrackingError` (``wandb=true`` without ``wandb``); raises
-    `coherent_jax.divergence.DivergenceError` when the run diverges (its last good
+    `coherent_jax.run.runs.CheckpointError` (a checkpoint that does not fit) or
+    `coherent_jax.run.tracking.TrackingError` (``wandb=true`` without ``wandb``); raises
+    `coherent_jax.run.divergence.DivergenceError` when the run diverges (its last good
     checkpoint stays). ``distributed=true`` runs from the command line only. SIGINT and
     SIGTERM stop the run after the current iteration, with a checkpoint.
     """
-    from coherent_jax import launch
-    from coherent_jax.loop import StopRequest
     from coherent_jax.policy import PARAMS
-    from coherent_jax.runs import CHECKPOINT, METRICS, read_metrics
-    from coherent_jax.train import TrainCommand
+    from coherent_jax.run import launch
+    from coherent_jax.run.loop import StopRequest
+    from coherent_jax.run.runs import CHECKPOINT, METRICS, read_metrics
+    from coherent_jax.run.single import TrainCommand
 
     items = _items(config)
     distributed = config.distributed if isinstance(config, Config) else (config or {}).get("distributed")
     if distributed:
         raise ConfigError(
-            f"invalid value for 'distributed': {distributed!r} in coherent_jax.train "
+            f"invalid value for 'distributed': {distributed!r} in coherent_jax.learn "
             "(allowed: false; several hosts run python -m coherent_jax.train distributed=true)"
         )
     with StopRequest() as stop:

@@ -2,17 +2,17 @@
 
 ``RUN_DIR`` is a training run's directory or one point of a sweep
 (``runs/sweep-.../p003-beta=0.1-seed=1``). Its policy (`coherent_jax.policy.Policy`) is
-read from ``checkpoint.msgpack`` (verified as in `coherent_jax.runs`), or from
+read from ``checkpoint.msgpack`` (verified as in `coherent_jax.run.runs`), or from
 ``params.msgpack`` where there is no checkpoint, without building the training envs,
 a trainer or a replay buffer. ``episodes`` deterministic (mean-action) episodes run in
 parallel, as training evaluates, and the mean and standard deviation of their returns
 are printed. With ``video=true`` it also renders the first episode
-(`coherent_jax.video`; headless: ``MUJOCO_GL=egl`` by default, or ``osmesa``) to
+(`coherent_jax.run.video`; headless: ``MUJOCO_GL=egl`` by default, or ``osmesa``) to
 ``RUN_DIR/videos/eval-it<iteration>-s<seed>.mp4`` (``.gif`` without ffmpeg) unless
 ``video_path`` is given (``video_path`` without ``video=true`` is refused); the physics
 states come from inside the jitted evaluation, so the video shows exactly the episodes
 whose returns are printed; a run trained with ``wandb=true`` also logs the video to its
-W&B run (`coherent_jax.tracking`). The pure-JAX tasks (`pointmass`, the classic ones)
+W&B run (`coherent_jax.run.tracking`). The pure-JAX tasks (`pointmass`, the classic ones)
 have no MuJoCo model and refuse ``video=true``. A sweep's root directory is refused with
 the list of its points.
 
@@ -36,10 +36,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from coherent_jax import cli, limits, rundir, tracking, video
-from coherent_jax.config import ConfigError
+from coherent_jax import cli
+from coherent_jax.config import ConfigError, limits
 from coherent_jax.exit_codes import EXIT_BAD_INPUT
-from coherent_jax.runs import CHECKPOINT, CheckpointError, decode_checkpoint, load_config
+from coherent_jax.run import rundir, tracking, video
+from coherent_jax.run.runs import CHECKPOINT, CheckpointError, decode_checkpoint, load_config
 
 ENGINES = ("jax", "gymnasium")
 GYMNASIUM_EXTRA = 'pip install -e ".[gym]"'
@@ -210,7 +211,7 @@ def _make_quietly(gymnasium, gym_id: str, episode_length: int):
     prints and, with no handler set, appends to MUJOCO_LOG.TXT in the working directory."""
     import mujoco
 
-    from coherent_jax.quiet import quiet_stdio
+    from coherent_jax.envs.quiet import quiet_stdio
 
     previous = mujoco.get_mju_user_warning()
     mujoco.set_mju_user_warning(lambda message: None)
@@ -225,9 +226,9 @@ def evaluate_run(run_dir: Path, opts: EvalConfig) -> dict[str, Any]:
     """Evaluates the policy of `run_dir`; returns the figures (and the video path)."""
     import jax
 
+    from coherent_jax.agents.rollout import evaluation_metrics
     from coherent_jax.envs.vec_env import VecEnv
     from coherent_jax.policy import load_policy
-    from coherent_jax.rollout import evaluation_metrics
 
     cfg = load_config(run_dir)
     recorder = video.Recorder(opts.max_frames)

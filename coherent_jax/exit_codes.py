@@ -5,7 +5,7 @@
 * `EXIT_DIVERGED` (3): a loss or a parameter became non-finite (a run), or a grid
   point did (a sweep, at its end);
 * `EXIT_PEER_FAILED` (4): another process of a ``distributed=true`` run failed
-  (resumable; `coherent_jax.multihost`);
+  (resumable; `coherent_jax.run.multihost`);
 * 128 + signal number (`signal_status`): stopped by SIGINT/SIGTERM (resumable), the
   shell's convention for a process ended by a signal.
 """

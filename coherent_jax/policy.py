@@ -205,7 +205,7 @@ def _restore(template: Any, stored: Any, where: str) -> Any:
 
 
 def policy_from_checkpoint(cfg: Config, state_bytes: bytes, obs_size: int, action_size: int) -> Policy:
-    """The policy inside a checkpoint's train state (`coherent_jax.runs.state_to_bytes`).
+    """The policy inside a checkpoint's train state (`coherent_jax.run.runs.state_to_bytes`).
 
     The state is stored as its leaves in tree order, and every trainer's state starts
     with (params, opt_state, obs_stats) (`learner_template`): those leading leaves are
@@ -249,10 +249,10 @@ def load_policy(run_dir: Path, obs_size: int, action_size: int) -> tuple[Policy,
     From ``checkpoint.msgpack`` (verified against ``config.yaml``) if there is one, else
     from ``params.msgpack``. Returns (policy, where it came from: {"source", "iteration",
     "env_steps"}; iteration and env_steps are None for ``params.msgpack``, which does not
-    record them). Raises `ConfigError`, `coherent_jax.runs.CheckpointError` or
+    record them). Raises `ConfigError`, `coherent_jax.run.runs.CheckpointError` or
     `PolicyError` in one line.
     """
-    from coherent_jax.runs import CHECKPOINT, decode_checkpoint, load_config
+    from coherent_jax.run.runs import CHECKPOINT, decode_checkpoint, load_config
 
     run_dir = Path(run_dir)
     cfg = load_config(run_dir)

@@ -54,9 +54,9 @@ STRATEGIES: tuple[Strategy, ...] = (
     Strategy("action", "action:ActionNoise", "base:OffPolicyBehaviour"),
     Strategy(
         "coherent",
-        "coherent:CoherentExploration",
-        "coherent:CoherentBehaviour",
-        variants={"coherent-mc": "coherent_mc:CoherentMC", "coherent-all": "coherent_mc:CoherentAllLayers"},
+        "coherent.strategy:CoherentExploration",
+        "coherent.strategy:CoherentBehaviour",
+        variants={"coherent-mc": "coherent.mc:CoherentMC", "coherent-all": "coherent.mc:CoherentAllLayers"},
     ),
     Strategy("noisynet", "noisynet:NoisyNet", None, refused={"sac": _NOISYNET_SAC}),
     Strategy("psne", "psne:ParameterNoise", "psne:PsneBehaviour"),

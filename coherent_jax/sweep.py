@@ -10,13 +10,13 @@ arrays (``state.hparams``) can vary, so the whole grid is one program:
     states = vmap(trainer.init)(init_keys, hparams)       # one row per grid point
     states, metrics = vmap(trainer.iteration)(states)     # compiled once, looped in Python
 
-The loop over iterations is `coherent_jax.loop`, the same as a single run's: the
+The loop over iterations is `coherent_jax.run.loop`, the same as a single run's: the
 same evaluations, metrics rows, TensorBoard files, checkpoints (one for the whole
 grid), ``resume=SWEEP_DIR`` (also ``total_steps=N`` to extend), SIGINT/SIGTERM
 handling and divergence guard (a diverged point is named and marked, the others
 continue; exit status 3 at the end). A resume may restate the grid but not change it
-(`coherent_jax.sweep_resume`); the sweep's directory is locked while it runs, as a
-single run's is (`coherent_jax.runlock`). Each point derives its keys exactly as a
+(`coherent_jax.sweeps.resume`); the sweep's directory is locked while it runs, as a
+single run's is (`coherent_jax.run.runlock`). Each point derives its keys exactly as a
 single run does (`loop.run_keys`), so point i runs the program of ``python -m
 coherent_jax.train`` with that point's settings, equal to it up to float rounding:
 the vmapped batch reorders float32 sums, and a chaotic task (HalfCheetah) amplifies
@@ -28,7 +28,7 @@ shared ``config.yaml`` and the grid (``grid.json``), ``versions.json``, the
 checkpoint, one directory per point named by its settings holding what a single
 run writes (``config.yaml``, ``metrics.jsonl``, ``tb/``, ``params.msgpack``,
 ``summary.json``; with ``wandb=true`` one W&B run per point, grouped by the sweep's
-directory name, `coherent_jax.tracking`), and the aggregate over seeds of the final evaluation return per
+directory name, `coherent_jax.run.tracking`), and the aggregate over seeds of the final evaluation return per
 non-seed point, ``sweep.csv`` and ``sweep.json``, also printed. A bad key or value
 (an unknown key, a list for a shape setting, an empty list, a value out of range,
 an axis the algorithm does not read) is one line on stderr and exit status 2
@@ -48,7 +48,7 @@ from typing import Any
 
 import yaml
 
-from coherent_jax import cli, launch, limits, multihost, rundir, sweep_resume, tracking
+from coherent_jax import cli
 from coherent_jax.agents.trainer import Trainer
 from coherent_jax.config import (
     FIELDS,
@@ -58,6 +58,7 @@ from coherent_jax.config import (
     get_value,
     help_text,
     hparam_name,
+    limits,
     modern_items,
     parse_overrides,
     sweepable,
@@ -65,10 +66,11 @@ from coherent_jax.config import (
     with_values,
 )
 from coherent_jax.envs.registry import task_label
-from coherent_jax.loop import PREFIX, StopRequest, to_float, write_params
-from coherent_jax.loop_state import Job, Outcome
-from coherent_jax.memory import check_memory
-from coherent_jax.runs import (
+from coherent_jax.run import launch, multihost, rundir, tracking
+from coherent_jax.run.loop import PREFIX, StopRequest, to_float, write_params
+from coherent_jax.run.loop_state import Job, Outcome
+from coherent_jax.run.memory import check_memory
+from coherent_jax.run.runs import (
     METRICS,
     Checkpoint,
     atomic_write,
@@ -77,7 +79,8 @@ from coherent_jax.runs import (
     stored_config,
     write_config,
 )
-from coherent_jax.sweep_table import aggregate, fmt, format_table, to_csv
+from coherent_jax.sweeps import resume as sweep_resume
+from coherent_jax.sweeps.table import aggregate, fmt, format_table, to_csv
 
 # Keys that may take a list of values: the state's array hyperparameters, and seed.
 AXIS_KEYS = (*SWEEPABLE, "seed")
@@ -415,7 +418,7 @@ class SweepCommand:
         return make_plan(cfg, axes, seeds), out_dir
 
     def check(self, plan: SweepPlan) -> bool:
-        from coherent_jax.sharding import check_devices
+        from coherent_jax.run.sharding import check_devices
 
         is_writer = check_devices(plan.base, split_envs=False)  # several hosts: only process 0 writes
         check_point_split(plan.base, plan)
@@ -455,7 +458,7 @@ class SweepCommand:
 
 def check_point_split(cfg: Config, plan: SweepPlan) -> None:
     """Several processes: the points must spread over every device of every process."""
-    from coherent_jax import sharding
+    from coherent_jax.run import sharding
 
     available = sharding.resolve_num_devices(cfg.num_devices)
     multihost.check_device_split(sharding.point_device_count(len(plan.points), available))

@@ -37,7 +37,7 @@ def fresh_run_dir(root: Path = Path("runs"), stamp: str | None = None) -> Path:
 
 
 def main(run_dir: str | None = None, total_steps: int = 20_480) -> None:
-    cfg = coherent_jax.Config.from_overrides(
+    cfg = coherent_jax.make_config(
         env="pointmass",
         explore="coherent",
         total_steps=total_steps,
@@ -47,7 +47,7 @@ def main(run_dir: str | None = None, total_steps: int = 20_480) -> None:
         progress=False,
         **{"coherent.beta": 0.1},
     )
-    result = coherent_jax.train(cfg)
+    result = coherent_jax.learn(cfg)
     for row in result.metrics:
         if row.get("eval/episode_return") is not None:
             print(

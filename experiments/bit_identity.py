@@ -5,7 +5,7 @@
     PYTHONPATH=. python experiments/bit_identity.py compare REF.json NEW.json   # two recordings
 
 Each run builds its trainer in-process on ``pointmass`` with small settings, starts it
-from the keys a real run uses (`coherent_jax.loop.run_keys`), runs a few jitted
+from the keys a real run uses (`coherent_jax.run.loop.run_keys`), runs a few jitted
 iterations and one deterministic evaluation, and records every metric of every
 iteration plus a digest of the final parameters, as exact float32 bit patterns (a
 NaN is a bit pattern too), so "identical" means bit for bit, not within a tolerance.
@@ -27,7 +27,7 @@ import numpy as np
 
 from coherent_jax.agents import make_trainer
 from coherent_jax.config import parse_overrides
-from coherent_jax.loop import run_keys
+from coherent_jax.run.loop import run_keys
 
 ON_POLICY = [
     "env=pointmass",

@@ -6,7 +6,7 @@
 Each config after ``--`` is one comma-separated list of overrides, e.g.
 ``env=halfcheetah,explore=coherent``. The state has the trainer's exact shapes
 (traced from ``init``, filled with random numbers; nothing is compiled), and goes
-through the code the train loop uses (`coherent_jax.runs`). Prints one line per
+through the code the train loop uses (`coherent_jax.run.runs`). Prints one line per
 config and writes the figures to OUT.json (default bench_results/checkpoint_cost.json).
 """
 
@@ -23,7 +23,7 @@ import numpy as np
 
 from coherent_jax.agents import make_trainer
 from coherent_jax.config import parse_overrides
-from coherent_jax.runs import (
+from coherent_jax.run.runs import (
     CHECKPOINT,
     LoopState,
     atomic_write,

@@ -89,7 +89,7 @@ def log_rows(cell: str, point: str, rows: Iterable[dict[str, Any]]) -> list[Row]
 
 def cell_rows(cell: str, sweep: Path) -> list[Row]:
     """The table's rows of a cell from its points' local ``metrics.jsonl`` (none without logs)."""
-    from coherent_jax.runs import read_metrics  # what plot.load_run reads the logs with
+    from coherent_jax.run.runs import read_metrics  # what plot.load_run reads the logs with
 
     rows: list[Row] = []
     for point in point_dirs(sweep):
@@ -242,16 +242,11 @@ def load_runs(results: Path, suite: str, cell: str, metric: str) -> list[Any]:
 def main(argv: Sequence[str] | None = None) -> int:
     """Rebuilds the tables of the suites named (all under ``--results`` by default)."""
     parser = argparse.ArgumentParser(prog="python experiments/curves.py", description=__doc__.split("\n")[0])
-    parser.add_argument("suites", nargs="*", help="suites (default: reproduce.py's, those present)")
+    parser.add_argument("suites", nargs="*", help="suites (default: those with a finished cell)")
     parser.add_argument("--results", default=str(Path(__file__).resolve().parent / "results"))
     args = parser.parse_args(argv)
     results = Path(args.results).resolve()
-    if args.suites:
-        suites = args.suites
-    else:
-        import reproduce  # beside this file
-
-        suites = [s for s in reproduce.SUITES if (results / s).is_dir()]
+    suites = args.suites or [d.name for d in sorted(results.iterdir()) if finished_cells(results, d.name)]
     for suite in suites:
         path = build(results, suite)
         print(json.dumps({"suite": suite, "table": str(path), "cells": len(finished_cells(results, suite))}))

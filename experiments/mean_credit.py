@@ -29,7 +29,7 @@ import numpy as np
 
 from coherent_jax.bench.gradient import sample_episode
 from coherent_jax.bench.measure import write_json_atomic
-from coherent_jax.exploration.coherent_filter import log_marginals
+from coherent_jax.exploration.coherent.filter import log_marginals
 
 #: the windows of steps the table reports, as [start, end) (end clipped to T)
 WINDOWS = ((0, 1), (1, 10), (10, 65), (65, 200), (200, 1000))

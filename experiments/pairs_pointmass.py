@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from coherent_jax.config import ALGOS, ConfigError, parse_overrides
-from coherent_jax.train import train
+from coherent_jax.run.single import train
 
 BASE = [
     "env=pointmass",

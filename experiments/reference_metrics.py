@@ -14,6 +14,7 @@ numbers fails. Exit status 0 when identical, 1 otherwise.
 from __future__ import annotations
 
 import json
+import subprocess
 import sys
 from pathlib import Path
 
@@ -54,12 +55,11 @@ JOBS = {
 
 
 def record(out: Path) -> None:
-    from coherent_jax import sweep, train
-
-    mains = {"train": train.main, "sweep": sweep.main}
+    """Runs every job as ``python -m coherent_jax.<command>``, the checkout's code on ``PYTHONPATH``."""
     out.mkdir(parents=True, exist_ok=False)
     for name, (command, args) in JOBS.items():
-        status = mains[command]([*args, f"run_dir={out / name}"])
+        argv = [sys.executable, "-m", f"coherent_jax.{command}", *args, f"run_dir={out / name}"]
+        status = subprocess.run(argv, check=False).returncode
         if status != 0:
             raise SystemExit(f"{name}: exit status {status}")
 

@@ -47,8 +47,8 @@ from jax.sharding import Mesh, NamedSharding, SingleDeviceSharding  # noqa: E402
 from jax.sharding import PartitionSpec as P  # noqa: E402
 
 from coherent_jax.bench import measure  # noqa: E402
-from coherent_jax.exploration.coherent_exact import chained_marginals  # noqa: E402
-from coherent_jax.exploration.coherent_filter import prior_belief  # noqa: E402
+from coherent_jax.exploration.coherent.exact import chained_marginals  # noqa: E402
+from coherent_jax.exploration.coherent.filter import prior_belief  # noqa: E402
 
 P_ACT, Q, OBS = 6, 64, 17
 #: the tolerance of the split losses against the one-device loss (float32 sums reordered)

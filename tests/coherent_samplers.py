@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 
 from coherent_jax.exploration.chain import chain_step
-from coherent_jax.exploration.coherent_filter import Belief, segment_marginals
+from coherent_jax.exploration.coherent.filter import Belief, segment_marginals
 from coherent_jax.networks import augment
 
 

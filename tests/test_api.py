@@ -1,4 +1,4 @@
-"""The Python API: coherent_jax.train(config), coherent_jax.load_policy(run_dir), Config.from_overrides."""
+"""The Python API: coherent_jax.learn(config), coherent_jax.load_policy(run_dir), make_config."""
 
 import json
 import subprocess
@@ -10,7 +10,7 @@ import yaml
 from helpers import child_env
 
 import coherent_jax
-from coherent_jax.config import Config, ConfigError, parse_overrides, to_dict
+from coherent_jax.config import ConfigError, make_config, parse_overrides, to_dict
 
 TINY = {
     "env": "pointmass",
@@ -32,27 +32,27 @@ def test_import_is_cheap_and_the_api_is_lazy():
     """``import coherent_jax`` and its Config load no JAX; train and load_policy are the API's."""
     code = (
         "import sys, coherent_jax; assert 'jax' not in sys.modules; "
-        "coherent_jax.Config.from_overrides(env='pointmass'); assert 'jax' not in sys.modules; "
+        "coherent_jax.make_config(env='pointmass'); assert 'jax' not in sys.modules; "
         "import coherent_jax.api as api; from coherent_jax.train import main; "
-        "assert callable(coherent_jax.train) and coherent_jax.load_policy is api.load_policy; print('ok')"
+        "assert coherent_jax.learn is api.learn and coherent_jax.load_policy is api.load_policy; print('ok')"
     )
     out = subprocess.run([sys.executable, "-c", code], env=child_env(), capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "ok"
 
 
-def test_config_from_overrides_layers_like_the_command_line():
-    cfg = Config.from_overrides(env="hopper", preset="thesis", **{"ppo.clip_eps": 0.1})
+def test_make_config_layers_like_the_command_line():
+    cfg = make_config(env="hopper", preset="thesis", **{"ppo.clip_eps": 0.1})
     assert cfg == parse_overrides(["env=hopper", "preset=thesis", "ppo.clip_eps=0.1"])
     assert cfg.ppo.num_epochs == 80 and cfg.ppo.clip_eps == 0.1 and cfg.num_envs == 4  # preset, then user
-    nested = Config.from_overrides({"env": "hopper", "preset": "thesis", "ppo": {"clip_eps": 0.1}})
+    nested = make_config({"env": "hopper", "preset": "thesis", "ppo": {"clip_eps": 0.1}})
     assert nested == cfg
-    sac = Config.from_overrides({"algo": "sac", "num_envs": 2}, lr=1e-5)  # keywords win over the mapping
+    sac = make_config({"algo": "sac", "num_envs": 2}, lr=1e-5)  # keywords win over the mapping
     assert sac.policy_hidden == [256, 256] and sac.num_envs == 2 and sac.lr == 1e-5
     # A string YAML would read otherwise stays a string; a Config's items rebuild it exactly.
-    odd = Config.from_overrides(run_dir="runs/true, or not", lr=3.0e-4 / 7)
+    odd = make_config(run_dir="runs/true, or not", lr=3.0e-4 / 7)
     assert odd.run_dir == "runs/true, or not"
-    assert Config.from_overrides(to_dict(odd)) == odd
+    assert make_config(to_dict(odd)) == odd
 
 
 @pytest.mark.parametrize(
@@ -67,14 +67,14 @@ def test_config_from_overrides_layers_like_the_command_line():
             r"^invalid value for 'lr': .*\(allowed: a bool, number, string, path, list or None\)$",
         ),
         (["env=pointmass"], r"^invalid config .*a list \(allowed: a coherent_jax\.Config or a mapping"),
-        ({"distributed": True}, r"^invalid value for 'distributed': True in coherent_jax\.train"),
+        ({"distributed": True}, r"^invalid value for 'distributed': True in coherent_jax\.learn"),
     ],
 )
 def test_bad_config_raises_one_line_and_writes_nothing(tmp_path, config, message):
     if isinstance(config, dict):
         config = {**config, "run_dir": str(tmp_path / "run")}
     with pytest.raises(ConfigError, match=message) as info:
-        coherent_jax.train(config)
+        coherent_jax.learn(config)
     assert "\n" not in str(info.value)
     assert list(tmp_path.iterdir()) == []
 
@@ -85,7 +85,7 @@ def _episodes_with(fn, run_dir, episodes, seed):
     import jax
 
     from coherent_jax.envs.vec_env import VecEnv
-    from coherent_jax.runs import load_config
+    from coherent_jax.run.runs import load_config
 
     cfg = load_config(run_dir)
     env = VecEnv(cfg.env, episodes, cfg.episode_length, cfg.physics, cfg.physics_threads)
@@ -104,11 +104,11 @@ def test_train_returns_the_run_and_its_policy_acts_as_evaluation_does(tmp_path):
     the one ``python -m coherent_jax.evaluate`` evaluates, action for action."""
     from coherent_jax.evaluate import EvalConfig, evaluate_run
     from coherent_jax.policy import load_policy as read_policy
-    from coherent_jax.runs import read_metrics
+    from coherent_jax.run.runs import read_metrics
     from coherent_jax.train import main
 
-    cfg = Config.from_overrides({**TINY, "seed": 5, "run_dir": str(tmp_path / "api")})
-    result = coherent_jax.train(cfg)
+    cfg = make_config({**TINY, "seed": 5, "run_dir": str(tmp_path / "api")})
+    result = coherent_jax.learn(cfg)
     assert isinstance(result, coherent_jax.TrainResult)
     assert result.run_dir == tmp_path / "api"
     assert result.metrics == read_metrics(result.run_dir / "metrics.jsonl")

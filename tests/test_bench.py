@@ -117,7 +117,7 @@ def test_dense_reference_checkpointed_equals_plain_and_block():
     import jax
     import jax.numpy as jnp
 
-    from coherent_jax.exploration.coherent_filter import log_marginals
+    from coherent_jax.exploration.coherent.filter import log_marginals
 
     x, a, first, mu, w_std, action_std, beta = sample_segments(
         jax.random.PRNGKey(1), 1, 12, 5, 3, 0.3, 0.1, 0.2

@@ -18,9 +18,13 @@ import pytest
 from references import reference_log_marginals, sample_actions
 
 from coherent_jax.agents import losses
+from coherent_jax.agents.rollout import EpisodeHistory, Transition
 from coherent_jax.exploration.base import Segment
-from coherent_jax.exploration.coherent import CoherentExploration, episode_history_length, window_start_block
-from coherent_jax.rollout import EpisodeHistory, Transition
+from coherent_jax.exploration.coherent.strategy import (
+    CoherentExploration,
+    episode_history_length,
+    window_start_block,
+)
 from coherent_jax.sweep_axis import vmap_points
 
 P, Q, OBS = 2, 3, 4

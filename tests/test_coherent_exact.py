@@ -1,4 +1,4 @@
-"""The thesis's estimator for segments of long episodes (coherent_jax.exploration.coherent_exact).
+"""The thesis's estimator for segments of long episodes (coherent_jax.exploration.coherent.exact).
 
 The reference is written here, in float64, from the joint Gaussian of a whole episode's
 actions (the thesis's model, eqs. 4.1-4.5 and 4.29): one dense covariance per action
@@ -26,10 +26,10 @@ from references import (
     x64_enabled,
 )
 
-from coherent_jax.exploration import coherent_exact as E
-from coherent_jax.exploration import coherent_filter as C
-from coherent_jax.exploration import coherent_joint as J
 from coherent_jax.exploration.base import SEGMENT_AXES, Segment
+from coherent_jax.exploration.coherent.strategy import exact as E
+from coherent_jax.exploration.coherent.strategy import filter as C
+from coherent_jax.exploration.coherent.strategy import joint as J
 
 # ---------------------------------------------------------------- tests
 
@@ -245,7 +245,7 @@ def test_block_size_divides():
 
 def _collect(trainer, env, params, env_state, carry, key, length):
     """One segment as the trainer collects it: unroll, then the strategy's score_segment."""
-    from coherent_jax.rollout import unroll
+    from coherent_jax.agents.rollout import unroll
 
     strategy, hp = trainer.strategy, trainer.init_hparams().explore
 
@@ -341,8 +341,8 @@ def test_float32_loss_stays_finite_and_accurate_at_extreme_weight_to_noise_ratio
     (in collection and loss alike); its float32 log-probabilities then stay finite and
     within 0.01 nats of the same computation in float64, at beta = 0, 0.01 and 1.
     """
-    from coherent_jax.exploration.coherent import CoherentExploration
-    from coherent_jax.exploration.coherent_layer import MAX_W_STD_RATIO
+    from coherent_jax.exploration.coherent.layer import MAX_W_STD_RATIO
+    from coherent_jax.exploration.coherent.strategy import CoherentExploration
 
     strategy = CoherentExploration(2, (16,), "tanh", 0.0, w_std_init=100.0, action_std=0.01)
     params = strategy.init(jax.random.PRNGKey(0), 5)

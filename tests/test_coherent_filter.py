@@ -1,4 +1,4 @@
-"""Tests of the exact coherent filter (coherent_jax.exploration.coherent_filter).
+"""Tests of the exact coherent filter (coherent_jax.exploration.coherent.filter).
 
 Every reference here is plain numpy float64 written from the thesis's equations
 (4.1-4.5, 4.29-4.49) and from the joint Gaussian of an episode's actions; none calls
@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from references import dense_thesis_logp, joint_episode_logp, x64_enabled
 
-from coherent_jax.exploration import coherent_filter
+from coherent_jax.exploration.coherent.strategy import filter as coherent_filter
 
 _LOG_2PI = math.log(2.0 * math.pi)
 

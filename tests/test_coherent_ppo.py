@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from coherent_jax.agents.onpolicy import OnPolicyTrainer
+from coherent_jax.agents.rollout import unroll
 from coherent_jax.config import parse_overrides
 from coherent_jax.envs import VecEnv
 from coherent_jax.exploration.base import SEGMENT_AXES, Segment
-from coherent_jax.exploration.coherent import CoherentCarry
-from coherent_jax.rollout import unroll
+from coherent_jax.exploration.coherent.strategy import CoherentCarry
 
 TINY = ["env=pointmass", "num_envs=4", "ppo.num_minibatches=2", "eval_episodes=2"]
 

@@ -19,7 +19,9 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from coherent_jax import loop, sharding, sweep, train
+from coherent_jax.run import loop, sharding
+
+from coherent_jax import sweep, train
 from coherent_jax.agents import make_trainer
 from coherent_jax.config import parse_overrides
 

@@ -12,7 +12,7 @@ from helpers import child_env
 
 from coherent_jax.config import parse_overrides, to_dict
 from coherent_jax.evaluate import main, parse_eval_args
-from coherent_jax.runs import CHECKPOINT, LoopState, atomic_write, encode_checkpoint, state_to_bytes
+from coherent_jax.run.runs import CHECKPOINT, LoopState, atomic_write, encode_checkpoint, state_to_bytes
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -180,7 +180,7 @@ def test_missing_or_foreign_run_dir_or_broken_checkpoint_is_refused(tmp_path, ca
 FRAMING = """
 import importlib.util, json, os
 import mujoco, numpy as np
-from coherent_jax import video
+from coherent_jax.run import video
 
 # Brax's halfcheetah MJCF, loaded without importing JAX (the test stays a few seconds).
 brax_dir = importlib.util.find_spec("brax").submodule_search_locations[0]
@@ -223,7 +223,7 @@ def test_video_frames_the_body_and_lights_it():
 
 def test_mp4_goes_through_ffmpeg_and_gif_without_it(tmp_path, monkeypatch):
     """With ffmpeg on the PATH the default is MP4, written from raw RGB frames on its stdin."""
-    from coherent_jax import video
+    from coherent_jax.run import video
 
     frames = [np.full((5, 7, 3), i * 40, dtype=np.uint8) for i in range(3)]
     cat = shutil.which("cat")  # the fake ffmpeg below runs where PATH holds nothing else
@@ -310,7 +310,8 @@ def test_policy_restored_without_a_trainer_acts_as_the_agent(tmp_path, monkeypat
     serialised policy round-trips bit for bit."""
     import jax
 
-    from coherent_jax import agents, replay
+    from coherent_jax import agents
+    from coherent_jax.agents import replay
     from coherent_jax.agents.onpolicy import OnPolicyTrainer
     from coherent_jax.agents.sac import SACTrainer
     from coherent_jax.networks import normalize

@@ -94,7 +94,7 @@ def test_row10_sweep_point_matches_its_single_run_to_rounding_not_bits():
 
     from coherent_jax.agents.onpolicy import OnPolicyTrainer
     from coherent_jax.config import parse_overrides
-    from coherent_jax.loop import run_keys
+    from coherent_jax.run.loop import run_keys
     from coherent_jax.sweep_axis import vmap_points
 
     trainer = OnPolicyTrainer(parse_overrides(TINY))

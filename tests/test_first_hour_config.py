@@ -10,11 +10,12 @@ import pytest
 import yaml
 from helpers import ROOT
 
-from coherent_jax import launch, sweep, train
+from coherent_jax import sweep, train
 from coherent_jax.config import ConfigError, parse_overrides
 from coherent_jax.config.checks import warmup_warning
-from coherent_jax.loop import StopRequest
-from coherent_jax.runs import stored_config
+from coherent_jax.run import launch
+from coherent_jax.run.loop import StopRequest
+from coherent_jax.run.runs import stored_config
 
 EXAMPLE_FILE = ROOT / "examples" / "reacher_task.py"
 

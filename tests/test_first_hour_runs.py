@@ -8,12 +8,12 @@ import socket
 
 import pytest
 
-from coherent_jax import launch, tracking
 from coherent_jax.config import parse_overrides
 from coherent_jax.envs.registry import PhysicsError, auto_physics, resolve_physics
-from coherent_jax.loop import StopRequest
-from coherent_jax.runs import write_config
-from coherent_jax.train import TrainCommand, main
+from coherent_jax.run import launch, tracking
+from coherent_jax.run.loop import StopRequest
+from coherent_jax.run.runs import write_config
+from coherent_jax.run.single import TrainCommand, main
 
 TINY = [
     "env=pointmass",

@@ -16,10 +16,10 @@ import tomllib
 import pytest
 from helpers import ROOT, child_env
 
-from coherent_jax import evaluate, limits, plot, sweep
-from coherent_jax.config import parse_overrides
-from coherent_jax.loop import eval_text
-from coherent_jax.sweep_table import aggregate, format_table
+from coherent_jax import evaluate, plot, sweep
+from coherent_jax.config import limits, parse_overrides
+from coherent_jax.run.loop import eval_text
+from coherent_jax.sweeps.table import aggregate, format_table
 
 # One iteration of 2 envs x 4 steps, 8-unit networks, one evaluation episode of 8 steps.
 TINY_SWEEP = [

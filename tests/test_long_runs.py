@@ -17,7 +17,7 @@ import pytest
 from helpers import child_env, load_experiment, tensorboard_scalars
 
 from coherent_jax.config import parse_overrides
-from coherent_jax.runs import (
+from coherent_jax.run.runs import (
     CHECKPOINT,
     LoopState,
     atomic_write,
@@ -207,8 +207,8 @@ def test_guard_skips_losses_of_an_iteration_without_update_but_never_parameters(
     """SAC logs NaN losses while its buffer warms up (no update applied): not a divergence."""
     import jax.numpy as jnp
 
-    from coherent_jax.divergence import DivergenceError
-    from coherent_jax.divergence import check_finite as _check_finite
+    from coherent_jax.run.divergence import DivergenceError
+    from coherent_jax.run.divergence import check_finite as _check_finite
 
     class Trainer:
         def export_params(self, state):

@@ -197,8 +197,8 @@ def test_sac_losses_against_float64_reference():
     import jax
 
     from coherent_jax.agents import sac_losses
+    from coherent_jax.agents.replay import Experience
     from coherent_jax.networks import QNetwork, SquashedGaussianActor
-    from coherent_jax.replay import Experience
 
     B, o, p = 6, 3, 2
     actor = SquashedGaussianActor(p, (8,), "relu")

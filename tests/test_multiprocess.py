@@ -234,7 +234,7 @@ def test_native_log_filter_holds_runtime_entries_and_names_the_cause(monkeypatch
     """The supervisor passes other lines on, holds the runtime's log entries, and sums a fatal one up."""
     import io
 
-    from coherent_jax.multihost import _NativeLog
+    from coherent_jax.run.multihost import _NativeLog
 
     monkeypatch.setenv("JAX_PROCESS_ID", "0")
     monkeypatch.setenv("JAX_NUM_PROCESSES", "2")

@@ -15,10 +15,11 @@ from pathlib import Path
 import pytest
 from helpers import child_env, commit_all, load_experiment
 
-from coherent_jax import evaluate, runlock, sweep, train
+from coherent_jax import evaluate, sweep, train
 from coherent_jax.bench.__main__ import main as bench_main
 from coherent_jax.config import ConfigError, help_text, parse_overrides, to_dict
-from coherent_jax.runs import CHECKPOINT, LoopState, atomic_write, encode_checkpoint, resume_point
+from coherent_jax.run import runlock
+from coherent_jax.run.runs import CHECKPOINT, LoopState, atomic_write, encode_checkpoint, resume_point
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = [
@@ -148,7 +149,7 @@ def test_num_envs_100000000_is_refused(tmp_path, capsys):
 
 # ------------------------------------------------------------------ 3. state that cannot fit in memory
 def test_num_envs_10000000_is_refused_before_compiling(tmp_path, capsys):
-    from coherent_jax.memory import machine_memory
+    from coherent_jax.run.memory import machine_memory
 
     msg = refused(train.main, ["num_envs=10000000", f"run_dir={tmp_path / 'run'}"], capsys, "'num_envs'")
     assert "GB" in msg and f"this machine has {machine_memory() / 1e9:.1f} GB" in msg
@@ -157,7 +158,7 @@ def test_num_envs_10000000_is_refused_before_compiling(tmp_path, capsys):
 
 def test_everyday_configs_are_not_refused_for_memory():
     """The defaults, a 5-seed sweep, SAC with a 1e6 buffer x 5 seeds fit (24 GB, the smallest machine)."""
-    from coherent_jax.memory import check_memory
+    from coherent_jax.run.memory import check_memory
 
     gb24 = 24 * 2**30
     check_memory(parse_overrides([]), memory=gb24)
@@ -307,7 +308,7 @@ def test_checkpoint_every_0_is_documented_and_a_killed_run_starts_over(tmp_path)
 HOLD = """
 import sys
 from pathlib import Path
-from coherent_jax import runlock
+from coherent_jax.run import runlock
 lock = runlock.acquire(Path(sys.argv[1]), "run_dir")
 print("holding", flush=True)
 sys.stdin.read()
@@ -422,8 +423,8 @@ def test_episode_length_minus_1_message_names_0(tmp_path, capsys):
 
 # ------------------------------------------------------------------ 11. provenance
 def test_versions_json_records_commit_dirty_flag_and_cpu(tmp_path):
-    from coherent_jax import provenance
-    from coherent_jax.runs import record_versions
+    from coherent_jax.run import provenance
+    from coherent_jax.run.runs import record_versions
 
     record_versions(tmp_path, None)
     versions = json.loads((tmp_path / "versions.json").read_text())
@@ -439,7 +440,7 @@ def test_versions_json_records_commit_dirty_flag_and_cpu(tmp_path):
 
 
 def test_results_data_do_not_make_the_checkout_dirty_but_code_does(tmp_path):
-    from coherent_jax import provenance
+    from coherent_jax.run import provenance
 
     repo = tmp_path / "repo"
     (repo / "coherent_jax").mkdir(parents=True)

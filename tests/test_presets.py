@@ -20,7 +20,7 @@ from helpers import child_env
 from coherent_jax.agents import losses, make_trainer
 from coherent_jax.config import SWEEPABLE, ConfigError, help_text, parse_overrides
 from coherent_jax.policy import load_policy
-from coherent_jax.runs import load_config, read_metrics, resume_config, write_config
+from coherent_jax.run.runs import load_config, read_metrics, resume_config, write_config
 from coherent_jax.sweep import parse_sweep
 from coherent_jax.train import main
 
@@ -28,7 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "presets.md"
 
 # The values docs/presets.md documents, with their Spinning Up sources there. Written out
-# here, not read from coherent_jax.presets, so that a change to either shows.
+# here, not read from coherent_jax.config.presets, so that a change to either shows.
 _ON_POLICY = {
     "num_envs": 4,
     "unroll_length": 1000,

@@ -333,7 +333,7 @@ def test_the_scripts_read_this_checkouts_package(tmp_path):
     (decoy / "__init__.py").write_text("raise ImportError('the decoy package was imported')\n")
     code = (
         "import runpy, sys; runpy.run_path(sys.argv[1], run_name='loaded'); "
-        "import coherent_jax.runs; print(coherent_jax.runs.__file__)"
+        "import coherent_jax.run.runs; print(coherent_jax.run.runs.__file__)"
     )
     proc = subprocess.run(
         [sys.executable, "-c", code, str(ROOT / "experiments" / "reproduce.py")],

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from coherent_jax.agents.onpolicy import OnPolicyTrainer
+from coherent_jax.agents.rollout import unroll
 from coherent_jax.config import parse_overrides
 from coherent_jax.envs import VecEnv
 from coherent_jax.exploration import make_behaviour, make_strategy
@@ -22,7 +23,6 @@ from coherent_jax.exploration.noisynet import factorised, noisy_dense
 from coherent_jax.exploration.pink import autocorrelation, coloured_noise
 from coherent_jax.exploration.psne import perturb
 from coherent_jax.networks import SquashedGaussianActor
-from coherent_jax.rollout import unroll
 
 OBS_SIZE = 6
 

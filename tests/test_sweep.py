@@ -20,7 +20,7 @@ from coherent_jax.config import (
     parse_overrides,
     sweepable,
 )
-from coherent_jax.runs import read_metrics
+from coherent_jax.run.runs import read_metrics
 
 TINY = [
     "env=pointmass",

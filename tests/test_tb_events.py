@@ -7,7 +7,7 @@ import textwrap
 
 from helpers import child_env, crc32c, read_events, tensorboard_scalars
 
-from coherent_jax.tb_events import EventWriter
+from coherent_jax.run.tb_events import EventWriter
 
 
 def test_the_reference_crc_has_the_standard_check_value():
@@ -55,7 +55,7 @@ def test_events_written_before_a_sigkill_are_all_in_the_file(tmp_path):
     script = textwrap.dedent(
         f"""
         import os, signal
-        from coherent_jax.tb_events import EventWriter
+        from coherent_jax.run.tb_events import EventWriter
         w = EventWriter({str(tmp_path / "tb")!r})
         for step in range(1, 201):
             w.add_scalars({{"a": step * 0.5, "b": -step}}, step)

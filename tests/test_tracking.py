@@ -1,11 +1,11 @@
-"""The Weights & Biases mirror (coherent_jax.tracking), offline: what the local run files hold."""
+"""The Weights & Biases mirror (coherent_jax.run.tracking), offline: what the local run files hold."""
 
 import json
 
 import pytest
 from wandb_records import offline_runs, read_run
 
-from coherent_jax import tracking
+from coherent_jax.run import tracking
 
 pytest.importorskip("wandb")
 

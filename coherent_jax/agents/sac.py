@@ -37,13 +37,13 @@ import optax
 from flax import struct
 
 from coherent_jax.agents import sac_losses
+from coherent_jax.agents.replay import Experience, ReplayBuffer, replay_add, replay_init, replay_sample
+from coherent_jax.agents.rollout import episode_metrics, evaluation_metrics, unroll
 from coherent_jax.config import Config
 from coherent_jax.envs.vec_env import EnvState, VecEnv
 from coherent_jax.exploration import make_behaviour
 from coherent_jax.exploration.base import ActOutput, OffPolicyBehaviour
 from coherent_jax.networks import QNetwork, RunningStats, SquashedGaussianActor, normalize, update_stats
-from coherent_jax.replay import Experience, ReplayBuffer, replay_add, replay_init, replay_sample
-from coherent_jax.rollout import episode_metrics, evaluation_metrics, unroll
 
 
 @struct.dataclass

@@ -1,7 +1,7 @@
 """Pure losses of Soft Actor-Critic (thesis §2.4.3, Algorithm 3), on a typed replay batch.
 
 Each takes the parameters it differentiates first, then the other inputs and a replay
-minibatch (`coherent_jax.replay.Experience`, observations normalised), and returns
+minibatch (`coherent_jax.agents.replay.Experience`, observations normalised), and returns
 (loss, aux) so that ``jax.value_and_grad(..., has_aux=True)`` applies directly:
 
     y = r + gamma (1 - d) (min_i Q_targ,i(s', a') - alpha log pi(a'|s')),  a' ~ pi(.|s')   (2.47)
@@ -21,8 +21,8 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from coherent_jax.agents.replay import Experience
 from coherent_jax.networks import SquashedGaussianActor, squash
-from coherent_jax.replay import Experience
 
 
 def q_values(critic: nn.Module, critic_params: Any, obs: jax.Array, action: jax.Array) -> jax.Array:

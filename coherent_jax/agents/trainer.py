@@ -2,7 +2,7 @@
 
 Every trainer (`OnPolicyTrainer` for A2C/PPO, `SACTrainer`) has these pure,
 jit-able functions of an explicit train state, whatever the algorithm; the loop
-(`coherent_jax.loop`) jits, vmaps (a sweep's points) and shards them, and never
+(`coherent_jax.run.loop`) jits, vmaps (a sweep's points) and shards them, and never
 looks inside the state except through `export_params`.
 """
 

@@ -105,9 +105,9 @@ def _bench_training(cfg: Config, iterations: int, log, remat_row: bool = True) -
     import jax
     import jax.numpy as jnp
 
-    from coherent_jax import sharding
     from coherent_jax.agents.onpolicy import OnPolicyTrainer
     from coherent_jax.envs.vec_env import VecEnv
+    from coherent_jax.run import sharding
 
     num_devices = sharding.resolve_num_devices(cfg.num_devices)
     shape = f"{cfg.env}, {cfg.num_envs} envs x {cfg.unroll_length} steps, {num_devices} device(s)"

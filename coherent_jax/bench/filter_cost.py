@@ -93,7 +93,7 @@ def _bench_filter_method(q: int, method: str, inputs: tuple, grad_args: tuple, b
     import jax
     import numpy as np
 
-    from coherent_jax.exploration.coherent_filter import log_marginals
+    from coherent_jax.exploration.coherent.filter import log_marginals
 
     log(f"[bench] filter q={q} {method}: compiling forward and forward+gradient ...")
     impl = log_marginals if method == "block" else dense_log_marginals

@@ -32,10 +32,10 @@ from coherent_jax.config.groups import (
     SACOptions,
 )
 from coherent_jax.config.parse import (
-    config_from,
     flat_dict,
     from_stored,
     help_text,
+    make_config,
     modern_items,
     modern_key,
     override_items,
@@ -86,7 +86,7 @@ __all__ = [
     "PsneOptions",
     "SACOptions",
     "Sweepable",
-    "config_from",
+    "make_config",
     "flat_dict",
     "from_stored",
     "get_value",

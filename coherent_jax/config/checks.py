@@ -18,7 +18,8 @@ import difflib
 from collections.abc import Iterable
 from typing import Any
 
-from coherent_jax import limits
+from coherent_jax.config import limits
+from coherent_jax.config.presets import NO_PRESET
 from coherent_jax.config.schema import ENV_ALLOWED, FIELDS, SWEEPABLE, Config, get_value
 from coherent_jax.envs.registry import (
     NATIVE_TASKS,
@@ -30,7 +31,6 @@ from coherent_jax.envs.registry import (
     is_user_task,
     resolve_physics,
 )
-from coherent_jax.presets import NO_PRESET
 from coherent_jax.strategies import ON_POLICY, REFUSED, SUPPORTED_ALGOS
 
 

@@ -22,8 +22,8 @@ from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from coherent_jax.config.checks import ConfigError, sweep_item, unknown_key, validate
+from coherent_jax.config.presets import ALGO_DEFAULTS, dotted_items, help_lines, layered_base
 from coherent_jax.config.schema import FIELDS, GROUPS, LEGACY_KEYS, SECTIONS, SWEEPABLE, Config
-from coherent_jax.presets import ALGO_DEFAULTS, dotted_items, help_lines, layered_base
 
 _NOTED: set[str] = set()  # the flat keys already noted in this process
 
@@ -101,7 +101,7 @@ def parse_overrides(overrides: Sequence[str], base: Config | None = None) -> Con
     Raises `ConfigError` with a one-line message for a malformed override, an unknown
     key, a value of the wrong type or out of range. The defaults of the chosen algorithm
     (`presets.ALGO_DEFAULTS`) apply first, then the chosen preset's values for it, then the
-    overrides (`coherent_jax.presets.layered_base`): ``algo=sac num_envs=4`` keeps
+    overrides (`coherent_jax.config.presets.layered_base`): ``algo=sac num_envs=4`` keeps
     SAC's network sizes and takes the user's env count.
     """
     overrides = modern_items(overrides)
@@ -194,13 +194,17 @@ def override_items(overrides: Mapping[str, Any]) -> list[str]:
     return items
 
 
-def config_from(
+def make_config(
     overrides: Mapping[str, Any] | None = None, base: Config | None = None, **kwargs: Any
 ) -> Config:
     """The validated `Config` of a mapping of overrides and keyword overrides (the latter win).
 
-    The same layers as the command line (`parse_overrides`): the defaults, ``algo``'s
-    defaults, ``preset``'s values, then these overrides; raises `ConfigError` in one line.
+    ``make_config(env="hopper", preset="thesis", **{"ppo.clip_eps": 0.1})`` or
+    ``make_config({"env": "hopper", "ppo": {"clip_eps": 0.1}})``: the same layers as the
+    command line (`parse_overrides`): the defaults, then ``algo``'s
+    (`coherent_jax.config.presets.ALGO_DEFAULTS`), then the ``preset``'s values for that
+    algorithm (`coherent_jax.config.presets.PRESETS`), then these overrides. Raises
+    `ConfigError` in one line naming the bad key or value.
     """
     if overrides is not None and not isinstance(overrides, Mapping):
         raise ConfigError(

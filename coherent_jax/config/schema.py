@@ -11,10 +11,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Mapping
 from typing import Any
 
-from coherent_jax import limits
+from coherent_jax.config import limits
 from coherent_jax.config.declare import (
     COUNT,
     EVERY,
@@ -36,8 +35,8 @@ from coherent_jax.config.groups import (
     PsneOptions,
     SACOptions,
 )
+from coherent_jax.config.presets import NO_PRESET, PRESETS
 from coherent_jax.envs.registry import DEFAULT_THREADS, NATIVE_TASKS, PHYSICS, TASKS, USER_TASK_FORM
-from coherent_jax.presets import NO_PRESET, PRESETS
 from coherent_jax.strategies import ALGOS, EXPLORES
 
 ACTIVATIONS = ("tanh", "relu", "elu", "swish")
@@ -186,20 +185,6 @@ class Config:
     gsde: GsdeOptions = _group(GsdeOptions, "explore=gsde")
     pink: PinkOptions = _group(PinkOptions, "explore=pink")
     lattice: LatticeOptions = _group(LatticeOptions, "explore=lattice")
-
-    @classmethod
-    def from_overrides(cls, overrides: Mapping[str, Any] | None = None, /, **kwargs: Any) -> Config:
-        """The resolved, validated config of overrides over the defaults, as the command line builds it.
-
-        ``Config.from_overrides(env="hopper", preset="thesis", **{"ppo.clip_eps": 0.1})``
-        or ``Config.from_overrides({"env": "hopper", "ppo": {"clip_eps": 0.1}})``: the
-        defaults, then ``algo``'s (`coherent_jax.presets.ALGO_DEFAULTS`), then the
-        ``preset``'s values for that algorithm (`coherent_jax.presets.PRESETS`), then the
-        given keys. Raises `ConfigError` in one line naming the bad key or value.
-        """
-        from coherent_jax.config.parse import config_from  # parse builds on this module
-
-        return config_from(overrides, **kwargs)
 
     # --- derived (not settable)
     @property

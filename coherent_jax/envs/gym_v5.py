@@ -22,9 +22,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from coherent_jax.envs.quiet import quiet_stdio
 from coherent_jax.envs.registry import EPISODE_LENGTH, SHORT_NAMES  # noqa: F401  (re-exported)
 from coherent_jax.envs.task import Kinematics, NativeModel, NativeTask, uniform_reset
-from coherent_jax.quiet import quiet_stdio
 
 
 class GymnasiumMissingError(ImportError):

@@ -36,7 +36,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from coherent_jax.envs.registry import (
+from coherent_jax.envs.quiet import quiet_stdio
+from coherent_jax.envs.spec import (
     USER_TASK_FORM,
     TaskDefinitionError,
     TaskSpec,
@@ -51,7 +52,6 @@ from coherent_jax.envs.task import (
     control,
     uniform_reset,
 )
-from coherent_jax.quiet import quiet_stdio
 
 # Fields every task reads (the reset and `Kinematics` need them).
 ALWAYS_READ = ("qpos", "qvel")

@@ -2,7 +2,7 @@
 
 ``distributed=true`` runs one process per host (or per device group): the same
 command everywhere, process 0 being JAX's coordinator and the only one that writes.
-This module holds what that needs beyond the device sharding of `coherent_jax.sharding`:
+This module holds what that needs beyond the device sharding of `coherent_jax.run.sharding`:
 
 * **Start-up** (`initialize`): the CPU backend's cross-process collectives are
   switched to gloo (JAX's CPU default has none), the coordinator, process count and

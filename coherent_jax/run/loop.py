@@ -9,8 +9,8 @@ states (``vmap(trainer.iteration)``). Either way it
 * evaluates every ``eval_every`` iterations and at the end (deterministic episodes);
 * writes one row per iteration to each point's ``metrics.jsonl`` and, with
   ``tensorboard=true``, to TensorBoard event files in the point's ``tb/`` (with
-  ``wandb=true`` also to the point's W&B run, `coherent_jax.tracking`);
-* writes ``checkpoint.msgpack`` (the whole state, `coherent_jax.runs`) every
+  ``wandb=true`` also to the point's W&B run, `coherent_jax.run.tracking`);
+* writes ``checkpoint.msgpack`` (the whole state, `coherent_jax.run.runs`) every
   ``checkpoint_every`` iterations, at the end, and when SIGINT/SIGTERM stops it;
 * continues from a checkpoint (``resume``), recomputing the rows past it, so the
   metrics equal those of an uninterrupted run;
@@ -24,7 +24,7 @@ states (``vmap(trainer.iteration)``). Either way it
 
 Its steps are named functions of a `loop_state.Session`: `start_session` (devices,
 keys, initial or restored state), `compile_programs`, `open_outputs`, then per
-iteration `iterate` (which calls `guard`, the checks of `coherent_jax.divergence`),
+iteration `iterate` (which calls `guard`, the checks of `coherent_jax.run.divergence`),
 `sink_metrics`, `save_checkpoint` and `show_progress`, and `close_outputs`.
 """
 
@@ -40,11 +40,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from coherent_jax import limits
 from coherent_jax.agents.trainer import Trainer
-from coherent_jax.divergence import DivergenceError, PointView, check_finite
-from coherent_jax.loop_state import Job, Outcome, Programs, Session
-from coherent_jax.runs import (
+from coherent_jax.config import limits
+from coherent_jax.run.divergence import DivergenceError, PointView, check_finite
+from coherent_jax.run.loop_state import Job, Outcome, Programs, Session
+from coherent_jax.run.runs import (
     CHECKPOINT,
     METRICS,
     PREFIX,
@@ -134,7 +134,7 @@ def _open_outputs(job: Job, start: int, resumed: bool):
             truncate_metrics(d / METRICS, start)
         files.append(open(d / METRICS, "a" if resumed else "w"))
         if cfg.tensorboard:
-            from coherent_jax.tb_events import EventWriter
+            from coherent_jax.run.tb_events import EventWriter
 
             # purge_step hides events a killed run wrote past the checkpoint.
             purge = start * cfg.steps_per_iteration + 1 if resumed else None
@@ -154,7 +154,7 @@ def start_session(job: Job, resume: Checkpoint | None, t_start: float) -> Sessio
     import jax
     import jax.numpy as jnp
 
-    from coherent_jax import sharding
+    from coherent_jax.run import sharding
 
     cfg, trainer, n = job.cfg, job.trainer, job.num_points
     available = sharding.resolve_num_devices(cfg.num_devices)
@@ -220,7 +220,7 @@ def compile_programs(run: Session) -> None:
     import jax
     import jax.numpy as jnp
 
-    from coherent_jax import sharding
+    from coherent_jax.run import sharding
 
     job, trainer, cfg = run.job, run.job.trainer, run.job.cfg
 
@@ -256,7 +256,7 @@ def open_outputs(run: Session, stop: StopRequest) -> None:
     import numpy as np
     from tqdm.auto import tqdm
 
-    from coherent_jax import multihost
+    from coherent_jax.run import multihost
 
     job, cfg, loop, n = run.job, run.job.cfg, run.loop, run.job.num_points
     # Per-point loop state as arrays; a single run keeps scalars in its checkpoint.
@@ -291,7 +291,7 @@ def iterate(run: Session, i: int) -> dict[str, Any]:
     """
     import numpy as np
 
-    from coherent_jax import multihost
+    from coherent_jax.run import multihost
 
     job, cfg, loop, n, programs = run.job, run.job.cfg, run.loop, run.job.num_points, run.programs
     t0 = time.perf_counter()
@@ -428,7 +428,7 @@ def run_loop(
     run's metrics (Python floats) after every iteration. Raises `DivergenceError` when
     a single run diverges (see the module docstring for sweeps).
     """
-    from coherent_jax import multihost
+    from coherent_jax.run import multihost
 
     cfg, n = job.cfg, job.num_points
     run = start_session(job, resume, time.perf_counter())
@@ -480,7 +480,7 @@ def write_params(trainer: Trainer, state: Any, point_dirs: list[Path], points: b
     import jax
     from flax import serialization
 
-    from coherent_jax.multihost import to_host
+    from coherent_jax.run.multihost import to_host
 
     params = to_host(trainer.export_params(state))
     for j, d in enumerate(point_dirs):

@@ -135,8 +135,8 @@ def load_config(run_dir: Path) -> Config:
 
 def package_versions() -> dict[str, str]:
     """Python, platform and the versions of the packages a run's numbers depend on, and the
-    project's commit and the CPU (`coherent_jax.provenance`)."""
-    from coherent_jax.provenance import provenance
+    project's commit and the CPU (`coherent_jax.run.provenance`)."""
+    from coherent_jax.run.provenance import provenance
 
     versions = {"python": sys.version.split()[0], "platform": platform.platform()}
     for name in VERSIONED_PACKAGES:
@@ -278,7 +278,7 @@ def state_to_bytes(state: Any) -> bytes:
     import numpy as np
     from flax import serialization
 
-    from coherent_jax.multihost import to_host
+    from coherent_jax.run.multihost import to_host
 
     leaves = jax.tree_util.tree_leaves(to_host(state))
     return serialization.msgpack_serialize({str(i): np.asarray(x) for i, x in enumerate(leaves)})

@@ -1,7 +1,7 @@
 """The one launch path of ``train`` and ``sweep``: parse, prepare the run directory, drive the
 loop, write the summary, return the exit status.
 
-A command (`coherent_jax.train`'s `TrainCommand`, `coherent_jax.sweep`'s
+A command (`coherent_jax.run.single.TrainCommand`, `coherent_jax.sweep`'s
 `SweepCommand`) says only what is its own, as a `Command`: how its arguments become a
 plan, which checks the plan needs, what it writes besides the shared files and how
 it runs. The rest happens here, once, in the same order for both:
@@ -11,9 +11,9 @@ it runs. The rest happens here, once, in the same order for both:
    become a stop request (`run_command`);
 2. parse the arguments, or read the stored config for ``resume=DIR`` (`prepare`);
    a ``distributed=true`` command hands its work to the supervisor
-   (`coherent_jax.multihost.supervise`); the devices and the memory are checked;
+   (`coherent_jax.run.multihost.supervise`); the devices and the memory are checked;
 3. create the run directory (or check a resumed one's checkpoint and rows) and lock
-   it (`coherent_jax.runlock`); bad input ends here with `EXIT_BAD_INPUT` and
+   it (`coherent_jax.run.runlock`); bad input ends here with `EXIT_BAD_INPUT` and
    nothing written; a SAC run within its warm-up is warned of
    (`coherent_jax.config.checks.warmup_warning`);
 4. write the config and ``versions.json`` and drive the loop (`execute`);
@@ -23,7 +23,7 @@ it runs. The rest happens here, once, in the same order for both:
 API (`coherent_jax.api`); `launch`, the command line's, reports them in one line with
 their exit statuses. A run with ``wandb=true`` needs the ``wandb`` package (and, to log
 online, credentials): checked in step 2, before anything is written
-(`coherent_jax.tracking.preflight`); a W&B run that fails to start ends a new run with
+(`coherent_jax.run.tracking.preflight`); a W&B run that fails to start ends a new run with
 its directory removed again.
 
 `drive` and the summary helpers are the part of the run both commands' bodies share:
@@ -41,15 +41,16 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
-from coherent_jax import cli, multihost, rundir, runlock, tracking
+from coherent_jax import cli
 from coherent_jax.config import Config, ConfigError
 from coherent_jax.config.checks import warmup_warning
-from coherent_jax.divergence import DivergenceError
+from coherent_jax.envs.quiet import quiet_imports
 from coherent_jax.exit_codes import EXIT_BAD_INPUT, EXIT_DIVERGED, EXIT_OK, signal_status
-from coherent_jax.loop import PREFIX, StopRequest, run_loop
-from coherent_jax.loop_state import Job, Outcome
-from coherent_jax.quiet import quiet_imports
-from coherent_jax.runs import (
+from coherent_jax.run import multihost, rundir, runlock, tracking
+from coherent_jax.run.divergence import DivergenceError
+from coherent_jax.run.loop import PREFIX, StopRequest, run_loop
+from coherent_jax.run.loop_state import Job, Outcome
+from coherent_jax.run.runs import (
     METRICS,
     Checkpoint,
     CheckpointError,
@@ -58,7 +59,7 @@ from coherent_jax.runs import (
     record_versions,
     split_resume,
 )
-from coherent_jax.tracking import TrackingError
+from coherent_jax.run.tracking import TrackingError
 
 
 class Command(Protocol):
@@ -225,7 +226,7 @@ def launch(cmd: Command, argv: list[str], stop: StopRequest) -> int:
 
 def run(cmd: Command, argv: list[str], stop: StopRequest) -> Launched:
     """Prepares the run of `argv`, then executes it: what the command line and the Python API
-    (`coherent_jax.api.train`) both run.
+    (`coherent_jax.api.learn`) both run.
 
     Raises one of `BAD_INPUT` (before anything is written, or on restoring a state that
     does not fit) or `DivergenceError` (a single run that diverged).

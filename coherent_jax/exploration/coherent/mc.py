@@ -31,7 +31,7 @@ import jax.numpy as jnp
 from coherent_jax.exploration.action import gaussian_entropy, gaussian_log_prob
 from coherent_jax.exploration.base import ActOutput, SegmentLogProb
 from coherent_jax.exploration.chain import chain_step
-from coherent_jax.exploration.coherent_layer import ChainStrategy, LastLayer
+from coherent_jax.exploration.coherent.layer import ChainStrategy, LastLayer
 from coherent_jax.networks import ACTIVATIONS, augment
 
 

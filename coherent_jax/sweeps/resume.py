@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from coherent_jax import cli, rundir
+from coherent_jax import cli
 from coherent_jax.config import (
     SWEEPABLE,
     Config,
@@ -25,7 +25,8 @@ from coherent_jax.config import (
     modern_key,
     parse_overrides,
 )
-from coherent_jax.runs import METRICS, Checkpoint, resume_config
+from coherent_jax.run import rundir
+from coherent_jax.run.runs import METRICS, Checkpoint, resume_config
 
 
 def _read_grid(out_dir: Path) -> tuple[dict[str, list[Any]], list[int]]:

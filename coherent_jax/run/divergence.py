@@ -1,6 +1,6 @@
 """The divergence guard's checks: a non-finite loss or parameter stops a run.
 
-After every iteration the loop (`coherent_jax.loop.guard`) checks each live point:
+After every iteration the loop (`coherent_jax.run.loop.guard`) checks each live point:
 a loss metric of an iteration that applied an update, and every parameter, must be
 finite. A single run stops with `DivergenceError`, naming the iteration, the
 quantity and the last good checkpoint; a sweep marks the point and continues.
@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from coherent_jax.agents.trainer import Trainer
-from coherent_jax.runs import CHECKPOINT
+from coherent_jax.run.runs import CHECKPOINT
 
 
 class DivergenceError(RuntimeError):

@@ -29,8 +29,8 @@ import chex
 import jax
 import jax.numpy as jnp
 
-from coherent_jax.exploration.coherent_filter import Belief
-from coherent_jax.exploration.coherent_joint import segment_marginals_joint
+from coherent_jax.exploration.coherent.filter import Belief
+from coherent_jax.exploration.coherent.joint import segment_marginals_joint
 
 #: blocks of at most this many steps; 64 is where the joint form's T^2 and T^3 terms stay
 #: below its (q+1)^2 belief terms at q = 64 (see `chained_marginals`).

@@ -19,16 +19,16 @@ import jax.numpy as jnp
 from coherent_jax.exploration.adaptive import SigmaRule, adapt_sigma, policy_distance
 from coherent_jax.exploration.base import SEGMENT_AXES, ActOutput, OffPolicyBehaviour, SegmentLogProb
 from coherent_jax.exploration.chain import chain_step
-from coherent_jax.exploration.coherent_exact import MAX_BLOCK, block_size, chained_marginals
-from coherent_jax.exploration.coherent_filter import (
+from coherent_jax.exploration.coherent.exact import MAX_BLOCK, block_size, chained_marginals
+from coherent_jax.exploration.coherent.filter import (
     Belief,
     filter_step,
     predictive_entropy,
     prior_belief,
     segment_marginals,
 )
-from coherent_jax.exploration.coherent_joint import segment_marginals_joint
-from coherent_jax.exploration.coherent_layer import ChainStrategy, LastLayer
+from coherent_jax.exploration.coherent.joint import segment_marginals_joint
+from coherent_jax.exploration.coherent.layer import ChainStrategy, LastLayer
 from coherent_jax.networks import augment, squash
 from coherent_jax.sweep_axis import least_point
 

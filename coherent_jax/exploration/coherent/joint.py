@@ -14,7 +14,7 @@ import chex
 import jax
 import jax.numpy as jnp
 
-from coherent_jax.exploration.coherent_filter import Belief, segment_inputs
+from coherent_jax.exploration.coherent.filter import Belief, segment_inputs
 from coherent_jax.exploration.linalg import masked_gram, whiten
 from coherent_jax.networks import augment
 

@@ -245,7 +245,7 @@ class Mirrors:
     """The W&B runs of a run's points (empty without ``wandb=true``) and their final summaries.
 
     ``runs[j]`` mirrors point j (a single run: one); the loop logs each point's rows to it
-    (`coherent_jax.loop.sink_metrics`). The caller sets ``summaries`` once it has written
+    (`coherent_jax.run.loop.sink_metrics`). The caller sets ``summaries`` once it has written
     them; `mirrored` then finishes each run with its own.
     """
 

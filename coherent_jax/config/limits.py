@@ -1,6 +1,6 @@
 """What the program's integer counters and key derivation can hold, checked with the config.
 
-* Seeds: a run's PRNG key is ``jax.random.PRNGKey(seed)`` (`coherent_jax.loop.run_keys`).
+* Seeds: a run's PRNG key is ``jax.random.PRNGKey(seed)`` (`coherent_jax.run.loop.run_keys`).
   With 32-bit JAX (the default, ``jax_enable_x64`` off) it takes the seed's low 32 bits,
   so seeds 0 and 2**32 give the same key, and a seed of 2**63 or more does not convert
   at all (OverflowError). The seeds that give distinct keys are [0, `MAX_SEED`].

@@ -9,7 +9,7 @@ from typing import Any, NamedTuple
 
 from coherent_jax.agents.trainer import Trainer
 from coherent_jax.config import Config
-from coherent_jax.runs import LoopState
+from coherent_jax.run.runs import LoopState
 
 
 @dataclasses.dataclass(frozen=True)
@@ -27,7 +27,7 @@ class Job:
       hparams: a sweep's stacked hyperparameters (leading axis: points); None for a
         single run, whose state is not vmapped.
       label: how the start-up line names the job.
-      trackers: per point, a W&B run receiving each of its rows (`coherent_jax.tracking.WandbRun`,
+      trackers: per point, a W&B run receiving each of its rows (`coherent_jax.run.tracking.WandbRun`,
         ``wandb=true``); empty: none.
     """
 

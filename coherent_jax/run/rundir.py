@@ -97,7 +97,7 @@ def check_metrics(paths: list[Path], iteration: int, finished: bool) -> None:
 
 def first_missing(path: Path) -> Path | None:
     """The outermost of `path` and its parents that does not exist yet (None: `path` exists):
-    what `coherent_jax.runs.prepare_output_dir` creates, and what `discard_new_dir` removes again."""
+    what `coherent_jax.run.runs.prepare_output_dir` creates, and what `discard_new_dir` removes again."""
     path = Path(path)
     return next((p for p in [*reversed(path.parents), path] if not p.exists()), None)
 
