@@ -284,3 +284,16 @@ def test_training_keys_pass_through_including_dotted_ones():
 
     with pytest.raises(ConfigError, match="'coherent.integration'"):
         sac.parse(["coherent.integration=analytic"])
+
+
+@pytest.mark.parametrize("task", ["hopper", "brax-hopper"])
+def test_physics_mjx_ls50_sets_the_line_search_of_either_kind_of_mjx_task(task):
+    """``bench physics``'s ``mjx_ls50`` rows: Gymnasium's tasks on MJX keep their model as
+    ``model``, Brax's as ``sys``; both get the line-search iterations the row names."""
+    from coherent_jax.bench.physics import set_ls_iterations
+    from coherent_jax.envs.vec_env import VecEnv
+
+    env = VecEnv(task, 2, physics="mjx")
+    set_ls_iterations(env, 7)
+    model = env.env.sys if hasattr(env.env, "sys") else env.env.model
+    assert int(model.opt.ls_iterations) == 7

@@ -171,6 +171,16 @@ def _measure_jax(task: str, n: int, steps: int, repeats: int, variant: dict[str,
     return {"compile_s": compile_s, "call_s": _timed(call, repeats), "physics": physics}
 
 
+def set_ls_iterations(env, iterations: int) -> None:
+    """Sets the MJX solver's line-search iterations of `env` (a `VecEnv` on MJX) before it is traced.
+
+    Brax's environments keep their MJX model as ``sys``, Gymnasium's tasks on MJX
+    (`coherent_jax.envs.mjx_physics.MjxPhysics`) as ``model``.
+    """
+    name = "sys" if hasattr(env.env, "sys") else "model"
+    setattr(env.env, name, getattr(env.env, name).tree_replace({"opt.ls_iterations": iterations}))
+
+
 def _prepare_jax(task: str, n: int, steps: int, variant: dict[str, Any]):
     """A warm call of `steps` jitted VecEnv steps of `n` envs, its compile seconds and the physics."""
     import jax
@@ -181,7 +191,7 @@ def _prepare_jax(task: str, n: int, steps: int, variant: dict[str, Any]):
     devices = int(variant.get("devices", 1))
     env = VecEnv(task, n // devices, physics=variant["physics"])
     if "ls_iterations" in variant:
-        env.env.sys = env.env.sys.tree_replace({"opt.ls_iterations": variant["ls_iterations"]})
+        set_ls_iterations(env, int(variant["ls_iterations"]))
     if "nthread" in variant:
         env.env.host.nthread = int(variant["nthread"]) or os.cpu_count() or 1
 
