@@ -205,5 +205,5 @@ def test_row3_evaluate_without_gymnasium_names_it_in_one_line(tmp_path, capsys, 
     assert main([str(run), "engine=gymnasium"]) == 2
     captured = capsys.readouterr()
     err = captured.err.strip().splitlines()
-    assert len(err) == 1 and "needs gymnasium (" in err[0] and '".[test]"' in err[0], err
+    assert len(err) == 1 and "needs gymnasium (" in err[0] and '".[gym]"' in err[0], err
     assert "evaluating" not in captured.out
