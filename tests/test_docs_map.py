@@ -1,0 +1,188 @@
+"""docs/development.md's module map and layers, against the code.
+
+* The map (the tables under "Architecture", one per folder, headed ``### `FOLDER/` ``) names
+  every module of ``coherent_jax/`` and ``experiments/`` and nothing that does not exist.
+* The layers listed there hold for every import of the package, at module level and inside
+  functions: a module imports from its own folder or from a layer below its own.
+"""
+
+from __future__ import annotations
+
+import ast
+import re
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DEVELOPMENT = ROOT / "docs" / "development.md"
+MAPPED_TREES = ("coherent_jax", "experiments")  # every *.py below these must be in the map
+PACKAGE = "coherent_jax"
+
+
+def _section(text: str, heading: str) -> str:
+    """The text of the ``## heading`` section, up to the next ``## `` heading."""
+    start = text.index(f"\n## {heading}\n")
+    end = text.find("\n## ", start + 1)
+    return text[start : end if end >= 0 else len(text)]
+
+
+def map_entries(text: str) -> dict[str, str]:
+    """path (relative to the repository) -> the heading it is listed under, from every table row's
+    first cell (its backticked names) under each ``### `FOLDER/` `` heading of "Architecture"."""
+    entries: dict[str, str] = {}
+    folder = None
+    for line in _section(text, "Architecture").splitlines():
+        heading = re.fullmatch(r"### `([^`]+/)`", line.strip())
+        if heading:
+            folder = heading.group(1)
+            continue
+        if line.startswith("### "):
+            folder = None
+        if folder is None or not line.startswith("|") or line.startswith("|---"):
+            continue
+        first = line.split("|")[1]
+        for name in re.findall(r"`([^`]+)`", first):
+            path = folder + name
+            assert path not in entries, f"{path} is listed twice"
+            entries[path] = folder
+    return entries
+
+
+def package_modules() -> set[str]:
+    return {
+        p.relative_to(ROOT).as_posix()
+        for tree in MAPPED_TREES
+        for p in (ROOT / tree).rglob("*.py")
+        if "__pycache__" not in p.parts
+    }
+
+
+def test_map_parser_reads_rows_and_headings():
+    text = (
+        "# Doc\n\n## Architecture\n\n### `pkg/`\n\n| module | what |\n|---|---|\n"
+        "| `a.py` | a |\n| `b.py`, `c.py` | b and c |\n\n### `pkg/sub/`\n\n| module | what |\n"
+        "|---|---|\n| `d.py` | d, not `e.py` |\n\n### Not a folder\n\n| `x.py` | x |\n\n## Tests\n\n"
+        "### `pkg/`\n\n| `after.py` | outside the section |\n"
+    )
+    assert map_entries(text) == {
+        "pkg/a.py": "pkg/",
+        "pkg/b.py": "pkg/",
+        "pkg/c.py": "pkg/",
+        "pkg/sub/d.py": "pkg/sub/",
+    }
+
+
+def test_every_module_is_in_the_map():
+    mapped = set(map_entries(DEVELOPMENT.read_text()))
+    missing = sorted(package_modules() - mapped)
+    assert not missing, f"modules docs/development.md's map does not name: {missing}"
+
+
+def test_the_map_names_only_what_exists():
+    gone = sorted(p for p in map_entries(DEVELOPMENT.read_text()) if not (ROOT / p).exists())
+    assert not gone, f"docs/development.md's map names what does not exist: {gone}"
+
+
+def test_each_folder_has_its_own_table():
+    """Each module is listed under its own folder's heading: one table per folder."""
+    folders = {p.rsplit("/", 1)[0] + "/" for p in package_modules()}
+    headings = set(map_entries(DEVELOPMENT.read_text()).values())
+    assert folders <= headings, f"folders without a table: {sorted(folders - headings)}"
+
+
+# ------------------------------------------------------------------------------- layers
+def layers(text: str) -> list[list[str]]:
+    """The numbered layers of "Architecture" / "Layers": each a list of units, a unit a
+    top-level module (``train.py``) or a folder (``run/``), relative to the package."""
+    block = _section(text, "Architecture").split("### Layers", 1)[1].split("\n### ", 1)[0]
+    found = []
+    for line in block.splitlines():
+        m = re.fullmatch(r"\s+(\d+)\.\s+(?:[a-z ]+:)?\s*(.+)", line)
+        if m:
+            assert int(m.group(1)) == len(found) + 1, line
+            found.append(m.group(2).split())
+    return found
+
+
+def unit_of(module: str) -> str:
+    """A module's unit in the layers: its top-level file or its folder (the deepest one listed)."""
+    parts = module.split(".")[1:]
+    path = ROOT / PACKAGE / Path(*parts) if parts else ROOT / PACKAGE
+    if path.is_dir():  # a package: its __init__.py
+        parts = [*parts, "__init__"]
+    if len(parts) == 1:
+        return parts[0] + ".py"
+    if parts[0] == "exploration" and len(parts) > 2 and parts[1] == "coherent":
+        return "exploration/coherent/"
+    return parts[0] + "/"
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _exists(module: str) -> bool:
+    base = ROOT / Path(*module.split("."))
+    return base.with_suffix(".py").exists() or (base / "__init__.py").exists()
+
+
+def imports_of(path: Path, source: str | None = None) -> set[str]:
+    """Every module of the package that `path` (or `source`, as if at `path`) imports,
+    wherever the import statement is."""
+    name = _module_name(path)
+    package = name if path.name == "__init__.py" else name.rsplit(".", 1)[0]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text() if source is None else source)):
+        if isinstance(node, ast.Import):
+            targets = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = ".".join(package.split(".")[: len(package.split(".")) - node.level + 1])
+                source = f"{base}.{node.module}" if node.module else base
+            else:
+                source = node.module or ""
+            # ``from pkg import mod`` imports the module; ``from mod import name`` the module.
+            targets = [f"{source}.{a.name}" if _exists(f"{source}.{a.name}") else source for a in node.names]
+        else:
+            continue
+        found.update(t for t in targets if t.startswith(PACKAGE + ".") and _exists(t))
+    return found
+
+
+def test_layer_check_sees_function_level_and_relative_imports():
+    source = (
+        "from . import task\nfrom .spec import TaskSpec\nimport json\n\n"
+        "def f():\n    from coherent_jax.run import launch\n    import coherent_jax.cli\n"
+        "    from coherent_jax.config import Config\n"
+    )
+    found = imports_of(ROOT / PACKAGE / "envs" / "quiet.py", source)
+    assert found == {
+        "coherent_jax.envs.task",
+        "coherent_jax.envs.spec",
+        "coherent_jax.run.launch",
+        "coherent_jax.cli",
+        "coherent_jax.config",
+    }
+    assert unit_of("coherent_jax.run.launch") == "run/"
+    assert unit_of("coherent_jax.exploration.coherent.filter") == "exploration/coherent/"
+    assert unit_of("coherent_jax.exploration") == "exploration/"
+    assert unit_of("coherent_jax.cli") == "cli.py"
+    assert unit_of("coherent_jax") == "__init__.py"
+
+
+def test_imports_follow_the_layers():
+    stated = layers(DEVELOPMENT.read_text())
+    level = {unit: i for i, units in enumerate(stated) for unit in units}
+    modules = sorted((ROOT / PACKAGE).rglob("*.py"))
+    units = {unit_of(_module_name(p)) for p in modules}
+    assert units == set(level), f"units the layers miss: {sorted(units - set(level))}; " + (
+        f"listed but absent: {sorted(set(level) - units)}"
+    )
+    upward = []
+    for path in modules:
+        unit = unit_of(_module_name(path))
+        for target in sorted(imports_of(path)):
+            other = unit_of(target)
+            if other != unit and level[other] <= level[unit]:
+                upward.append(f"{path.relative_to(ROOT)} ({unit}) imports {target} ({other})")
+    assert not upward, "imports against docs/development.md's layers:\n" + "\n".join(upward)
