@@ -1,19 +1,25 @@
-"""docs/development.md's module map and layers, against the code.
+"""docs/development.md's module map and layers, and docs/walkthrough.md's names, against the code.
 
 * The map (the tables under "Architecture", one per folder, headed ``### `FOLDER/` ``) names
   every module of ``coherent_jax/`` and ``experiments/`` and nothing that does not exist.
 * The layers listed there hold for every import of the package, at module level and inside
   functions: a module imports from its own folder or from a layer below its own.
+* Every ``coherent_jax.x.y`` name the walk-through gives in backticks resolves (module, then
+  attributes), and its count of hops is the number of hops it lists.
 """
 
 from __future__ import annotations
 
 import ast
+import importlib
 import re
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 DEVELOPMENT = ROOT / "docs" / "development.md"
+WALKTHROUGH = ROOT / "docs" / "walkthrough.md"
 MAPPED_TREES = ("coherent_jax", "experiments")  # every *.py below these must be in the map
 PACKAGE = "coherent_jax"
 
@@ -186,3 +192,57 @@ def test_imports_follow_the_layers():
             if other != unit and level[other] <= level[unit]:
                 upward.append(f"{path.relative_to(ROOT)} ({unit}) imports {target} ({other})")
     assert not upward, "imports against docs/development.md's layers:\n" + "\n".join(upward)
+
+
+# --------------------------------------------------------------------------- walk-through
+def walkthrough_names(text: str) -> list[str]:
+    """Every backticked dotted name of the package in `text`, in order, without repeats."""
+    names = re.findall(r"`(coherent_jax(?:\.[A-Za-z_][A-Za-z0-9_]*)+)`", text)
+    return list(dict.fromkeys(names))
+
+
+def resolve(name: str):
+    """The object `name` names: the longest importable module prefix, then attributes."""
+    parts = name.split(".")
+    for cut in range(len(parts), 0, -1):
+        try:
+            obj = importlib.import_module(".".join(parts[:cut]))
+        except ModuleNotFoundError:
+            continue
+        for attr in parts[cut:]:
+            obj = getattr(obj, attr)
+        return obj
+    raise ModuleNotFoundError(name)
+
+
+def test_resolve_refuses_a_name_that_does_not_exist():
+    assert resolve("coherent_jax.envs.vec_env.VecEnv.step") is not None
+    with pytest.raises(AttributeError):
+        resolve("coherent_jax.envs.vec_env.VecEnv.stepp")
+    with pytest.raises(AttributeError):
+        resolve("coherent_jax.run.launcher.run")
+
+
+def test_every_name_of_the_walkthrough_exists():
+    names = walkthrough_names(WALKTHROUGH.read_text())
+    assert len(names) >= 30, names  # the walk-through names each function on the way
+    unresolved = []
+    for name in names:
+        try:
+            resolve(name)
+        except (AttributeError, ModuleNotFoundError) as exc:
+            unresolved.append(f"{name}: {exc}")
+    assert not unresolved, "names in docs/walkthrough.md that do not exist:\n" + "\n".join(unresolved)
+
+
+def test_walkthrough_hop_count_is_its_list():
+    """The hops from ``num_envs=`` to `VecEnv.step`: the stated number is the list's length,
+    each hop a numbered row naming the function it calls."""
+    text = WALKTHROUGH.read_text()
+    stated = re.search(r"\*\*(\d+) hops\*\*", text)
+    assert stated, "the walk-through states no hop count"
+    table = text.split("<!-- hops -->", 2)[1]
+    rows = re.findall(r"^\| (\d+) \| [^|]*`(coherent_jax\.[\w.]+)`", table, flags=re.M)
+    assert [int(n) for n, _ in rows] == list(range(1, len(rows) + 1))
+    assert int(stated.group(1)) == len(rows)
+    assert rows[-1][1] == "coherent_jax.envs.vec_env.VecEnv.step"
