@@ -5,7 +5,8 @@
 * The layers listed there hold for every import of the package, at module level and inside
   functions: a module imports from its own folder or from a layer below its own.
 * Every ``coherent_jax.x.y`` name the walk-through gives in backticks resolves (module, then
-  attributes), and its count of hops is the number of hops it lists.
+  attributes), its count of hops is the number of hops it lists, and the package's calls on
+  the stack at the first `VecEnv.step` of a real start of ``train`` are hops of that list.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from __future__ import annotations
 import ast
 import importlib
 import re
+import sys
 from pathlib import Path
 
 import pytest
@@ -246,3 +248,52 @@ def test_walkthrough_hop_count_is_its_list():
     assert [int(n) for n, _ in rows] == list(range(1, len(rows) + 1))
     assert int(stated.group(1)) == len(rows)
     assert rows[-1][1] == "coherent_jax.envs.vec_env.VecEnv.step"
+
+
+def _hop_rows() -> list[str]:
+    """The first package name of each row of the walk-through's hop list, in order."""
+    table = WALKTHROUGH.read_text().split("<!-- hops -->", 2)[1]
+    return re.findall(r"^\| \d+ \| [^|]*`(coherent_jax\.[\w.]+)`", table, flags=re.M)
+
+
+def test_the_calls_on_the_stack_at_the_env_step_are_hops_in_order(tmp_path, monkeypatch):
+    """A real start of ``train`` (``pointmass``, stopped at its first `VecEnv.step`, while the
+    iteration is traced): every function of the package on the stack there is a hop of the
+    list, in the list's order (the hops not on the stack returned their value before)."""
+    from coherent_jax import train
+    from coherent_jax.envs import vec_env
+
+    class Reached(Exception):
+        pass
+
+    seen: list[str] = []
+
+    def step(self, state, action):
+        frame = sys._getframe(1)
+        while frame is not None:
+            module = frame.f_globals.get("__name__", "")
+            if module.startswith(PACKAGE + "."):
+                qualname = frame.f_code.co_qualname.split(".<locals>.")[0]  # a closure: its function
+                seen.append(f"{module}.{qualname}")
+            frame = frame.f_back
+        raise Reached
+
+    monkeypatch.setattr(vec_env.VecEnv, "step", step)
+    argv = [
+        "env=pointmass",
+        "num_envs=8",
+        f"run_dir={tmp_path / 'run'}",
+        "progress=false",
+        "tensorboard=false",
+    ]
+    with pytest.raises(Reached):
+        train.main(argv)
+    stack = [*reversed(seen), "coherent_jax.envs.vec_env.VecEnv.step"]
+    assert stack[0] == "coherent_jax.train.main"
+    rows, at = _hop_rows(), 0
+    for name in stack[1:]:
+        assert name in rows[at:], f"{name}, on the stack at VecEnv.step, is not a later hop of the list"
+        at = rows.index(name, at) + 1
+    assert at == len(rows)  # the last frame is the last hop, VecEnv.step
+    on_stack = re.search(r"\*\*(\d+) of them\*\* are on the stack", WALKTHROUGH.read_text())
+    assert on_stack and int(on_stack.group(1)) == len(stack) - 1  # train.main is where the hops start
