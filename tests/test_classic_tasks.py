@@ -63,7 +63,7 @@ def _compare(task, actions_of, steps, seed):
 
 
 @pytest.mark.parametrize("task", sorted(IDS))
-def test_row3_steps_equal_gymnasium_from_the_same_states(task):
+def test_classic_steps_equal_gymnasium_from_the_same_states(task):
     """Random actions (and beyond the bounds: Gymnasium clips them, the reward of the car
     takes them as given) from Gymnasium's reset, for a whole episode's length."""
     rng = np.random.default_rng(1)
@@ -73,7 +73,7 @@ def test_row3_steps_equal_gymnasium_from_the_same_states(task):
     assert ours == theirs and len(ours) == steps and not any(ours)
 
 
-def test_row3_mountain_car_terminates_at_the_goal_with_gymnasiums_reward():
+def test_classic_mountain_car_terminates_at_the_goal_with_gymnasiums_reward():
     """Bang-bang control reaches the flag: the same step terminates in both, paying 100 - 0.1 a^2;
     the left wall stops the car (velocity 0) on the way, as in Gymnasium."""
     for seed in range(3):
@@ -84,7 +84,7 @@ def test_row3_mountain_car_terminates_at_the_goal_with_gymnasiums_reward():
         assert ours == theirs and ours[-1] and sum(ours) == 1 and len(ours) < 200
 
 
-def test_row3_mountain_car_left_wall_is_inelastic():
+def test_classic_mountain_car_left_wall_is_inelastic():
     env = make_brax_env("mountain_car_continuous")
     state = env.reset(jax.random.PRNGKey(0)).replace(pipeline_state=jnp.array([-1.19, -0.05]))
     theirs = gym.make(IDS["mountain_car_continuous"]).unwrapped
@@ -96,7 +96,7 @@ def test_row3_mountain_car_left_wall_is_inelastic():
 
 
 @pytest.mark.parametrize("task", sorted(IDS))
-def test_row3_reset_distribution_is_gymnasiums(task):
+def test_classic_reset_distribution_is_gymnasiums(task):
     """Car: position U(-0.6, -0.4), velocity 0; pendulum: angle U(-pi, pi), speed U(-1, 1).
     KS test per varying observation dimension (level 1e-3), and the support's bounds."""
     env = make_brax_env(task)
@@ -119,7 +119,7 @@ def test_row3_reset_distribution_is_gymnasiums(task):
 
 
 @pytest.mark.parametrize("task", sorted(IDS))
-def test_row3_time_limits_and_truncation_are_gymnasiums(task):
+def test_classic_time_limits_and_truncation_are_gymnasiums(task):
     """999 and 200 steps by default (Gymnasium's registered limits), truncated (bootstrapped) at
     the limit; the pendulum never terminates."""
     spec = check_task(task)
@@ -137,7 +137,7 @@ def test_row3_time_limits_and_truncation_are_gymnasiums(task):
         assert np.all(np.asarray(out.episode_return) == 0.0)
 
 
-def test_row3_pendulum_maps_the_action_onto_its_torque_bounds():
+def test_classic_pendulum_maps_the_action_onto_its_torque_bounds():
     """The agent's action in [-1, 1] is the torque / 2 (`to_bounds`); beyond 1 it is clipped."""
     env = make_brax_env("pendulum")
     state = env.reset(jax.random.PRNGKey(0)).replace(pipeline_state=jnp.array([0.5, 0.0]))
@@ -155,7 +155,7 @@ def test_row3_pendulum_maps_the_action_onto_its_torque_bounds():
     assert float(gymnasium_action_map("pendulum", space)(jnp.array([0.25]))[0]) == 0.5
 
 
-def test_row3_goal_reached_is_logged_for_the_car_only():
+def test_classic_goal_reached_is_logged_for_the_car_only():
     """``eval/goal_reached``: the fraction of evaluation episodes that ended at the goal; a
     reached episode's return is positive, one that did not reach it is not."""
     car = VecEnv("mountain_car_continuous", 4)
@@ -170,7 +170,7 @@ def test_row3_goal_reached_is_logged_for_the_car_only():
 
 
 @pytest.mark.parametrize("task", sorted(IDS))
-def test_row3_evaluate_runs_the_policy_in_gymnasium(tmp_path, capsys, task):
+def test_classic_evaluate_runs_the_policy_in_gymnasium(tmp_path, capsys, task):
     """``engine=gymnasium`` on a fresh (untrained) policy: Gymnasium's episodes have the task's
     length and a return within the episodes' spread of ours (different initial draws)."""
     overrides = [f"env={task}", "num_envs=2", "ppo.num_minibatches=1", "progress=false"]
@@ -183,7 +183,7 @@ def test_row3_evaluate_runs_the_policy_in_gymnasium(tmp_path, capsys, task):
     assert abs(result["gymnasium_return_mean"] - result["return_mean"]) <= max(3 * spread, 1.0), result
 
 
-def test_row3_registry_names_their_gymnasium_ids_and_builds_them_as_jax_envs():
+def test_classic_registry_names_their_gymnasium_ids_and_builds_them_as_jax_envs():
     """Gymnasium ids for evaluate's engine=gymnasium; pure JAX (no MuJoCo physics to choose)."""
     from coherent_jax.envs.registry import CLASSIC_IDS, brax_counterpart, resolve_physics
 
@@ -194,7 +194,7 @@ def test_row3_registry_names_their_gymnasium_ids_and_builds_them_as_jax_envs():
     assert brax_counterpart("hopper") == "brax-hopper"
 
 
-def test_row3_evaluate_without_gymnasium_names_it_in_one_line(tmp_path, capsys, monkeypatch):
+def test_classic_evaluate_without_gymnasium_names_it_in_one_line(tmp_path, capsys, monkeypatch):
     """A classic task needs Gymnasium alone (not gymnasium[mujoco]); refused before evaluating."""
     import sys
 

@@ -310,7 +310,7 @@ def _fake_classic_cell(cell, results, reach: bool):
         (point / "summary.json").write_text(json.dumps({"seed": seed}))
 
 
-def test_row4_report_counts_the_seeds_that_reach_mountain_cars_goal(tmp_path, monkeypatch):
+def test_classic_report_counts_the_seeds_that_reach_mountain_cars_goal(tmp_path, monkeypatch):
     """The classic suite's section: per strategy the seeds that reached the goal in training
     (and when first), the seeds whose final policy reaches it, and coherent's verdicts at each
     beta against the other strategies. Figures and bootstrap intervals are stubbed (minutes
@@ -341,7 +341,7 @@ def test_row4_report_counts_the_seeds_that_reach_mountain_cars_goal(tmp_path, mo
     assert report.build(tmp_path, tmp_path / "RESULTS.md", ["classic"]) == text
 
 
-def test_row4_curves_table_of_returns_only_still_reads(tmp_path):
+def test_classic_curves_table_of_returns_only_still_reads(tmp_path):
     """A table written before the goal columns existed reads with empty goal fields."""
     legacy = "cell,point,env_steps,eval/episode_return,train/episode_return\nc,p,4096,,1.5\n"
     data = gzip.compress(legacy.encode(), mtime=0)

@@ -89,7 +89,7 @@ def test_sparse_suite_runs_every_strategy_on_four_sparse_control_tasks():
         assert len(coherent.setting("beta").strip("[]").split(",")) >= 3
 
 
-def test_row4_classic_suite_runs_every_strategy_on_mountain_car():
+def test_classic_suite_runs_every_strategy_on_mountain_car():
     """PPO with every on-policy strategy on MountainCarContinuous, 5 seeds each; coherent at beta
     0, 0.01 and 0.1 with the episode gradient (beta 0: one draw per episode); every cell a valid
     sweep; the budget's estimate 60-90 minutes."""
