@@ -13,7 +13,7 @@ from helpers import ROOT
 from coherent_jax import sweep, train
 from coherent_jax.config import ConfigError, parse_overrides
 from coherent_jax.config.checks import warmup_warning
-from coherent_jax.run import launch
+from coherent_jax.run import launch, single
 from coherent_jax.run.loop import StopRequest
 from coherent_jax.run.runs import stored_config
 
@@ -151,7 +151,7 @@ def test_row12_a_task_by_file_path_and_the_declared_forms(tmp_path, monkeypatch)
     assert parse_overrides(["env=arm.py:arm"]).episode_length == 30  # annotated (as a string) factory
     assert parse_overrides(["env=arm.py:Arm"]).episode_length == 40  # a subclass
     cfg = parse_overrides(["env=arm.py:arm"])
-    assert str(train.default_run_dir(cfg)).startswith(os.path.join("runs", "arm:arm-ppo-"))
+    assert str(single.default_run_dir(cfg)).startswith(os.path.join("runs", "arm:arm-ppo-"))
     with pytest.raises(ConfigError, match=r"file 'nowhere\.py' not found"):
         parse_overrides(["env=nowhere.py:arm"])
     readme = (ROOT / "README.md").read_text()

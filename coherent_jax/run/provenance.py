@@ -24,7 +24,7 @@ from typing import Any
 
 # Widest first: the first of these in the CPU's flags is its level.
 VECTOR_LEVELS = ("avx512f", "avx2", "avx", "sse4_2")
-PROJECT_ROOT = Path(__file__).resolve().parents[1]
+PROJECT_ROOT = Path(__file__).resolve().parents[2]  # coherent_jax/run/provenance.py -> the checkout
 #: tracked results data that `git_state` does not count as a change of the checkout
 RESULTS_DATA = "experiments/results"
 
