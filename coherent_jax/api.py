@@ -22,7 +22,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from coherent_jax.config import Config, ConfigError, override_items, to_dict
+from coherent_jax.config import Config, ConfigError, override_items
+from coherent_jax.config.legacy import overrides_of
 
 
 class PolicyFunction:
@@ -111,7 +112,7 @@ def _items(config: Config | Mapping[str, Any] | None) -> list[str]:
     if config is None:
         return []
     if isinstance(config, Config):
-        return override_items(to_dict(config))
+        return override_items(overrides_of(config))
     if isinstance(config, Mapping):
         return override_items(config)
     raise ConfigError(

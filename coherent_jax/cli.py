@@ -29,8 +29,9 @@ from typing import Any, NamedTuple
 
 import yaml
 
-from coherent_jax.config import FIELDS, Config, ConfigError, modern_items, parse_overrides
+from coherent_jax.config import FIELDS, Config, ConfigError, parse_overrides
 from coherent_jax.config.checks import unknown_key
+from coherent_jax.config.legacy import modern_items, run_pair
 
 
 @dataclasses.dataclass(frozen=True)
@@ -282,8 +283,10 @@ def parse_command(
     """
     fixed = dict(fixed or {})
     valid_config = (config_keys() - set(fixed) - set(ignored)) if config else set()
-    if config:  # the flat keys of before, renamed to their groups' (with a note)
-        items = [i if i.split("=", 1)[0].strip() in keys else modern_items([i])[0] for i in items]
+    fixed_items = [f"{k}={v}" for k, v in fixed.items() if v is not None]
+    if config:  # the keys of before, renamed to today's (with a note) for the run's algo and explore
+        pair = run_pair([*config_defaults, *items, *fixed_items])
+        items = [i if i.split("=", 1)[0].strip() in keys else modern_items([i], pair=pair)[0] for i in items]
     settings = {k: spec.default for k, spec in keys.items()}
     config_items = []
     check_unique(items)
@@ -308,7 +311,6 @@ def parse_command(
             raise unknown_key(key, set(keys) | valid_config)
     cfg = None
     if config:
-        fixed_items = [f"{k}={v}" for k, v in fixed.items() if v is not None]
         cfg = parse_overrides([*config_defaults, *config_items, *fixed_items])
     return Parsed(settings, cfg, config_items)
 

@@ -59,12 +59,12 @@ from coherent_jax.config import (
     help_text,
     hparam_name,
     limits,
-    modern_items,
     parse_overrides,
     sweepable,
     validate,
     with_values,
 )
+from coherent_jax.config.legacy import modern_items
 from coherent_jax.envs.registry import task_label
 from coherent_jax.run import launch, multihost, rundir, tracking
 from coherent_jax.run.loop import PREFIX, StopRequest, to_float, write_params

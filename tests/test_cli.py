@@ -165,7 +165,7 @@ def test_help_prints_options_grouped_and_every_field_declares_its_group():
     from coherent_jax.config import FIELDS, GROUPS, SECTIONS, SWEEPABLE, help_text
 
     assert all(f.metadata.get("group") in SECTIONS for k, f in FIELDS.items() if "." not in k)
-    assert GROUPS == ("ppo", "sac", "coherent", "noisynet", "psne", "gsde", "pink", "lattice")
+    assert GROUPS == ("ppo", "sac", "coherent", "coherent_sac", "noisynet", "psne", "gsde", "pink", "lattice")
     text = help_text()
     titles = [*SECTIONS, *(f"{g}.*" for g in GROUPS)]
     headers = [text.index(f"\n{t}") for t in titles]

@@ -56,9 +56,9 @@ def test_flat_key_of_before_sets_its_group_key_with_a_note(old, capsys):
         str(not default).lower() if isinstance(default, bool) else str(round(default * 0.5 + 0.01, 4))
     )
     extra = ["ppo.vf_lr=0.001"] if old == "vf_iters" else ["ppo.vf_iters=2"] if old == "vf_lr" else []
-    from coherent_jax.config import parse as parse_module
+    from coherent_jax.config import legacy
 
-    parse_module._NOTED.discard(old)
+    legacy._NOTED.discard(old)
     flat = parse_overrides([*extra, f"{old}={text}"])
     err = capsys.readouterr().err
     assert f"'{old}'" in err and f"'{new}'" in err and len(err.strip().splitlines()) == 1, err
@@ -130,7 +130,7 @@ def test_every_stored_config_loads_with_its_flat_values(path):
             for sub, v in value.items():
                 assert get_value(cfg, f"{key}.{sub}") == v, (key, sub)
             continue
-        new = modern_key(key, note=False)
+        new = modern_key(key, note=False, pair=(cfg.algo, cfg.explore))
         assert new in FIELDS, key
         expected = "" if key == "preset" and value is None else value
         assert get_value(cfg, new) == expected, key

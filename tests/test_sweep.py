@@ -184,10 +184,14 @@ def test_sweepable_keys_enter_only_through_state_hparams():
     }
     # Coherent-SAC reads these (and lr, gamma, beta) from its state's hparams.
     sac = {"lr": 1e-3, "gamma": 0.9, "coherent.beta": 0.5, "sac.tau": 0.01, "sac.temperature": 0.1}
-    sac.update({"psne.sigma_init": 0.2, "psne.sigma_delta": 0.2, "psne.sigma_alpha": 1.05})
+    sac.update({"coherent_sac.sigma_init": 0.2, "coherent_sac.sigma_delta": 0.2})
+    sac.update({"coherent_sac.sigma_alpha": 1.05})
     # With its own optimiser (vf_iters > 0) the value function also reads vf_lr.
     separate_value = {**on_policy, "ppo.vf_lr": 3e-4}
-    assert set(separate_value) | set(sac) == set(SWEEPABLE)
+    # PSNE-SAC reads psne's sigma rule.
+    sac_psne = {k: v for k, v in sac.items() if not k.startswith("coherent")}
+    sac_psne.update({"psne.sigma_init": 0.2, "psne.sigma_delta": 0.2, "psne.sigma_alpha": 1.05})
+    assert set(separate_value) | set(sac) | set(sac_psne) == set(SWEEPABLE)
     sac_base = [
         "algo=sac",
         "policy_hidden=[16]",
@@ -202,6 +206,7 @@ def test_sweepable_keys_enter_only_through_state_hparams():
             separate_value,
         ),
         ([*TINY, *sac_base, "explore=coherent"], sac),
+        ([*TINY, *sac_base, "explore=psne"], sac_psne),
     ):
         base = parse_overrides(base_overrides)
         env = VecEnv(base.env, base.num_envs, base.episode_length)
@@ -231,6 +236,8 @@ def test_sweepable_declarations_match_every_trainer():
     changed.update({"ppo.vf_coef": 0.7, "ppo.ent_coef": 0.01, "coherent.beta": 0.5, "sac.tau": 0.01})
     changed.update({"sac.temperature": 0.1, "psne.sigma_init": 0.2, "psne.sigma_delta": 0.2})
     changed.update({"psne.sigma_alpha": 1.05, "ppo.vf_lr": 3e-4})
+    changed.update({"coherent_sac.sigma_init": 0.2, "coherent_sac.sigma_delta": 0.2})
+    changed.update({"coherent_sac.sigma_alpha": 1.05})
     assert set(changed) == set(SWEEPABLE)
     env = VecEnv("pointmass", 4, 50)
     eval_env = VecEnv("pointmass", 2, 50)

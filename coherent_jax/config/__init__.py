@@ -2,13 +2,14 @@
 
 The configuration is one dataclass (`Config`, `coherent_jax.config.schema`): the
 settings every run reads at the top level, an algorithm's or a strategy's own in a
-group (``ppo.*``, ``sac.*``, ``coherent.*``, ``noisynet.*``, ``psne.*``, ``gsde.*``,
-``pink.*``, ``lattice.*``; `coherent_jax.config.groups`). Every field declares its help, its range or
-choices and, for a sweepable scalar, a `Sweepable` saying which (algo, explore) pairs
+group (``ppo.*``, ``sac.*``, ``coherent.*``, ``coherent_sac.*``, ``noisynet.*``, ``psne.*``,
+``gsde.*``, ``pink.*``, ``lattice.*``; `coherent_jax.config.groups`). Every field declares
+its help, its range or choices and, for a sweepable scalar, a `Sweepable` saying which (algo, explore) pairs
 hold it in the train state (`coherent_jax.config.declare`); validation is derived from
 these declarations plus a few named cross-field checks (`coherent_jax.config.checks`).
-Overrides are parsed, and stored configs read, by `coherent_jax.config.parse`, which
-also maps the flat keys of before (``clip_eps``) to their groups' (``ppo.clip_eps``).
+Overrides are parsed, and stored configs read, by `coherent_jax.config.parse`; the keys
+of before (the flat ``clip_eps``, Coherent-SAC's ``psne.*``) and what they are now
+(``ppo.clip_eps``, ``coherent_sac.*``) are `coherent_jax.config.legacy`'s, all of them.
 
 Shape-determining settings (``num_envs``, ``unroll_length``, network sizes, ...) are
 static Python values; the sweepable scalars (`SWEEPABLE`) become arrays inside the
@@ -23,6 +24,7 @@ from coherent_jax.config.groups import (
     COHERENT_INTEGRATION,
     COHERENT_LAYERS,
     CoherentOptions,
+    CoherentSACOptions,
     GsdeOptions,
     LatticeOptions,
     NoisyNetOptions,
@@ -31,23 +33,27 @@ from coherent_jax.config.groups import (
     PsneOptions,
     SACOptions,
 )
-from coherent_jax.config.parse import (
+from coherent_jax.config.legacy import (
+    COHERENT_SAC_KEYS,
+    LEGACY_KEYS,
     flat_dict,
+    modern_items,
+    modern_key,
+    overrides_of,
+    upgrade_stored,
+)
+from coherent_jax.config.parse import (
     from_stored,
     help_text,
     make_config,
-    modern_items,
-    modern_key,
     override_items,
     parse_overrides,
     to_dict,
-    upgrade_stored,
 )
 from coherent_jax.config.schema import (
     ACTIVATIONS,
     FIELDS,
     GROUPS,
-    LEGACY_KEYS,
     SECTIONS,
     SWEEPABLE,
     Config,
@@ -65,6 +71,7 @@ __all__ = [
     "COHERENT_INFERENCE",
     "COHERENT_INTEGRATION",
     "COHERENT_LAYERS",
+    "COHERENT_SAC_KEYS",
     "CROSS_CHECKS",
     "EXPLORES",
     "FIELDS",
@@ -76,6 +83,7 @@ __all__ = [
     "SUPPORTED_ALGOS",
     "SWEEPABLE",
     "CoherentOptions",
+    "CoherentSACOptions",
     "Config",
     "ConfigError",
     "GsdeOptions",
@@ -95,6 +103,7 @@ __all__ = [
     "modern_items",
     "modern_key",
     "override_items",
+    "overrides_of",
     "parse_overrides",
     "sweepable",
     "to_dict",

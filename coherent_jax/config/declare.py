@@ -3,9 +3,9 @@
 A field declares everything about itself in its metadata: the one-line help
 (``--help``), the allowed values (``choices``) or range (``check``: a predicate and the
 text of what it allows), the help section of a top-level field (``group``), for a
-sweepable scalar a `Sweepable`, and for a field that moved into a group the flat key it
-had before (``old``: ``clip_eps`` is now ``ppo.clip_eps``), and the text of the allowed values
-where they are no fixed list (``allowed``: the env's). `coherent_jax.config.checks`
+sweepable scalar a `Sweepable`, and the text of the allowed values where they are no
+fixed list (``allowed``: the env's). The keys a setting had before are
+`coherent_jax.config.legacy`'s. `coherent_jax.config.checks`
 validates from these declarations. No JAX here.
 """
 
@@ -69,7 +69,6 @@ def field(
     check: Check | None = None,
     choices: tuple[Any, ...] | None = None,
     sweep: Sweepable | None = None,
-    old: str | None = None,
     allowed: str | None = None,
 ) -> Any:
     """A config field with its help and declarations (see the module's docstring)."""
@@ -79,7 +78,6 @@ def field(
         ("check", check),
         ("choices", choices),
         ("sweep", sweep),
-        ("old", old),
         ("allowed", allowed),
     ):
         if value is not None:
@@ -96,8 +94,11 @@ def sweep(*reads: tuple[tuple[str, ...], tuple[str, ...]], hparam: str | None = 
 EVERY = (ALGOS, EXPLORES)
 ON_POLICY_ALL = (ON_POLICY, EXPLORES)
 SAC_ALL = (("sac",), EXPLORES)
-# The adaptive-sigma rule (4.50)-(4.51): PSNE everywhere, Coherent-SAC (its chain's scale).
-SIGMA_RULE = ((("sac",), ("coherent", "psne")), (ON_POLICY, ("psne",)))
+# The adaptive-sigma rule (4.50)-(4.51): PSNE's with every algorithm (sigma itself is in the
+# state with SAC only: on-policy it is per-env state), Coherent-SAC's for its chain's scale.
+PSNE_SAC = (("sac",), ("psne",))
+SIGMA_RULE = (PSNE_SAC, (ON_POLICY, ("psne",)))
+COHERENT_SAC = (("sac",), ("coherent",))
 
 
 class Group:

@@ -1,7 +1,7 @@
 """The settings of one algorithm or one strategy, each a group of the config (``ppo.*``, ...).
 
-Their declarations (help, range, choices, sweepable, the flat key they had before) are
-`coherent_jax.config.declare`'s. No JAX here.
+Their declarations (help, range, choices, sweepable) are `coherent_jax.config.declare`'s;
+the keys they had before, `coherent_jax.config.legacy`'s. No JAX here.
 """
 
 from __future__ import annotations
@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 
 from coherent_jax.config.declare import (
+    COHERENT_SAC,
     COUNT,
     NON_NEGATIVE,
     ON_POLICY_ALL,
@@ -34,52 +35,35 @@ COHERENT_INFERENCE = ("joint", "filter")
 class PPOOptions(Group):
     """A2C's and PPO's settings (``ppo.<key>=value``; A2C takes one gradient step per iteration)."""
 
-    gae_lambda: float = field(
-        0.95, "GAE lambda (eq. 2.30)", check=UNIT, sweep=sweep(ON_POLICY_ALL), old="gae_lambda"
-    )
-    num_epochs: int = field(
-        10, "PPO epochs per iteration (A2C: 1 gradient step)", check=COUNT, old="num_epochs"
-    )
-    num_minibatches: int = field(
-        8, "minibatches per epoch; they split envs, never time", check=at_least(1), old="num_minibatches"
-    )
+    gae_lambda: float = field(0.95, "GAE lambda (eq. 2.30)", check=UNIT, sweep=sweep(ON_POLICY_ALL))
+    num_epochs: int = field(10, "PPO epochs per iteration (A2C: 1 gradient step)", check=COUNT)
+    num_minibatches: int = field(8, "minibatches per epoch; they split envs, never time", check=at_least(1))
     clip_eps: float = field(
-        0.2, "PPO clipping epsilon (eq. 2.41)", check=POSITIVE, sweep=sweep(ON_POLICY_ALL), old="clip_eps"
+        0.2, "PPO clipping epsilon (eq. 2.41)", check=POSITIVE, sweep=sweep(ON_POLICY_ALL)
     )
     target_kl: float = field(
         0.0,
         "stop the epochs once approx KL > 1.5 * target_kl; 0 = never",
         check=NON_NEGATIVE,
         sweep=sweep(ON_POLICY_ALL),
-        old="target_kl",
     )
-    vf_coef: float = field(
-        0.5, "weight of the value loss", check=NON_NEGATIVE, sweep=sweep(ON_POLICY_ALL), old="vf_coef"
-    )
+    vf_coef: float = field(0.5, "weight of the value loss", check=NON_NEGATIVE, sweep=sweep(ON_POLICY_ALL))
     vf_lr: float = field(
         0.0,
         "the value's own Adam rate (with vf_iters); 0 = joint loss",
         check=NON_NEGATIVE,
         sweep=sweep(ON_POLICY_ALL),
-        old="vf_lr",
     )
-    vf_iters: int = field(
-        0, "full-batch value steps per iteration after the policy's; 0 = joint loss", old="vf_iters"
-    )
+    vf_iters: int = field(0, "full-batch value steps per iteration after the policy's; 0 = joint loss")
     ent_coef: float = field(
-        0.0, "weight of the entropy bonus", check=NON_NEGATIVE, sweep=sweep(ON_POLICY_ALL), old="ent_coef"
+        0.0, "weight of the entropy bonus", check=NON_NEGATIVE, sweep=sweep(ON_POLICY_ALL)
     )
-    max_grad_norm: float = field(
-        0.5, "global gradient-norm clip; 0 = none", check=NON_NEGATIVE, old="max_grad_norm"
-    )
-    normalize_advantages: bool = field(
-        True, "standardise advantages per minibatch", old="normalize_advantages"
-    )
+    max_grad_norm: float = field(0.5, "global gradient-norm clip; 0 = none", check=NON_NEGATIVE)
+    normalize_advantages: bool = field(True, "standardise advantages per minibatch")
     normalize_rewards: bool = field(
         False,
         "divide rewards by the running std of each env's discounted return, clipped "
         "to [-10, 10] (SB3's VecNormalize, CleanRL's NormalizeReward)",
-        old="normalize_rewards",
     )
 
 
@@ -91,46 +75,36 @@ class SACOptions(Group):
         1_000_000,
         "replay capacity in transitions (a ring buffer in the state)",
         check=at_least(1),
-        old="buffer_size",
     )
-    batch_size: int = field(256, "transitions per gradient update", check=at_least(1), old="batch_size")
+    batch_size: int = field(256, "transitions per gradient update", check=at_least(1))
     utd_ratio: float = field(
         1.0,
         "gradient updates per env step (per iteration: utd_ratio * num_envs * unroll_length)",
         check=POSITIVE,
-        old="utd_ratio",
     )
-    warmup_steps: int = field(
-        5000, "env steps of uniform random actions", check=at_least(0), old="warmup_steps"
-    )
+    warmup_steps: int = field(5000, "env steps of uniform random actions", check=at_least(0))
     update_after: int | None = field(
         None,
         "env steps before updates start; null = warmup_steps",
         check=(lambda v: v is None or 0 <= v < 2**31, "an integer >= 0 or null"),
-        old="update_after",
     )
     tau: float = field(
         0.005,
         "Polyak step, target <- (1 - tau) target + tau online (rho = 1 - tau)",
         check=(lambda v: number(v) and 0 < v <= 1, "a number in (0, 1]"),
         sweep=sweep(SAC_ALL),
-        old="tau",
     )
     temperature: float = field(
         0.2,
         "entropy temperature alpha (initial value if auto_temperature)",
         check=POSITIVE,
         sweep=sweep(SAC_ALL),
-        old="temperature",
     )
-    auto_temperature: bool = field(
-        False, "adapt alpha towards target_entropy (thesis: fixed)", old="auto_temperature"
-    )
+    auto_temperature: bool = field(False, "adapt alpha towards target_entropy (thesis: fixed)")
     target_entropy: float | None = field(
         None,
         "auto_temperature's entropy target; null = -action_size",
         check=(lambda v: v is None or number(v), "a finite number or null"),
-        old="target_entropy",
     )
 
 
@@ -145,29 +119,23 @@ class CoherentOptions(Group):
         "under gradient=episode or stored, integration=mc and algo=sac (docs/coherent.md)",
         check=UNIT,
         sweep=sweep((ALGOS, ("coherent",))),
-        old="beta",
     )
     w_std_init: float = field(
         0.1,
         "initial std of the last-layer weights (Lambda^-1/2); 0.1 gives an initial action std of about 0.45",
         check=POSITIVE,
-        old="w_std_init",
     )
-    action_std: float = field(
-        0.1, "std of the action given the weights (Lambda_a^-1/2)", check=POSITIVE, old="action_std"
-    )
-    learn_action_std: bool = field(False, "learn action_std (thesis: fixed)", old="learn_action_std")
+    action_std: float = field(0.1, "std of the action given the weights (Lambda_a^-1/2)", check=POSITIVE)
+    learn_action_std: bool = field(False, "learn action_std (thesis: fixed)")
     inference: str = field(
         "joint",
         "how w is integrated out: joint (Cholesky of each segment's joint Gaussian, fast up to a "
         "few hundred steps per segment) or filter (sequential scan)",
         choices=COHERENT_INFERENCE,
-        old="coherent_inference",
     )
     remat: bool = field(
         False,
         "rematerialise the filter scan or the chained blocks in the backward pass (less memory, more time)",
-        old="remat",
     )
     integration: str = field(
         "analytic",
@@ -205,35 +173,56 @@ class NoisyNetOptions(Group):
         0.5,
         "initial noise scale sigma_0; each layer's sigma starts at sigma_0 / sqrt(fan_in)",
         check=POSITIVE,
-        old="noisynet_sigma0",
+    )
+
+
+SIGMA_ALPHA = (lambda v: number(v) and v > 1, "a number > 1")
+
+
+@dataclasses.dataclass
+class CoherentSACOptions(Group):
+    """Coherent-SAC's chain scale (thesis §4.3): W_t = W + sigma z_t, sigma adapted by
+    (4.50)-(4.51) as PSNE's, ``coherent_sac.<key>=value`` (``psne.*`` before, still read with a note)."""
+
+    sigma_init: float = field(
+        0.1,
+        "initial scale sigma of the chain around the actor's mean head, W_t = W + sigma z_t "
+        "(w_std = sigma; 0 gives plain SAC's actions)",
+        check=NON_NEGATIVE,
+        sweep=sweep(COHERENT_SAC, hparam="sigma"),
+    )
+    sigma_delta: float = field(
+        0.1, "distance threshold delta of the sigma rule (4.51)", check=POSITIVE, sweep=sweep(COHERENT_SAC)
+    )
+    sigma_alpha: float = field(
+        1.01,
+        "scaling factor alpha > 1 of the sigma rule (4.51)",
+        check=SIGMA_ALPHA,
+        sweep=sweep(COHERENT_SAC),
     )
 
 
 @dataclasses.dataclass
 class PsneOptions(Group):
-    """Parameter-space noise's adaptive sigma (4.50)-(4.51), ``psne.<key>=value``; Coherent-SAC's
-    chain scale follows the same rule."""
+    """Parameter-space noise's adaptive sigma (4.50)-(4.51), ``psne.<key>=value``."""
 
     sigma_init: float = field(
         0.1,
-        "initial parameter-noise scale sigma (coherent-sac: w_std = sigma)",
+        "initial parameter-noise scale sigma",
         check=NON_NEGATIVE,
         sweep=sweep(SIGMA_RULE[0], hparam="sigma"),
-        old="sigma_init",
     )
     sigma_delta: float = field(
         0.1,
         "distance threshold delta of the sigma rule (4.51)",
         check=POSITIVE,
         sweep=sweep(*SIGMA_RULE),
-        old="sigma_delta",
     )
     sigma_alpha: float = field(
         1.01,
         "scaling factor alpha > 1 of the sigma rule (4.51)",
-        check=(lambda v: number(v) and v > 1, "a number > 1"),
+        check=SIGMA_ALPHA,
         sweep=sweep(*SIGMA_RULE),
-        old="sigma_alpha",
     )
 
 
@@ -245,7 +234,6 @@ class GsdeOptions(Group):
         4,
         "steps between redraws of the noise matrix (also redrawn at each episode start)",
         check=COUNT,
-        old="gsde_resample_every",
     )
 
 
@@ -257,7 +245,6 @@ class PinkOptions(Group):
         1.0,
         "noise spectrum ~ 1/f^exponent (0 white, 1 pink, 2 red)",
         check=(lambda v: number(v) and 0 <= v <= 4, "a number in [0, 4] (0 white, 1 pink, 2 red)"),
-        old="pink_exponent",
     )
 
 

@@ -3,18 +3,15 @@
 OmegaConf turns the dataclass into a structured config, so ``key=value`` overrides
 (Hydra's syntax, ``ppo.clip_eps=0.1`` for a group's key) are type-checked on merge.
 
-The settings that moved into a group keep working under their old flat keys
-(``clip_eps=0.1``, ``beta=0.1``, ``coherent_inference=filter``): on the command line
-with a one-line note on stderr naming the new key (`modern_items`), and in a stored
-``config.yaml`` silently (`upgrade_stored`), so every run written before still loads,
-resumes and reports. A checkpoint's fingerprint is taken over the flat layout
-(`flat_dict`), so a run checkpointed before resumes under the new names. No JAX here.
+The keys of before (the flat ``clip_eps=0.1``, Coherent-SAC's ``psne.sigma_init``) keep
+working: they are renamed first (`coherent_jax.config.legacy`, with a one-line note on
+stderr), and a stored ``config.yaml`` is read in the layout of now (`upgrade_stored`).
+No JAX here.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import sys
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -22,42 +19,9 @@ from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from coherent_jax.config.checks import ConfigError, sweep_item, unknown_key, validate
+from coherent_jax.config.legacy import former_keys, modern_items, upgrade_stored
 from coherent_jax.config.presets import ALGO_DEFAULTS, dotted_items, help_lines, layered_base
-from coherent_jax.config.schema import FIELDS, GROUPS, LEGACY_KEYS, SECTIONS, SWEEPABLE, Config
-
-_NOTED: set[str] = set()  # the flat keys already noted in this process
-
-
-def modern_key(key: str, note: bool = True) -> str:
-    """`key`, or the grouped key a flat key of before now is (with a note on stderr, once)."""
-    new = LEGACY_KEYS.get(key)
-    if new is None:
-        return key
-    if note and key not in _NOTED:
-        _NOTED.add(key)
-        print(f"note: config key {key!r} is now {new!r}; the old name is deprecated", file=sys.stderr)
-    return new
-
-
-def modern_items(items: Sequence[str], note: bool = True) -> list[str]:
-    """``key=value`` items with every flat key of before renamed to its group's (`modern_key`)."""
-    out = []
-    for item in items:
-        key, eq, value = item.partition("=")
-        new = modern_key(key.strip(), note) if eq else key
-        out.append(f"{new}={value}" if eq and new != key.strip() else item)
-    return out
-
-
-def upgrade_stored(stored: dict[str, Any]) -> dict[str, Any]:
-    """A stored config (``config.yaml``, a policy record) in the grouped layout; a flat one
-    of before is moved into its groups, silently. A key both flat and grouped keeps the grouped."""
-    out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in stored.items() if k not in LEGACY_KEYS}
-    for old, new in LEGACY_KEYS.items():
-        if old in stored:
-            group, name = new.split(".", 1)
-            out.setdefault(group, {}).setdefault(name, stored[old])
-    return out
+from coherent_jax.config.schema import FIELDS, GROUPS, SECTIONS, SWEEPABLE, Config
 
 
 def from_stored(stored: dict[str, Any]) -> Config:
@@ -71,29 +35,6 @@ def to_dict(cfg: Config) -> dict[str, Any]:
     return dataclasses.asdict(cfg)
 
 
-# Groups added after the flat layout (no flat keys of before): their settings enter it only
-# where they differ from the group's defaults, so that every config of before keeps its
-# checkpoint fingerprint.
-LATER_GROUPS = ("lattice",)
-
-
-def flat_dict(cfg: Config) -> dict[str, Any]:
-    """The config in the flat layout of before the groups (what checkpoint fingerprints hash):
-    the moved settings at the top level under their old keys, ``coherent``'s ablations nested,
-    a `LATER_GROUPS` setting only where it is not its default."""
-    out = to_dict(cfg)
-    for group in LATER_GROUPS:
-        default = dataclasses.asdict(type(getattr(cfg, group))())
-        out[group] = {k: v for k, v in out[group].items() if v != default[k]}
-    for old, new in LEGACY_KEYS.items():
-        group, name = new.split(".", 1)
-        out[old] = out[group].pop(name)
-    for group in GROUPS:
-        if not out[group]:
-            del out[group]
-    return out
-
-
 def parse_overrides(overrides: Sequence[str], base: Config | None = None) -> Config:
     """Builds a validated `Config` from ``key=value`` strings (Hydra/OmegaConf syntax).
 
@@ -104,7 +45,7 @@ def parse_overrides(overrides: Sequence[str], base: Config | None = None) -> Con
     overrides (`coherent_jax.config.presets.layered_base`): ``algo=sac num_envs=4`` keeps
     SAC's network sizes and takes the user's env count.
     """
-    overrides = modern_items(overrides)
+    overrides = modern_items(overrides, base=base)
     chosen: dict[str, str | None] = {"algo": None, "preset": None}
     for item in overrides:
         if "=" not in item or item.startswith("="):
@@ -268,7 +209,7 @@ def help_text(cfg: Config | None = None, given: Sequence[str] = ()) -> str:
     The values are the defaults, or with `cfg` its values: ``preset=thesis --help`` shows
     what the items `given` (which resolve to `cfg`) make of each key."""
     changes = _algo_changes()
-    legacy = {new: old for old, new in LEGACY_KEYS.items()}
+    legacy = former_keys()
     lines = [
         "usage: python -m coherent_jax.train [key=value ...]",
         "dry_run=true (or --print-config) prints the resolved config and exits, writing nothing",
@@ -277,8 +218,8 @@ def help_text(cfg: Config | None = None, given: Sequence[str] = ()) -> str:
     ]
     lines.append(f"sweepable (a list runs a grid with coherent_jax.sweep): {', '.join(SWEEPABLE)}")
     lines.append(
-        "a group's key is dotted (ppo.clip_eps=0.1); the flat keys of before (clip_eps=0.1) "
-        "still work, with a note naming the new key"
+        "a group's key is dotted (ppo.clip_eps=0.1); the flat keys of before (clip_eps=0.1), and "
+        "psne.* for algo=sac explore=coherent, still work, with a note naming the new key"
     )
     default = cfg if cfg is not None else Config()
     if given:

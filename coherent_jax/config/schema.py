@@ -3,8 +3,10 @@
 Settings every run reads (the task, the budget, the env count, the learning rate,
 the networks, the output...) are top-level fields; an algorithm's or a strategy's own
 settings are a group (`coherent_jax.config.groups`: ``ppo.*``, ``sac.*``,
-``coherent.*``, ``noisynet.*``, ``psne.*``, ``gsde.*``, ``pink.*``, ``lattice.*``). Every field
-declares its help, range or choices (`coherent_jax.config.declare`). No JAX here.
+``coherent.*``, ``coherent_sac.*``, ``noisynet.*``, ``psne.*``, ``gsde.*``, ``pink.*``,
+``lattice.*``). Every field declares its help, range or choices
+(`coherent_jax.config.declare`); the keys of before are `coherent_jax.config.legacy`'s.
+No JAX here.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from coherent_jax.config.declare import (
 )
 from coherent_jax.config.groups import (
     CoherentOptions,
+    CoherentSACOptions,
     GsdeOptions,
     LatticeOptions,
     NoisyNetOptions,
@@ -180,8 +183,9 @@ class Config:
     ppo: PPOOptions = _group(PPOOptions, "a2c and ppo")
     sac: SACOptions = _group(SACOptions, "sac")
     coherent: CoherentOptions = _group(CoherentOptions, "explore=coherent")
+    coherent_sac: CoherentSACOptions = _group(CoherentSACOptions, "algo=sac explore=coherent")
     noisynet: NoisyNetOptions = _group(NoisyNetOptions, "explore=noisynet")
-    psne: PsneOptions = _group(PsneOptions, "explore=psne, and coherent with sac")
+    psne: PsneOptions = _group(PsneOptions, "explore=psne")
     gsde: GsdeOptions = _group(GsdeOptions, "explore=gsde")
     pink: PinkOptions = _group(PinkOptions, "explore=pink")
     lattice: LatticeOptions = _group(LatticeOptions, "explore=lattice")
@@ -223,8 +227,6 @@ def _fields() -> dict[str, dataclasses.Field]:
 FIELDS: dict[str, dataclasses.Field] = _fields()
 # Scalars that may differ across the points of one vmapped sweep: declared on their fields.
 SWEEPABLE: tuple[str, ...] = tuple(k for k, f in FIELDS.items() if "sweep" in f.metadata)
-# Flat keys of the settings that moved into a group -> their key now (``clip_eps`` -> ``ppo.clip_eps``).
-LEGACY_KEYS: dict[str, str] = {f.metadata["old"]: k for k, f in FIELDS.items() if "old" in f.metadata}
 
 
 def sweepable(key: str) -> Sweepable | None:

@@ -42,8 +42,9 @@ class SigmaRule:
     sigma_alpha: float
 
     @classmethod
-    def from_config(cls, cfg) -> SigmaRule:
-        return cls(float(cfg.psne.sigma_init), float(cfg.psne.sigma_delta), float(cfg.psne.sigma_alpha))
+    def from_options(cls, options) -> SigmaRule:
+        """The rule of a settings group that holds it: ``cfg.psne`` or ``cfg.coherent_sac``."""
+        return cls(float(options.sigma_init), float(options.sigma_delta), float(options.sigma_alpha))
 
     def hparams(self, with_sigma: bool = True) -> dict[str, jax.Array]:
         """Sweepable scalars: delta, alpha and (where it is not per-env state) sigma itself."""

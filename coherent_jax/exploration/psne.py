@@ -114,7 +114,7 @@ class ParameterNoise(OnPolicyStrategy):
     @classmethod
     def from_config(cls, cfg, action_size: int):
         hidden, activation = cfg.policy_hidden, cfg.activation
-        return cls(action_size, hidden, activation, cfg.init_std, SigmaRule.from_config(cfg))
+        return cls(action_size, hidden, activation, cfg.init_std, SigmaRule.from_options(cfg.psne))
 
     def init(self, key, obs_size):
         return {
@@ -276,7 +276,7 @@ class PsneBehaviour(OffPolicyBehaviour):
 
     @classmethod
     def from_config(cls, cfg, action_size: int):
-        return cls(SigmaRule.from_config(cfg))
+        return cls(SigmaRule.from_options(cfg.psne))
 
     def init_hparams(self):
         return self.rule.hparams()

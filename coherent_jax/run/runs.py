@@ -33,7 +33,8 @@ from typing import Any
 
 import msgpack
 
-from coherent_jax.config import Config, ConfigError, flat_dict, from_stored, modern_key, to_dict, validate
+from coherent_jax.config import Config, ConfigError, from_stored, to_dict, validate
+from coherent_jax.config.legacy import flat_dict, modern_key
 
 PREFIX = "[coherent_jax]"  # starts every line the command-line programs print
 CHECKPOINT = "checkpoint.msgpack"
@@ -77,8 +78,8 @@ def atomic_write(path: Path, data: bytes) -> None:
 
 def fingerprint_fields(cfg: Config, resumable: tuple[str, ...] = RESUMABLE_KEYS) -> dict[str, Any]:
     """The config fields a checkpoint must agree with (all but `RESUMABLE_KEYS`), in the flat
-    layout of before the config's groups (`config.flat_dict`): a checkpoint written then
-    has the same fingerprint now."""
+    layout of before the config's groups (`config.legacy.flat_dict`): a checkpoint written
+    then, under the keys of before, has the same fingerprint now."""
     return {k: v for k, v in flat_dict(cfg).items() if k not in resumable}
 
 
@@ -93,7 +94,7 @@ def config_difference(a: Config, b: Config) -> str | None:
     fa, fb = fingerprint_fields(a), fingerprint_fields(b)
     for key in fa:
         if fa[key] != fb.get(key):
-            return modern_key(key, note=False)
+            return modern_key(key, note=False, pair=(a.algo, a.explore))
     return None
 
 

@@ -21,21 +21,22 @@ from coherent_jax.config import (
     Config,
     ConfigError,
     get_value,
-    modern_items,
-    modern_key,
     parse_overrides,
 )
+from coherent_jax.config.legacy import modern_items, modern_key
 from coherent_jax.run import rundir
-from coherent_jax.run.runs import METRICS, Checkpoint, resume_config
+from coherent_jax.run.runs import METRICS, Checkpoint, load_config, resume_config
 
 
-def _read_grid(out_dir: Path) -> tuple[dict[str, list[Any]], list[int]]:
-    """(axes, seeds) of ``out_dir/grid.json``; `ConfigError` in one line when it cannot be read."""
+def _read_grid(out_dir: Path, pair: tuple[str, str] | None = None) -> tuple[dict[str, list[Any]], list[int]]:
+    """(axes, seeds) of ``out_dir/grid.json``; `ConfigError` in one line when it cannot be read.
+    `pair`: the sweep's (algo, explore), which names its axes of before."""
     path = Path(out_dir) / rundir.GRID
     try:
         grid = json.loads(path.read_text())
-        # A grid stored before the groups names an axis by its flat key (``beta``).
-        axes = {modern_key(k, note=False): v for k, v in dict(grid["axes"]).items()}
+        # A grid stored before the groups names an axis by its flat key (``beta``), one of
+        # Coherent-SAC's by psne's (``psne.sigma_init``).
+        axes = {modern_key(k, note=False, pair=pair): v for k, v in dict(grid["axes"]).items()}
         seeds = [int(s) for s in grid["seeds"]]
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise ConfigError(
@@ -46,6 +47,16 @@ def _read_grid(out_dir: Path) -> tuple[dict[str, list[Any]], list[int]]:
     if unknown:
         raise ConfigError(f"invalid {path}: axis {unknown[0]!r} (allowed: {', '.join(SWEEPABLE)})")
     return axes, seeds
+
+
+def _stored_pair(resume_dir: Path) -> tuple[str, str] | None:
+    """The (algo, explore) of the sweep stored in `resume_dir`, or None where it cannot be read
+    (refused later, once the directory itself is checked)."""
+    try:
+        cfg = load_config(resume_dir)
+    except ConfigError:
+        return None
+    return cfg.algo, cfg.explore
 
 
 def _fmt_list(values: Sequence[Any]) -> str:
@@ -76,15 +87,16 @@ def resume_plan(resume_dir: str, rest: list[str]) -> tuple[Config, Path, dict[st
     `rest` holds the overrides besides ``resume=``; the ones that restate the grid are
     compared with it and dropped, the others go to `runs.resume_config`.
     """
+    pair = _stored_pair(Path(resume_dir)) if resume_dir else None
     try:
-        stored_axes = _read_grid(Path(resume_dir))[0] if resume_dir else {}
+        stored_axes = _read_grid(Path(resume_dir), pair)[0] if resume_dir else {}
     except ConfigError:
         stored_axes = {}  # not a sweep: refused below, once the directory itself is checked
-    rest = [i if i.split("=", 1)[0].strip() == "seeds" else modern_items([i])[0] for i in rest]
+    rest = [i if i.split("=", 1)[0].strip() == "seeds" else modern_items([i], pair=pair)[0] for i in rest]
     grid_items = [i for i in rest if _is_grid_item(*cli.split_item(i), stored_axes)]
     others = [i for i in rest if i not in grid_items]
     cfg, out_dir = resume_config(resume_dir, others)
-    axes, seeds = _read_grid(out_dir)
+    axes, seeds = _read_grid(out_dir, (cfg.algo, cfg.explore))
     for item in grid_items:
         key, text = cli.split_item(item)
         own = seeds if key in ("seed", "seeds") else axes.get(key)

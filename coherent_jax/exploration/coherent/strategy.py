@@ -387,8 +387,8 @@ class CoherentBehaviour(OffPolicyBehaviour):
     """The SAC actor's mean head [p, q+1] follows the beta-chain around its learned value.
 
     One scale instead of per-weight w_std: W_t = W + sigma z_t, with z_t the
-    standardised chain (4.1-4.5), and sigma adapts by (4.50)-(4.51). The actor itself
-    trains as plain SAC.
+    standardised chain (4.1-4.5), and sigma adapts by (4.50)-(4.51), set by the
+    ``coherent_sac.*`` settings. The actor itself trains as plain SAC.
     """
 
     name = "coherent"
@@ -399,7 +399,7 @@ class CoherentBehaviour(OffPolicyBehaviour):
 
     @classmethod
     def from_config(cls, cfg, action_size: int):
-        return cls(cfg.coherent.beta, SigmaRule.from_config(cfg))
+        return cls(cfg.coherent.beta, SigmaRule.from_options(cfg.coherent_sac))
 
     def init_hparams(self):
         return {"beta": jnp.asarray(self.beta, jnp.float32), **self.rule.hparams()}
