@@ -27,9 +27,9 @@ from references import (
 )
 
 from coherent_jax.exploration.base import SEGMENT_AXES, Segment
-from coherent_jax.exploration.coherent.strategy import exact as E
-from coherent_jax.exploration.coherent.strategy import filter as C
-from coherent_jax.exploration.coherent.strategy import joint as J
+from coherent_jax.exploration.coherent import exact as E
+from coherent_jax.exploration.coherent import filter as C
+from coherent_jax.exploration.coherent import joint as J
 
 # ---------------------------------------------------------------- tests
 

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from references import dense_thesis_logp, joint_episode_logp, x64_enabled
 
-from coherent_jax.exploration.coherent.strategy import filter as coherent_filter
+from coherent_jax.exploration.coherent import filter as coherent_filter
 
 _LOG_2PI = math.log(2.0 * math.pi)
 

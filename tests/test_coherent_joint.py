@@ -10,8 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from coherent_jax.exploration.coherent.strategy import filter as C
-from coherent_jax.exploration.coherent.strategy import joint as J
+from coherent_jax.exploration.coherent import filter as C
+from coherent_jax.exploration.coherent import joint as J
 
 
 def random_problem(rng, T, p, q, resets):

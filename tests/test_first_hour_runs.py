@@ -13,7 +13,8 @@ from coherent_jax.envs.registry import PhysicsError, auto_physics, resolve_physi
 from coherent_jax.run import launch, tracking
 from coherent_jax.run.loop import StopRequest
 from coherent_jax.run.runs import write_config
-from coherent_jax.run.single import TrainCommand, main
+from coherent_jax.run.single import TrainCommand
+from coherent_jax.train import main
 
 TINY = [
     "env=pointmass",

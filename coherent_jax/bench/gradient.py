@@ -203,8 +203,8 @@ class _Forms:
         """``coherent.gradient=exact``: the segment scored from the prior, as the trainer does."""
         import jax.numpy as jnp
 
-        from coherent_jax.exploration.coherent.strategy import exact as E
-        from coherent_jax.exploration.coherent.strategy import filter as F
+        from coherent_jax.exploration.coherent import exact as E
+        from coherent_jax.exploration.coherent import filter as F
 
         del params0
         seg = self.seg
@@ -223,9 +223,9 @@ class _Forms:
         import jax
         import jax.numpy as jnp
 
-        from coherent_jax.exploration.coherent.strategy import exact as E
-        from coherent_jax.exploration.coherent.strategy import filter as F
-        from coherent_jax.exploration.coherent.strategy import joint as J
+        from coherent_jax.exploration.coherent import exact as E
+        from coherent_jax.exploration.coherent import filter as F
+        from coherent_jax.exploration.coherent import joint as J
 
         mu0, w_std0, action_std0 = self.heads(params0)
         h = obs.shape[0] - self.seg
