@@ -36,11 +36,18 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
+import jax
+import jax.numpy as jnp
+
 from coherent_jax import cli
+from coherent_jax.agents.onpolicy import OnPolicyTrainer
 from coherent_jax.bench import IGNORED, measure
 from coherent_jax.bench.chains import CHAINS, bench_chains, chain_config, format_chains
 from coherent_jax.bench.filter_cost import bench_filter
 from coherent_jax.config import Config, to_dict, validate, with_values
+from coherent_jax.envs.vec_env import VecEnv
+from coherent_jax.exploration.base import Segment
+from coherent_jax.run import sharding
 
 _count = cli.int_at_least(1)
 # How long the suite takes at its defaults (`python -m coherent_jax.bench --help` prints it).
@@ -102,13 +109,6 @@ def parse(items: Sequence[str]) -> cli.Parsed:
 def _bench_training(cfg: Config, iterations: int, log, remat_row: bool = True) -> tuple[dict, dict]:
     """Compiles and times the PPO iteration for both strategies (and compiles the filter
     form with remat for its memory, with ``remat_row``); returns (results, trainers)."""
-    import jax
-    import jax.numpy as jnp
-
-    from coherent_jax.agents.onpolicy import OnPolicyTrainer
-    from coherent_jax.envs.vec_env import VecEnv
-    from coherent_jax.run import sharding
-
     num_devices = sharding.resolve_num_devices(cfg.num_devices)
     shape = f"{cfg.env}, {cfg.num_envs} envs x {cfg.unroll_length} steps, {num_devices} device(s)"
     # One env object for all trainers (building an MJX model takes seconds); no
@@ -189,11 +189,6 @@ def _bench_training(cfg: Config, iterations: int, log, remat_row: bool = True) -
 
 # ------------------------------------------------- 3. the loss's segment log-prob
 def _bench_segment_log_prob(cfg: Config, bench: dict, trainers: dict, log) -> dict:
-    import jax
-    import jax.numpy as jnp
-
-    from coherent_jax.exploration.base import Segment
-
     envs, num_steps, repeats = bench["seg_envs"], cfg.unroll_length, bench["seg_repeats"]
     results: dict[str, Any] = {"envs": envs, "T": num_steps, "repeats": repeats}
     for name, (trainer, state) in trainers.items():

@@ -6,6 +6,9 @@ from __future__ import annotations
 
 import math
 
+import jax
+import jax.numpy as jnp
+
 _LOG_2PI = math.log(2.0 * math.pi)
 
 
@@ -38,9 +41,6 @@ def dense_log_marginals(x, a, first, mu, w_std, action_std, beta, checkpoint_chu
     Returns:
       logp [T].
     """
-    import jax
-    import jax.numpy as jnp
-
     num_steps, q = x.shape
     p = a.shape[-1]
     eye_p = jnp.eye(p, dtype=x.dtype)
@@ -91,9 +91,6 @@ def sample_segments(key, batch, num_steps, q, p, w_std_init, action_std, beta):
     x = tanh(N(0, 1)) like a tanh trunk's output, two episodes per sequence (a
     reset at T/2 exercises the prior reset), weights following the chain.
     """
-    import jax
-    import jax.numpy as jnp
-
     k_x, k_mu, k_run = jax.random.split(key, 3)
     x = jnp.tanh(jax.random.normal(k_x, (batch, num_steps, q)))
     mu = 0.1 * jax.random.normal(k_mu, (p, q + 1))

@@ -13,16 +13,20 @@ import statistics
 import time
 from typing import Any
 
+import jax
+import jax.numpy as jnp
+import numpy as np
+
 from coherent_jax.bench import measure
 from coherent_jax.bench.dense import dense_log_marginals, sample_segments
 from coherent_jax.config import Config
+from coherent_jax.exploration.coherent.filter import log_marginals
 
 _FILTER_AXES = (0, 0, 0, None, None, None, None)  # batched: x, a, first; shared: the parameters
 
 
 def _filter_forward(impl, chunk=0):
     """log p of every sequence of the batch (``impl`` vmapped), checkpointed every `chunk` steps if > 0."""
-    import jax
 
     def f(x, a, first, mu, w_std, action_std, beta):
         single = lambda *args: impl(*args, checkpoint_chunk=chunk) if chunk else impl(*args)
@@ -33,8 +37,6 @@ def _filter_forward(impl, chunk=0):
 
 def _filter_with_grad(impl, chunk=0, sequential=False):
     """value and d/d(mu, w_std) of sum log p over the batch."""
-    import jax
-    import jax.numpy as jnp
 
     def total(mu, w_std, x, a, first, action_std, beta):
         if sequential:  # one sequence at a time: 1/batch of the memory
@@ -90,11 +92,6 @@ def _compile_filter_grad(impl, method: str, grad_args: tuple, bench: dict, num_s
 
 def _bench_filter_method(q: int, method: str, inputs: tuple, grad_args: tuple, bench: dict, log):
     """One filter form (block or dense) at one q: compile, warm up, time; returns its entry and outputs."""
-    import jax
-    import numpy as np
-
-    from coherent_jax.exploration.coherent.filter import log_marginals
-
     log(f"[bench] filter q={q} {method}: compiling forward and forward+gradient ...")
     impl = log_marginals if method == "block" else dense_log_marginals
     fwd, fwd_compile_s = measure.compile_timed(_filter_forward(impl), *inputs)
@@ -142,9 +139,6 @@ def _bench_filter_method(q: int, method: str, inputs: tuple, grad_args: tuple, b
 def bench_filter(cfg: Config, bench: dict, log) -> dict:
     """The block filter against the dense reference, per q: agreement of log p and its
     gradient, and the forward and forward+gradient times."""
-    import jax
-    import numpy as np
-
     p, num_steps, batch = bench["filter_p"], bench["filter_T"], bench["filter_batch"]
     cases = []
     for q in bench["filter_q"]:

@@ -42,10 +42,17 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from coherent_jax import cli
 from coherent_jax.bench import measure
+from coherent_jax.exploration.base import Segment
+from coherent_jax.exploration.coherent.strategy import exact as E
+from coherent_jax.exploration.coherent.strategy import filter as F
+from coherent_jax.exploration.coherent.strategy import joint as J
+from coherent_jax.exploration.coherent.strategy import strategy as C
 
 MODES = ("stored", "exact", "episode")
 #: which reference each mode is exact for: ``episode`` the whole-episode chain, ``segment``
@@ -113,8 +120,6 @@ def run(items: Sequence[str], log: Callable[[str], None] = measure.print_log) ->
     """Logs one line per (mode, beta, history); writes and returns the rows and whether
     the checked modes passed everywhere. float64 is on while it runs, and restored after."""
     settings = parse(items).settings
-    import jax
-
     previous = jax.config.read("jax_enable_x64")
     jax.config.update("jax_enable_x64", True)
     try:
@@ -128,8 +133,6 @@ class _Forms:
     ``(params, obs, a, beta, params0)`` for the settings' ``p``, ``q`` and ``segment``."""
 
     def __init__(self, settings: dict[str, Any]) -> None:
-        from coherent_jax.exploration.coherent.strategy import strategy as C
-
         self.settings = settings
         self.p, self.q, self.seg = settings["p"], settings["q"], settings["segment"]
         # The trainer's coherent strategy in episode mode, for episodes of the longest history
@@ -145,17 +148,12 @@ class _Forms:
         return self.strategy.layer.features(params, obs)
 
     def heads(self, params):
-        import jax.numpy as jnp
-
         action_std = jnp.full((self.p,), self.settings["action_std"], params["mu"].dtype)
         return params["mu"], jnp.exp(params["log_w_std"]), action_std
 
     def reference_logp(self, params, obs, a, beta):
         """Every step's log p(a_t | a_<t, s_<=t) of one chain from the first step of ``obs``,
         from its dense joint Gaussian (no beliefs, no blocks, no filter)."""
-        import jax
-        import jax.numpy as jnp
-
         log_2pi = math.log(2.0 * math.pi)
         mu, w_std, action_std = self.heads(params)
         x = self.trunk(params, obs)
@@ -185,10 +183,6 @@ class _Forms:
         """``coherent.gradient=episode`` as the trainer's loss runs it: the strategy's
         `log_prob` of the window of `history_length` prefix steps (padded in front as
         the trainer's empty history is) and the segment; the last T steps."""
-        import jax.numpy as jnp
-
-        from coherent_jax.exploration.base import Segment
-
         del params0
         p, seg = self.p, self.seg
         strat = self.strategy
@@ -201,11 +195,6 @@ class _Forms:
 
     def exact_mode(self, params, obs, a, beta, params0):
         """``coherent.gradient=exact``: the segment scored from the prior, as the trainer does."""
-        import jax.numpy as jnp
-
-        from coherent_jax.exploration.coherent import exact as E
-        from coherent_jax.exploration.coherent import filter as F
-
         del params0
         seg = self.seg
         mu, w_std, action_std = self.heads(params)
@@ -220,13 +209,6 @@ class _Forms:
     def stored_mode(self, params, obs, a, beta, params0):
         """``coherent.gradient=stored``: the belief at the segment start inferred at collection
         (``params0``), held in standardised coordinates and mapped onto ``params``."""
-        import jax
-        import jax.numpy as jnp
-
-        from coherent_jax.exploration.coherent import exact as E
-        from coherent_jax.exploration.coherent import filter as F
-        from coherent_jax.exploration.coherent import joint as J
-
         mu0, w_std0, action_std0 = self.heads(params0)
         h = obs.shape[0] - self.seg
         belief = F.prior_belief(mu0, w_std0)
@@ -249,8 +231,6 @@ class _Forms:
 
 def _value_and_grad(fn):
     """``fn``'s log p and the gradient of the advantage-weighted loss ``sum(adv * log p)``, jitted."""
-    import jax
-    import jax.numpy as jnp
 
     def loss(params, obs, a, adv, beta, params0):
         return jnp.sum(adv * fn(params, obs, a, beta, params0))
@@ -266,9 +246,6 @@ def _value_and_grad(fn):
 def _case(settings: dict[str, Any], forms: _Forms, history: int, beta: float):
     """One (history, beta) case in float64: the collection parameters, the parameters after a
     move (as after an update), the observations, an episode sampled from the process, advantages."""
-    import jax
-    import jax.numpy as jnp
-
     p, q, seg = forms.p, forms.q, forms.seg
     rng = np.random.default_rng([settings["seed"], history, int(beta * 1e6)])
     num_steps = history + seg
@@ -288,8 +265,6 @@ def _case(settings: dict[str, Any], forms: _Forms, history: int, beta: float):
 
 
 def _flat(g) -> np.ndarray:
-    import jax
-
     return np.concatenate([np.ravel(np.asarray(v, np.float64)) for v in jax.tree.leaves(g)])
 
 
@@ -318,9 +293,6 @@ def _compare(mode: str, beta: float, history: int, logp, grad, ref_out: dict) ->
 def _run(settings: dict[str, Any], log: Callable[[str], None]) -> dict[str, Any]:
     """Every (history, beta, mode): the mode's gradient (in ``dtype``) against the float64
     references; writes the JSON and returns it (``passed``: every must-equal row held)."""
-    import jax
-    import jax.numpy as jnp
-
     dtype = jnp.float64 if settings["dtype"] == "float64" else jnp.float32
     forms = _Forms(settings)
     modes = {

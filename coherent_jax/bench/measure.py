@@ -7,10 +7,14 @@ import datetime
 import json
 import math
 import os
+import platform
 import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
+
+import jax
+import jaxlib
 
 
 def print_log(msg: str) -> None:
@@ -40,8 +44,6 @@ def memory(compiled) -> dict[str, int] | None:
 
 def compile_timed(fn, *args):
     """``jax.jit(fn)`` lowered and compiled for ``args``: (compiled, seconds it took)."""
-    import jax
-
     t0 = time.perf_counter()
     compiled = jax.jit(fn).lower(*args).compile()
     return compiled, time.perf_counter() - t0
@@ -51,8 +53,6 @@ def warm_iteration(iteration, state, log, what: str) -> dict[str, Any]:
     """``iteration(state) -> (state, metrics)`` compiled and called once untimed, as a run of
     `time_interleaved`: its ``step``, the ``state`` after the warm-up call, ``compile_s``,
     ``memory``, ``warmup_call_s`` and an empty ``times``. ``what`` names it in the log."""
-    import jax
-
     log(f"[bench] compiling {what} ...")
     step, compile_s = compile_timed(iteration, state)
     mem = memory(step)
@@ -71,8 +71,6 @@ def warm_iteration(iteration, state, log, what: str) -> dict[str, Any]:
 
 def time_calls(compiled, args, repeats: int) -> list[float]:
     """Seconds of each of ``repeats`` calls, each waited for to the end."""
-    import jax
-
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
@@ -88,8 +86,6 @@ def time_interleaved(runs: dict[str, dict], names: Sequence[str], rounds: int, l
     machine hits every run alike. Each call's seconds go to ``run["times"]`` and its
     new state to ``run["state"]``; ``on_metrics(name, metrics)`` sees its metrics.
     """
-    import jax
-
     for i in range(rounds):
         order = list(names) if i % 2 == 0 else list(names)[::-1]
         for name in order:
@@ -144,15 +140,13 @@ def cpu_model() -> str:
                 return line.split(":", 1)[1].strip()
     except OSError:
         pass
-    import platform
-
     return platform.processor() or platform.machine()
 
 
 def peak_rss_bytes() -> int | None:
     """This process's peak resident memory."""
     try:
-        import resource
+        import resource  # lazy: Unix only
 
         return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024  # Linux: KiB
     except (ImportError, OSError):
@@ -161,9 +155,6 @@ def peak_rss_bytes() -> int | None:
 
 def machine() -> dict[str, Any]:
     """When and where a suite ran: time, versions, device, CPU, XLA flags, load at the start."""
-    import jax
-    import jaxlib
-
     device = jax.devices()[0]
     return {
         "timestamp": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),

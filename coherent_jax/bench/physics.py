@@ -46,10 +46,18 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import batch
+
 from coherent_jax import cli
 from coherent_jax.bench import measure
 from coherent_jax.config import ConfigError
-from coherent_jax.envs.registry import NATIVE_TASKS
+from coherent_jax.envs.native import mujoco_model
+from coherent_jax.envs.registry import DEFAULT_THREADS, NATIVE_TASKS, check_task
+from coherent_jax.envs.vec_env import VecEnv
 
 VARIANTS: dict[str, dict[str, Any]] = {
     "mjx_ls50": {"physics": "mjx", "ls_iterations": 50},
@@ -108,12 +116,6 @@ def _timed(fn, repeats: int) -> float:
 
 def _measure_raw(task: str, n: int, steps: int, repeats: int) -> dict[str, Any]:
     """``mujoco.batch.Batch`` from a Python loop: load rows, set controls, step, read back."""
-    import numpy as np
-    from mujoco import batch
-
-    from coherent_jax.envs.native import mujoco_model
-    from coherent_jax.envs.registry import DEFAULT_THREADS
-
     model, n_frames, _, init_q = mujoco_model(task)
     b = batch.Batch(model, n, nthread=min(DEFAULT_THREADS or os.cpu_count() or 1, n))
     xpos, ctrl = b.bind("xpos"), b.bind("ctrl")
@@ -144,10 +146,7 @@ def _measure_envpool(task: str, n: int, steps: int, repeats: int, nthread: int) 
 def _prepare_envpool(task: str, n: int, steps: int, nthread: int):
     """EnvPool's own vectorized env of the same Gymnasium task: a warm call of `steps` random-action
     steps of all `n` envs, and the thread count."""
-    import envpool
-    import numpy as np
-
-    from coherent_jax.envs.registry import check_task
+    import envpool  # lazy: optional, pip ".[bench]"
 
     gym_id = check_task(task).gymnasium_id
     if not gym_id:
@@ -183,11 +182,6 @@ def set_ls_iterations(env, iterations: int) -> None:
 
 def _prepare_jax(task: str, n: int, steps: int, variant: dict[str, Any]):
     """A warm call of `steps` jitted VecEnv steps of `n` envs, its compile seconds and the physics."""
-    import jax
-    import jax.numpy as jnp
-
-    from coherent_jax.envs.vec_env import VecEnv
-
     devices = int(variant.get("devices", 1))
     env = VecEnv(task, n // devices, physics=variant["physics"])
     if "ls_iterations" in variant:
@@ -235,8 +229,6 @@ def _prepare_jax(task: str, n: int, steps: int, variant: dict[str, Any]):
 
 def _side_by_side(spec: dict[str, Any]) -> dict[str, Any]:
     """Several (kind, env, variant) rows in one process, timed round-robin so that they share the load."""
-    from coherent_jax.envs.registry import DEFAULT_THREADS
-
     calls, rows = {}, {}
     for kind, env, name in spec["plan"]:
         variant = VARIANTS[name]
@@ -275,8 +267,6 @@ def _worker(spec: dict[str, Any]) -> dict[str, Any]:
     if variant["physics"] == "raw":
         out = _measure_raw(spec["env"], spec["n"], spec["steps"], spec["repeats"])
     elif variant["physics"] == "envpool":
-        from coherent_jax.envs.registry import DEFAULT_THREADS
-
         nthread = variant.get("nthread", DEFAULT_THREADS)
         out = _measure_envpool(spec["env"], spec["n"], spec["steps"], spec["repeats"], nthread)
     else:
@@ -314,9 +304,6 @@ def run(items: Sequence[str], log: Callable[[str], None] = measure.print_log) ->
     """Measures every (variant, env count) row, logging each as it is done; writes and returns
     the results. Raises `ConfigError` for bad input before anything runs."""
     settings = parse(items).settings
-    import jax
-    import mujoco
-
     rows = []
     total = len(settings["variants"]) * len(settings["envs"])
     log(f"physics bench: {settings['env']}, {total} measurements, one subprocess each")

@@ -27,9 +27,13 @@ import statistics
 from collections.abc import Callable, Sequence
 from typing import Any
 
+import jax
+
 from coherent_jax import cli
+from coherent_jax.agents.sac import SACTrainer
 from coherent_jax.bench import IGNORED, measure
 from coherent_jax.config import Config, to_dict, validate, with_values
+from coherent_jax.envs.vec_env import VecEnv
 
 # How long the suite takes at its defaults (`python -m coherent_jax.bench --help` prints it).
 COST = "~4 min (243 s measured)"
@@ -62,11 +66,6 @@ def parse(items: Sequence[str]) -> cli.Parsed:
 
 
 def _bench(cfg: Config, iterations: int, log) -> dict:
-    import jax
-
-    from coherent_jax.agents.sac import SACTrainer
-    from coherent_jax.envs.vec_env import VecEnv
-
     env = VecEnv(cfg.env, cfg.num_envs, cfg.episode_length, cfg.physics, cfg.physics_threads)
     runs: dict[str, dict] = {}
     for explore in STRATEGIES:

@@ -21,9 +21,12 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+import jax
+import mujoco
+
 from coherent_jax import cli
 from coherent_jax.bench import measure, physics
-from coherent_jax.envs.registry import SHORT_NAMES
+from coherent_jax.envs.registry import SHORT_NAMES, resolve_physics
 
 # How long the suite takes at its defaults (`python -m coherent_jax.bench --help` prints it).
 COST = "~20 min (1,174 s measured: 5 tasks x 2 thread counts)"
@@ -61,11 +64,6 @@ def run(items: Sequence[str], log: Callable[[str], None] = measure.print_log) ->
     with the same threads; else MJX, whose threads XLA chooses, measured at 1 only).
     """
     settings = parse(items).settings
-    import jax
-    import mujoco
-
-    from coherent_jax.envs.registry import resolve_physics
-
     rows = []
     for task in settings["tasks"]:
         brax = f"brax-{task}"

@@ -21,9 +21,13 @@ import statistics
 from collections.abc import Callable, Sequence
 from typing import Any
 
+import jax
+
 from coherent_jax import cli
+from coherent_jax.agents import make_trainer
 from coherent_jax.bench import IGNORED, measure
 from coherent_jax.config import Config, ConfigError, to_dict, validate, with_values
+from coherent_jax.envs.vec_env import VecEnv
 from coherent_jax.strategies import EXPLORES, SUPPORTED_ALGOS
 
 _ALL = "all"
@@ -82,11 +86,6 @@ def _strategy_config(cfg: Config, explore: str) -> Config:
 
 def _compile_all(cfg: Config, names: Sequence[str], log) -> dict[str, dict]:
     """Each strategy's trainer, initial state and compiled iteration, warmed up by one call."""
-    import jax
-
-    from coherent_jax.agents import make_trainer
-    from coherent_jax.envs.vec_env import VecEnv
-
     # One env for every trainer (an MJX model takes seconds to build); no evaluation runs here.
     env = VecEnv(cfg.env, cfg.num_envs, cfg.episode_length, cfg.physics, cfg.physics_threads)
     runs: dict[str, dict] = {}

@@ -11,14 +11,22 @@ to a JSON file (default ``bench_results/throughput.json``), written atomically.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import statistics
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
+import jax
+import jax.numpy as jnp
+from flax import linen
+
 from coherent_jax import cli
+from coherent_jax.agents import make_trainer
 from coherent_jax.bench import IGNORED, measure
 from coherent_jax.config import Config, parse_overrides, to_dict
+from coherent_jax.envs.registry import brax_counterpart, make_brax_env
+from coherent_jax.envs.vec_env import VecEnv
 
 # Rows besides the raw env; brax_ppo is Brax's own trainer.
 ROWS = ("ppo", "coherent_ppo", "sac", "coherent_sac", "brax_ppo")
@@ -88,8 +96,6 @@ def _throughput_configs(cfg: Config, items: list[str], rows: Sequence[str]) -> d
 
 def _raw_rollout(env):
     """``(env_state, key) -> (env_state, key, reward sum)``: ``unroll_length`` random-action steps."""
-    import jax
-    import jax.numpy as jnp
 
     def rollout(env_state, key, length):
         def step(state, k):
@@ -121,10 +127,7 @@ def _brax_ppo(cfg: Config, iterations: int, log, between_epochs: Callable[[int],
     that Brax's epochs and our iterations alternate under the same machine load.
     Brax's epoch time is its own ``training/walltime``, which excludes this callback.
     """
-    import jax
-    from brax.training.agents.ppo import train as brax_train
-
-    from coherent_jax.envs.registry import brax_counterpart, make_brax_env
+    from brax.training.agents.ppo import train as brax_train  # lazy: brax training, one row
 
     steps = cfg.steps_per_iteration
     epochs = iterations + 2
@@ -157,10 +160,7 @@ def _brax_ppo(cfg: Config, iterations: int, log, between_epochs: Callable[[int],
 
 def _brax_settings(cfg: Config, epochs: int) -> tuple[Callable, dict[str, Any]]:
     """Brax PPO's network factory and ``train`` settings matching ``cfg`` (``epochs`` epochs of one step)."""
-    import functools
-
-    from brax.training.agents.ppo import networks as brax_networks
-    from flax import linen
+    from brax.training.agents.ppo import networks as brax_networks  # lazy: brax training, one row
 
     steps = cfg.steps_per_iteration
     activation = {"tanh": linen.tanh, "relu": linen.relu, "elu": linen.elu, "swish": linen.swish}
@@ -246,8 +246,6 @@ def run(items: Sequence[str], log: Callable[[str], None] = measure.print_log) ->
     own PPO. Raises `ConfigError` for bad input before anything runs.
     """
     bench, cfg, config_items = parse(items)
-    import jax
-
     info, t_start = measure.start("throughput", log)
     skipped = {n: "not in rows=" for n in ROWS if n not in bench["rows"]}
     rows_wanted = list(bench["rows"])
@@ -304,11 +302,6 @@ def run(items: Sequence[str], log: Callable[[str], None] = measure.print_log) ->
 def _compile_rows(cfg: Config, config_items: list[str], rows_wanted: list[str], log) -> dict[str, dict]:
     """The raw env rollout and every trainer row's iteration, compiled: per row its call,
     arguments, compile time and XLA memory (and config)."""
-    import jax
-
-    from coherent_jax.agents import make_trainer
-    from coherent_jax.envs.vec_env import VecEnv
-
     shape = f"{cfg.env}, {cfg.num_envs} envs x {cfg.unroll_length} steps"
     env = VecEnv(cfg.env, cfg.num_envs, cfg.episode_length, cfg.physics, cfg.physics_threads)
     rows: dict[str, dict] = {}
