@@ -1,5 +1,6 @@
 """coherent_jax: Deep Coherent Exploration for continuous control, in JAX on MJX."""
 
+import importlib as _importlib
 import os as _os
 
 # jaxlib's CPU Cholesky and triangular solves call scipy's OpenBLAS. Its own thread
@@ -9,16 +10,12 @@ import os as _os
 _os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
-def _limit_loaded_blas() -> None:
-    """Applies the same limit when numpy/scipy were imported before this package."""
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover - threadpoolctl is a dependency
-        return
-    threadpool_limits(limits=int(_os.environ["OPENBLAS_NUM_THREADS"]), user_api="blas")
-
-
-_limit_loaded_blas()
+try:
+    from threadpoolctl import threadpool_limits as _threadpool_limits
+except ImportError:  # pragma: no cover - threadpoolctl is a dependency
+    _threadpool_limits = None
+if _threadpool_limits is not None:  # the same limit when numpy/scipy were imported before this package
+    _threadpool_limits(limits=int(_os.environ["OPENBLAS_NUM_THREADS"]), user_api="blas")
 
 __version__ = "0.1.0"
 
@@ -38,11 +35,9 @@ __all__ = ["__version__", *_LAZY]
 
 
 def __getattr__(name: str):
-    import importlib
-
     if name not in _LAZY:
         raise AttributeError(f"module 'coherent_jax' has no attribute {name!r}")
-    value = getattr(importlib.import_module(_LAZY[name]), name)
+    value = getattr(_importlib.import_module(_LAZY[name]), name)
     globals()[name] = value
     return value
 

@@ -22,8 +22,19 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import jax
+import jax.numpy as jnp
+import numpy as np
+
 from coherent_jax.config import Config, ConfigError, override_items
 from coherent_jax.config.legacy import overrides_of
+from coherent_jax.envs.vec_env import VecEnv
+from coherent_jax.policy import PARAMS
+from coherent_jax.policy import load_policy as read_policy
+from coherent_jax.run import launch
+from coherent_jax.run.loop import StopRequest
+from coherent_jax.run.runs import CHECKPOINT, METRICS, load_config, read_metrics
+from coherent_jax.run.single import TrainCommand
 
 
 class PolicyFunction:
@@ -41,9 +52,6 @@ class PolicyFunction:
     """
 
     def __init__(self, policy: Any, origin: dict[str, Any]) -> None:
-        import jax
-        import jax.numpy as jnp
-
         self.policy = policy
         self.origin = origin
         self._act = jax.jit(lambda p, obs: jnp.clip(p.mean_action(obs), -1.0, 1.0))
@@ -57,8 +65,6 @@ class PolicyFunction:
         return self.policy.action_size
 
     def __call__(self, obs: Any) -> Any:
-        import numpy as np
-
         x = np.asarray(obs, np.float32)
         if x.ndim not in (1, 2) or x.shape[-1] != self.obs_size:
             raise ValueError(
@@ -77,10 +83,6 @@ def load_policy(run_dir: str | Path) -> PolicyFunction:
     module). Raises `ConfigError`, `coherent_jax.run.runs.CheckpointError` or
     `coherent_jax.policy.PolicyError` in one line for a directory that holds no usable policy.
     """
-    from coherent_jax.envs.vec_env import VecEnv
-    from coherent_jax.policy import load_policy as read_policy
-    from coherent_jax.run.runs import load_config
-
     run_dir = Path(run_dir)
     cfg = load_config(run_dir)
     env = VecEnv(cfg.env, 1, cfg.episode_length, cfg.physics, cfg.physics_threads)  # its sizes
@@ -134,12 +136,6 @@ def learn(config: Config | Mapping[str, Any] | None = None) -> TrainResult:
     checkpoint stays). ``distributed=true`` runs from the command line only. SIGINT and
     SIGTERM stop the run after the current iteration, with a checkpoint.
     """
-    from coherent_jax.policy import PARAMS
-    from coherent_jax.run import launch
-    from coherent_jax.run.loop import StopRequest
-    from coherent_jax.run.runs import CHECKPOINT, METRICS, read_metrics
-    from coherent_jax.run.single import TrainCommand
-
     items = _items(config)
     distributed = config.distributed if isinstance(config, Config) else (config or {}).get("distributed")
     if distributed:

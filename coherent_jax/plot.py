@@ -317,7 +317,7 @@ def stratified_bootstrap(
 
 def aggregate_iqm(scores: dict[str, np.ndarray], reps: int, seed: int) -> dict[str, dict[str, float]]:
     """IQM (rliable's metric) of each label's [runs, tasks] scores with a 95% stratified-bootstrap CI."""
-    from rliable import metrics
+    from rliable import metrics  # lazy: slow to import (pandas, arch)
 
     out = {}
     for k in scores:
@@ -328,6 +328,16 @@ def aggregate_iqm(scores: dict[str, np.ndarray], reps: int, seed: int) -> dict[s
     return out
 
 
+def _pyplot() -> Any:
+    """matplotlib's pyplot on the Agg backend (files only, no display)."""
+    import matplotlib  # lazy: slow to import; --help and bad input go without
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # lazy: as matplotlib
+
+    return plt
+
+
 def _save(fig: Any, path: Path) -> None:
     tmp = path.with_name(path.name + ".tmp")
     fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
@@ -336,11 +346,7 @@ def _save(fig: Any, path: Path) -> None:
 
 def plot_curves(grouped: dict[str, dict[str, Curves]], metric: str, path: Path, reps: int, seed: int) -> None:
     """One panel per task, one line and band per group (`mean_and_interval`)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = _pyplot()
     envs = sorted(grouped)
     fig, axes = plt.subplots(1, len(envs), figsize=(5.0 * len(envs), 3.6), squeeze=False)
     for ax, env in zip(axes[0], envs, strict=True):
@@ -365,11 +371,7 @@ def plot_curves(grouped: dict[str, dict[str, Curves]], metric: str, path: Path, 
 
 
 def plot_aggregate(result: dict[str, dict[str, float]], tasks: Sequence[str], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = _pyplot()
     names = sorted(result)
     fig, ax = plt.subplots(figsize=(5.0, 0.6 + 0.5 * len(names)))
     for y, name in enumerate(names):

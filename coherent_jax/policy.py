@@ -25,10 +25,16 @@ import jax
 import jax.numpy as jnp
 import msgpack
 import numpy as np
+import yaml
 from flax import serialization, struct
+from omegaconf import OmegaConf
 
+from coherent_jax.agents import onpolicy, sac
+from coherent_jax.agents.sac import make_actor
 from coherent_jax.config import Config, ConfigError, from_stored, to_dict, validate
+from coherent_jax.exploration import make_behaviour, make_strategy
 from coherent_jax.networks import RunningStats, SquashedGaussianActor, normalize, squash
+from coherent_jax.run.runs import CHECKPOINT, decode_checkpoint, load_config
 
 FORMAT = "coherent_jax-policy-1"
 PARAMS = "params.msgpack"
@@ -41,23 +47,14 @@ class PolicyError(ValueError):
 def _agent_module(cfg: Config):
     """The trainer module of ``cfg.algo``: its `learner_template` and `export` say where the policy is."""
     if cfg.algo == "sac":
-        from coherent_jax.agents import sac
-
         return sac
-    from coherent_jax.agents import onpolicy
-
     return onpolicy
 
 
 def _network(cfg: Config, action_size: int):
     """The object that maps (parameters, normalised obs) to actions: strategy or SAC actor."""
     if cfg.algo == "sac":
-        from coherent_jax.agents.sac import make_actor
-        from coherent_jax.exploration import make_behaviour
-
         return make_actor(cfg, action_size, make_behaviour(cfg, action_size))
-    from coherent_jax.exploration import make_strategy
-
     return make_strategy(cfg, action_size)
 
 
@@ -86,8 +83,6 @@ class Policy:
     @classmethod
     def create(cls, cfg: Config, params: Any, obs_stats: RunningStats, obs_size: int, action_size: int):
         """The policy of a run with config ``cfg``."""
-        from omegaconf import OmegaConf
-
         return cls(
             params=params,
             obs_stats=obs_stats,
@@ -151,8 +146,6 @@ class Policy:
     @classmethod
     def from_bytes(cls, blob: bytes) -> Policy:
         """The policy `to_bytes` wrote; raises `PolicyError` in one line."""
-        import yaml
-
         try:
             record = msgpack.unpackb(blob, raw=False)
             fmt = record["format"]
@@ -252,8 +245,6 @@ def load_policy(run_dir: Path, obs_size: int, action_size: int) -> tuple[Policy,
     record them). Raises `ConfigError`, `coherent_jax.run.runs.CheckpointError` or
     `PolicyError` in one line.
     """
-    from coherent_jax.run.runs import CHECKPOINT, decode_checkpoint, load_config
-
     run_dir = Path(run_dir)
     cfg = load_config(run_dir)
     if (run_dir / CHECKPOINT).is_file():

@@ -46,9 +46,12 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import jax
+import jax.numpy as jnp
 import yaml
 
 from coherent_jax import cli
+from coherent_jax.agents import make_trainer
 from coherent_jax.agents.trainer import Trainer
 from coherent_jax.config import (
     FIELDS,
@@ -66,7 +69,8 @@ from coherent_jax.config import (
 )
 from coherent_jax.config.legacy import modern_items
 from coherent_jax.envs.registry import task_label
-from coherent_jax.run import launch, multihost, rundir, tracking
+from coherent_jax.envs.vec_env import VecEnv
+from coherent_jax.run import launch, multihost, rundir, sharding, tracking
 from coherent_jax.run.loop import PREFIX, StopRequest, to_float, write_params
 from coherent_jax.run.loop_state import Job, Outcome
 from coherent_jax.run.memory import check_memory
@@ -79,6 +83,7 @@ from coherent_jax.run.runs import (
     stored_config,
     write_config,
 )
+from coherent_jax.run.sharding import check_devices
 from coherent_jax.sweeps import resume as sweep_resume
 from coherent_jax.sweeps.table import aggregate, fmt, format_table, to_csv
 
@@ -213,9 +218,6 @@ def point_hparams(base_hparams: Any, point: Point) -> Any:
     name unless declared otherwise), as the float32 array a trainer built for the
     point would hold; no trainer is built per point.
     """
-    import jax
-    import jax.numpy as jnp
-
     wanted = {hparam_name(k): v for k, v in point.values.items()}
     found = set()
 
@@ -236,9 +238,6 @@ def point_hparams(base_hparams: Any, point: Point) -> Any:
 
 def stacked_hparams(plan: SweepPlan, trainer: Trainer) -> Any:
     """Every point's hyperparameters stacked on a leading axis (the vmapped init's input)."""
-    import jax
-    import jax.numpy as jnp
-
     base = trainer.init_hparams()
     return jax.tree.map(lambda *xs: jnp.stack(xs), *[point_hparams(base, p) for p in plan.points])
 
@@ -300,9 +299,6 @@ def _mirror_points(plan: SweepPlan, job: Job) -> list[tuple[Path, dict[str, Any]
 
 def sweep_job(plan: SweepPlan, out_dir: Path | None, env=None, eval_env=None) -> Job:
     """The loop's job for `plan`: one trainer for every point, each point's directory and config written."""
-    from coherent_jax.agents import make_trainer
-    from coherent_jax.envs.vec_env import VecEnv
-
     cfg = plan.base
     env = env or VecEnv(cfg.env, cfg.num_envs, cfg.episode_length, cfg.physics, cfg.physics_threads)
     eval_env = eval_env or VecEnv(
@@ -418,8 +414,6 @@ class SweepCommand:
         return make_plan(cfg, axes, seeds), out_dir
 
     def check(self, plan: SweepPlan) -> bool:
-        from coherent_jax.run.sharding import check_devices
-
         is_writer = check_devices(plan.base, split_envs=False)  # several hosts: only process 0 writes
         check_point_split(plan.base, plan)
         check_memory(plan.base, len(plan.points))
@@ -458,8 +452,6 @@ class SweepCommand:
 
 def check_point_split(cfg: Config, plan: SweepPlan) -> None:
     """Several processes: the points must spread over every device of every process."""
-    from coherent_jax.run import sharding
-
     available = sharding.resolve_num_devices(cfg.num_devices)
     multihost.check_device_split(sharding.point_device_count(len(plan.points), available))
 

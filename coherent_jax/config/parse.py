@@ -12,9 +12,12 @@ No JAX here.
 from __future__ import annotations
 
 import dataclasses
+import json
+import os
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+import yaml
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
@@ -99,10 +102,6 @@ def override_items(overrides: Mapping[str, Any]) -> list[str]:
     ``preset``) is left out, as not given. Raises `ConfigError` naming a key or value of
     another kind.
     """
-    import json
-    import os
-
-    import yaml
 
     def text(key: str, value: Any) -> str:
         if value is None:
@@ -157,8 +156,6 @@ def make_config(
 
 def _check_yaml(key: str, text: str) -> Any:
     """`text` read as YAML; raises `ConfigError` naming `key` if it is not valid YAML (``[64,64``, ``{``)."""
-    import yaml
-
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:

@@ -9,6 +9,7 @@ noise drawn from the same JAX keys, and the formulas of Brax 0.14.2's env classe
 
 from __future__ import annotations
 
+import copy
 import functools
 
 import jax
@@ -98,8 +99,6 @@ def _brax_model(brax_task: str) -> NativeModel:
     Brax builds its ``System`` from an ``MjModel`` and then replaces options on the
     ``System`` only (``TaskSpec.ls_iterations``, ant's Newton solver, ...): copy them back.
     """
-    import copy
-
     env = make_brax_env(brax_task)
     model = copy.deepcopy(env.sys.mj_model)
     opt = env.sys.opt

@@ -27,15 +27,15 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 
+from coherent_jax.envs.registry import make_playground_env
 from coherent_jax.envs.task import Kinematics, NativeModel, NativeTask
 
 
 @functools.cache
 def _playground_env(playground_id: str):
-    from coherent_jax.envs.registry import make_playground_env
-
     return make_playground_env(playground_id)
 
 
@@ -101,8 +101,6 @@ class _FingerLayout(NamedTuple):
 
 @functools.cache
 def _finger_layout(playground_id: str) -> _FingerLayout:
-    import mujoco
-
     model = load_model(playground_id).model
     adr, dim = model.sensor_adr, model.sensor_dim
     sensors = {model.sensor(i).name: (int(adr[i]), int(dim[i])) for i in range(model.nsensor)}

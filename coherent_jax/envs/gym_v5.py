@@ -20,6 +20,7 @@ import os
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 
 from coherent_jax.envs.quiet import quiet_stdio
@@ -45,8 +46,6 @@ def _assets_dir() -> str:
 @functools.cache
 def load_model(xml: str, frame_skip: int) -> NativeModel:
     """Gymnasium's model `xml` as its ``MujocoEnv`` builds it; init_q is the model's qpos0."""
-    import mujoco
-
     # The compiler warns that settotalmass (half_cheetah.xml, humanoid.xml) is deprecated, on
     # stdout and, unless a handler is set, into MUJOCO_LOG.TXT in the working directory.
     previous = mujoco.get_mju_user_warning()

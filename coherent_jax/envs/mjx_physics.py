@@ -19,6 +19,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 from flax import struct
+from mujoco import mjx
 
 from coherent_jax.envs.task import (
     POST_CONSTRAINT_FIELDS,
@@ -45,8 +46,6 @@ class MjxPhysics(TaskPhysics):
     state_type = MjxState
 
     def __init__(self, task: str, spec: NativeTask, native_model: NativeModel):
-        from mujoco import mjx
-
         model, self.n_frames, self.dt, init_q = native_model
         self.task, self.spec = task, spec
         self.model = mjx.put_model(model)
@@ -63,8 +62,6 @@ class MjxPhysics(TaskPhysics):
         return Kinematics(**{f: getattr(data, f).astype(jnp.float32) for f in self.spec.fields})
 
     def _reset_one(self, qpos: jax.Array, qvel: jax.Array):
-        from mujoco import mjx
-
         qpos = qpos.astype(self._blank.qpos.dtype)
         data = mjx.forward(
             self.model, self._blank.replace(qpos=qpos, qvel=qvel.astype(self._blank.qvel.dtype))
@@ -75,8 +72,6 @@ class MjxPhysics(TaskPhysics):
         return data.replace(qpos=qpos)
 
     def _step_one(self, data, ctrl: jax.Array):
-        from mujoco import mjx
-
         data = data.replace(ctrl=ctrl.astype(data.ctrl.dtype))
         data = jax.lax.fori_loop(0, self.n_frames, lambda _, d: mjx.step(self.model, d), data)
         return mjx.rne_postconstraint(self.model, data) if self._post else data

@@ -36,8 +36,10 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 from flax import struct
+from mujoco import batch
 
 from coherent_jax.envs.brax_native import BRAX_NATIVE
 from coherent_jax.envs.dmc_native import DMC_NATIVE
@@ -51,6 +53,7 @@ from coherent_jax.envs.task import (
     PhysicsState,
     TaskPhysics,
 )
+from coherent_jax.envs.user_task import load_user_task
 
 
 @struct.dataclass
@@ -74,8 +77,6 @@ def native_task(task: str) -> NativeTask:
     """The `NativeTask` of registry name `task`, or of a user's ``MODULE:NAME`` (imported and
     checked by `coherent_jax.envs.user_task`); raises naming the supported tasks otherwise."""
     if is_user_task(task):
-        from coherent_jax.envs.user_task import load_user_task
-
         return load_user_task(task).native
     if task not in NATIVE_TASKS:
         resolve_physics(task, "native")  # raises naming the supported tasks
@@ -97,8 +98,6 @@ class _Host:
     """
 
     def __init__(self, model, n_frames: int, nthread: int, fields: tuple[str, ...], normalize: bool):
-        import mujoco
-
         self.model = model
         self.n_frames = n_frames
         self.nthread = nthread
@@ -122,14 +121,10 @@ class _Host:
 
     def shapes(self) -> dict[str, tuple[int, ...]]:
         """Per-env shape of each field the host returns."""
-        import mujoco
-
         data = mujoco.MjData(self.model)
         return {name: tuple(getattr(data, name).shape) for name in self.fields}
 
     def _batch(self, n: int):
-        from mujoco import batch
-
         if n not in self._batches:
             b = batch.Batch(
                 self.model, n, nthread=min(self.nthread, n), persistent=bool(self.post_constraint)
@@ -142,8 +137,6 @@ class _Host:
         return self._batches[n]
 
     def _read(self, b, after_step: bool) -> tuple[np.ndarray, ...]:
-        import mujoco
-
         n = b.nsim
         rows = np.ascontiguousarray(b.state).view(np.uint32).reshape(n, 2 * self.nstate)
         post = {}
@@ -171,8 +164,6 @@ class _Host:
         are read, so they describe the model's default mocap bodies until the first step
         (MuJoCo Playground's order).
         """
-        import mujoco
-
         qpos, qvel = np.asarray(qpos, np.float64), np.asarray(qvel, np.float64)  # callbacks get jax.Arrays
         lead = qpos.shape[:-1]
         qpos = qpos.reshape(-1, qpos.shape[-1])

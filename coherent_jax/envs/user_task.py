@@ -34,6 +34,7 @@ from typing import Any, NamedTuple, NoReturn
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 
 from coherent_jax.envs.quiet import quiet_stdio
@@ -192,8 +193,6 @@ def _fail(name: str, problem: str) -> NoReturn:
 def load_model(path: str, frame_skip: int) -> NativeModel:
     """The compiled MJCF at `path`; init_q is the model's ``qpos0``. Raises `ValueError` for a
     file MuJoCo cannot compile."""
-    import mujoco
-
     previous = mujoco.get_mju_user_warning()
     mujoco.set_mju_user_warning(lambda message: None)  # no MUJOCO_LOG.TXT in the working directory
     try:
@@ -242,8 +241,6 @@ def _fields_of(data: Any, fields: tuple[str, ...]) -> Kinematics:
 def _sample_states(name: str, native: NativeTask, loaded: NativeModel):
     """`Kinematics` [1, ...] at a state of the reset distribution and after one step with zero
     action (control applied, as the engines apply it), and that control."""
-    import mujoco
-
     model = loaded.model
     init_q, keys = jnp.asarray(loaded.init_q), jax.random.PRNGKey(0)[None]
     drawn = _run(name, "reset_noise", lambda key: native.reset_noise(key, init_q, model.nv), keys, pair=True)

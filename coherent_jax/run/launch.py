@@ -41,6 +41,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
+import jax
+
 from coherent_jax import cli
 from coherent_jax.config import Config, ConfigError
 from coherent_jax.config.checks import warmup_warning
@@ -356,8 +358,6 @@ def timings(out: Outcome) -> dict[str, float]:
 
 def platform(out: Outcome) -> dict[str, Any]:
     """Where a summary's run ran: JAX's version, its backend, the devices used."""
-    import jax
-
     return {"jax_version": jax.__version__, "backend": jax.default_backend(), "num_devices": out.num_devices}
 
 

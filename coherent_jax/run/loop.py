@@ -40,10 +40,18 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import serialization
+from tqdm.auto import tqdm
+
 from coherent_jax.agents.trainer import Trainer
 from coherent_jax.config import limits
+from coherent_jax.run import multihost, sharding
 from coherent_jax.run.divergence import DivergenceError, PointView, check_finite
 from coherent_jax.run.loop_state import Job, Outcome, Programs, Session
+from coherent_jax.run.multihost import to_host
 from coherent_jax.run.runs import (
     CHECKPOINT,
     METRICS,
@@ -66,8 +74,6 @@ def run_keys(seed: int):
     single run's program with its settings: equal up to float rounding (the vmapped
     batch reorders sums), which a chaotic task amplifies over training.
     """
-    import jax
-
     key = jax.random.PRNGKey(seed)
     key, init_key = jax.random.split(key)
     return key, init_key
@@ -120,8 +126,6 @@ class StopRequest:
 
 def _per_point(values: dict[str, Any], n: int) -> dict[str, Any]:
     """Metrics as float64 arrays of one value per point ([n])."""
-    import numpy as np
-
     return {k: np.asarray(v, np.float64).reshape(n) for k, v in values.items()}
 
 
@@ -134,7 +138,7 @@ def _open_outputs(job: Job, start: int, resumed: bool):
             truncate_metrics(d / METRICS, start)
         files.append(open(d / METRICS, "a" if resumed else "w"))
         if cfg.tensorboard:
-            from coherent_jax.run.tb_events import EventWriter
+            from coherent_jax.run.tb_events import EventWriter  # lazy: tensorboardX takes 0.2 s
 
             # purge_step hides events a killed run wrote past the checkpoint.
             purge = start * cfg.steps_per_iteration + 1 if resumed else None
@@ -151,11 +155,6 @@ def start_session(job: Job, resume: Checkpoint | None, t_start: float) -> Sessio
     from tracing ``init`` and its values from the checkpoint; its loop state and
     evaluation key continue where the checkpoint left them.
     """
-    import jax
-    import jax.numpy as jnp
-
-    from coherent_jax.run import sharding
-
     cfg, trainer, n = job.cfg, job.trainer, job.num_points
     available = sharding.resolve_num_devices(cfg.num_devices)
     keys = [run_keys(s) for s in job.seeds]
@@ -217,11 +216,6 @@ def compile_programs(run: Session) -> None:
     Says how long the compile took (the state's init or restore included), apart
     from the training time that follows.
     """
-    import jax
-    import jax.numpy as jnp
-
-    from coherent_jax.run import sharding
-
     job, trainer, cfg = run.job, run.job.trainer, run.job.cfg
 
     def params_finite(s):
@@ -253,11 +247,6 @@ def open_outputs(run: Session, stop: StopRequest) -> None:
     Several processes: only process 0 has the run directory, but all take part in
     gathering a checkpoint's state, and all agree on a stop before the first iteration.
     """
-    import numpy as np
-    from tqdm.auto import tqdm
-
-    from coherent_jax.run import multihost
-
     job, cfg, loop, n = run.job, run.job.cfg, run.loop, run.job.num_points
     # Per-point loop state as arrays; a single run keeps scalars in its checkpoint.
     run.last_return = np.broadcast_to(np.asarray(loop.last_return, np.float64), (n,)).copy()
@@ -289,10 +278,6 @@ def iterate(run: Session, i: int) -> dict[str, Any]:
     Returns the iteration's metrics per point (float64 [n] arrays), the evaluation's
     merged in on an evaluation row; updates the timers and the last returns.
     """
-    import numpy as np
-
-    from coherent_jax.run import multihost
-
     job, cfg, loop, n, programs = run.job, run.job.cfg, run.loop, run.job.num_points, run.programs
     t0 = time.perf_counter()
     run.state, metrics = programs.iteration(run.state)
@@ -365,8 +350,6 @@ def save_checkpoint(run: Session) -> None:
     iterations are already on disk (`sink_metrics` writes them through), so a run
     killed at any point leaves none of them behind the checkpoint.
     """
-    import jax
-
     job, loop, points = run.job, run.loop, run.job.points
     loop.eval_key = jax.device_get(run.key).tolist()
     loop.elapsed_s = run.elapsed_before + time.perf_counter() - run.t_start
@@ -382,8 +365,6 @@ def save_checkpoint(run: Session) -> None:
 
 def show_progress(run: Session) -> None:
     """The progress bar after ``run.done`` iterations: training env steps/s, last return, last evaluation."""
-    import numpy as np
-
     n, steps = run.job.num_points, run.job.cfg.steps_per_iteration
     run.bar.update(steps)
     live = [j for j in range(n) if j not in run.diverged and math.isfinite(run.last_return[j])]
@@ -397,8 +378,6 @@ def show_progress(run: Session) -> None:
 
 def eval_text(last_eval: dict[str, Any]) -> str:
     """The progress bar's last evaluation return (mean over points): ``-`` before the first."""
-    import numpy as np
-
     if not last_eval:
         return "-"
     return f"{np.nanmean(last_eval['eval/episode_return']):.1f}"
@@ -428,8 +407,6 @@ def run_loop(
     run's metrics (Python floats) after every iteration. Raises `DivergenceError` when
     a single run diverges (see the module docstring for sweeps).
     """
-    from coherent_jax.run import multihost
-
     cfg, n = job.cfg, job.num_points
     run = start_session(job, resume, time.perf_counter())
     compile_programs(run)
@@ -477,11 +454,6 @@ def write_params(trainer: Trainer, state: Any, point_dirs: list[Path], points: b
     Several processes: every process must call it (the parameters are gathered from
     all); only process 0 has directories to write to.
     """
-    import jax
-    from flax import serialization
-
-    from coherent_jax.run.multihost import to_host
-
     params = to_host(trainer.export_params(state))
     for j, d in enumerate(point_dirs):
         one = jax.tree.map(lambda x, j=j: x[j], params) if points else params

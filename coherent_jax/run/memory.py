@@ -38,6 +38,12 @@ import dataclasses
 import os
 from typing import Any
 
+import jax
+
+from coherent_jax.config import ConfigError, get_value
+from coherent_jax.envs.registry import is_user_task
+from coherent_jax.envs.vec_env import VecEnv
+
 FLOAT = 4  # bytes of a float32
 # Above every registered task's sizes, measured with `task_sizes` over
 # `coherent_jax.envs.registry.TASKS`: the most observations are Humanoid-v5's 348, the
@@ -94,10 +100,6 @@ def machine_memory() -> int | None:
 
 def task_sizes(cfg: Any) -> tuple[int, int, int]:
     """(observation size, action size, bytes of one env's state) of `cfg`'s task, from one env."""
-    import jax
-
-    from coherent_jax.envs.vec_env import VecEnv
-
     env = VecEnv(cfg.env, 1, cfg.episode_length, cfg.physics, cfg.physics_threads)
     shapes = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
     state = sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(shapes))
@@ -115,9 +117,6 @@ def check_memory(cfg: Any, points: int = 1, memory: int | None = None) -> None:
     replay buffer and its copies are), the estimate with its parts and the machine's memory.
     `memory` (bytes) replaces the machine's, for tests.
     """
-    from coherent_jax.config import ConfigError, get_value
-    from coherent_jax.envs.registry import is_user_task
-
     memory = memory if memory is not None else machine_memory()
     if memory is None:
         return

@@ -16,6 +16,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 from coherent_jax.config import ConfigError
@@ -105,8 +106,6 @@ def first_missing(path: Path) -> Path | None:
 def discard_new_dir(path: Path, created: Path | None) -> None:
     """Undoes a new run's start: removes `created` (from `first_missing`, taken before
     `prepare_output_dir`), or, when `path` existed (empty) before, only what is in it now."""
-    import shutil
-
     if created is not None:
         shutil.rmtree(created, ignore_errors=True)
         return

@@ -18,6 +18,8 @@ import fcntl
 import os
 from pathlib import Path
 
+from coherent_jax.config import ConfigError
+
 LOCK = "run.lock"
 
 
@@ -28,8 +30,6 @@ def _read_pid(fd: int) -> str:
 
 
 def _in_use(directory: Path, key: str, pid: str) -> Exception:
-    from coherent_jax.config import ConfigError
-
     return ConfigError(
         f"invalid value for {key!r}: {str(directory)!r} is in use by process {pid} "
         f"(allowed: a directory no running process trains in; {LOCK} names the holder)"
@@ -70,8 +70,6 @@ def acquire(directory: Path, key: str) -> RunLock:
         try:
             fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
         except OSError as exc:
-            from coherent_jax.config import ConfigError
-
             raise ConfigError(
                 f"invalid value for {key!r}: {str(directory)!r} cannot be written ({exc.strerror}) "
                 "(allowed: a directory this process can write in)"

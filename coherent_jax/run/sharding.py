@@ -30,6 +30,8 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from coherent_jax.agents.trainer import Trainer
 from coherent_jax.config import ConfigError
+from coherent_jax.run import multihost
+from coherent_jax.run.multihost import place
 from coherent_jax.sweep_axis import POINT_AXIS, vmap_points
 
 ENV_AXIS = "envs"
@@ -130,8 +132,6 @@ def shard_state(state: Any, num_devices: int, num_envs: int):
     """
     if num_devices == 1:
         return state, None
-    from coherent_jax.run.multihost import place
-
     check_env_split(num_envs, num_devices)
     shardings = env_state_shardings(state, make_mesh(num_devices, ENV_AXIS), num_envs)
     return place(state, shardings), shardings
@@ -160,8 +160,6 @@ def shard_points(states: Any, num_devices: int):
     """Stacked sweep states (e.g. restored from a checkpoint) placed as `init_points` places new ones."""
     if num_devices == 1:
         return states, None
-    from coherent_jax.run.multihost import place
-
     shardings = point_shardings(states, make_mesh(num_devices, POINT_AXIS))
     return place(states, shardings), shardings
 
@@ -189,8 +187,6 @@ def check_devices(cfg: Any, split_envs: bool = True) -> bool:
 
     Returns whether this process writes the outputs (process 0 of a distributed run).
     """
-    from coherent_jax.run import multihost
-
     maybe_initialize_distributed(cfg.distributed)
     num_devices = resolve_num_devices(cfg.num_devices)
     if split_envs:
@@ -202,6 +198,4 @@ def check_devices(cfg: Any, split_envs: bool = True) -> bool:
 def maybe_initialize_distributed(enabled: bool) -> None:
     """`coherent_jax.run.multihost.initialize` once, before any other JAX call, when ``enabled``."""
     if enabled:
-        from coherent_jax.run import multihost
-
         multihost.initialize()

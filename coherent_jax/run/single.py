@@ -13,6 +13,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from coherent_jax.agents import make_trainer
 from coherent_jax.config import Config, parse_overrides
 from coherent_jax.envs.registry import task_label
 from coherent_jax.run import launch, rundir, tracking
@@ -30,6 +31,7 @@ from coherent_jax.run.runs import (
     stored_config,
     write_config,
 )
+from coherent_jax.run.sharding import check_devices
 
 
 def default_run_dir(cfg: Config) -> Path:
@@ -52,8 +54,6 @@ def train(
     Raises `DivergenceError` when a loss or a parameter becomes non-finite. The
     summary's ``stopped_by`` names the signal when SIGINT/SIGTERM ended the run early.
     """
-    from coherent_jax.agents import make_trainer
-
     # W&B first: a server that does not answer ends the run before the slow imports and builds.
     with tracking.mirrored(_mirror_points(cfg, run_dir), init_timeout=cfg.wandb_init_timeout) as mirrors:
         trainer = make_trainer(cfg)
@@ -134,8 +134,6 @@ class TrainCommand:
         return resume_config(resume_dir, rest)
 
     def check(self, plan: Config) -> bool:
-        from coherent_jax.run.sharding import check_devices
-
         is_writer = check_devices(plan)  # several hosts: only process 0 writes
         check_memory(plan)
         return is_writer

@@ -52,10 +52,17 @@ class TrackingError(RuntimeError):
 def available() -> bool:
     """Whether the optional ``wandb`` package is importable."""
     try:
-        import wandb  # noqa: F401
+        import wandb  # noqa: F401  # lazy: optional dependency
     except ImportError:
         return False
     return True
+
+
+def _wandb() -> Any:
+    """The optional ``wandb`` module (`require` says how to install it when it is missing)."""
+    import wandb  # lazy: optional dependency
+
+    return wandb
 
 
 def require() -> None:
@@ -140,8 +147,7 @@ def session(root: Path) -> Iterator[None]:
     `wandb_environment` set while inside, and W&B's service (started with them) torn down
     on leaving, so the next session starts its own. A W&B run the calling program had
     already started (``wandb.run``, from Python) keeps its service: no teardown then."""
-    import wandb
-
+    wandb = _wandb()
     had_run = wandb.run is not None
     added = wandb_environment(root, os.environ)
     os.environ.update(added)
@@ -191,8 +197,7 @@ class WandbRun:
         it refuses) raises `TrackingError` in one line.
         """
         require()
-        import wandb
-
+        wandb = _wandb()
         identity = _identity(run_dir, name, group)
         settings = wandb.Settings(
             silent=True, console="off", x_disable_stats=True, init_timeout=float(init_timeout)
@@ -228,8 +233,7 @@ class WandbRun:
     def video(self, path: Path, step: int | None, key: str = "eval/video") -> None:
         """An evaluation video (MP4 or GIF) at ``step`` (None: W&B's next step, after every row
         already logged, which a resumed W&B run requires of a late addition)."""
-        import wandb
-
+        wandb = _wandb()
         fmt = "gif" if Path(path).suffix == ".gif" else "mp4"
         self._run.log({key: wandb.Video(str(path), format=fmt)}, step=None if step is None else int(step))
 
