@@ -70,12 +70,13 @@ from coherent_jax.config import (
 from coherent_jax.config.legacy import modern_items
 from coherent_jax.envs.registry import task_label
 from coherent_jax.envs.vec_env import VecEnv
-from coherent_jax.run import launch, multihost, rundir, sharding, tracking
-from coherent_jax.run.loop import PREFIX, StopRequest, to_float, write_params
-from coherent_jax.run.loop_state import Job, Outcome
+from coherent_jax.run import collective, launch, multihost, rundir, sharding, tracking
+from coherent_jax.run.loop import drive, platform, write_params
+from coherent_jax.run.loop_state import Job, Outcome, to_float
 from coherent_jax.run.memory import check_memory
 from coherent_jax.run.runs import (
     METRICS,
+    PREFIX,
     Checkpoint,
     atomic_write,
     config_text,
@@ -84,6 +85,7 @@ from coherent_jax.run.runs import (
     write_config,
 )
 from coherent_jax.run.sharding import check_devices
+from coherent_jax.run.stop import StopRequest
 from coherent_jax.sweeps import resume as sweep_resume
 from coherent_jax.sweeps.table import aggregate, fmt, format_table, to_csv
 
@@ -263,7 +265,7 @@ def run_sweep(
     job = sweep_job(plan, out_dir, env, eval_env)
     group = out_dir.name if out_dir else None
     with tracking.mirrored(_mirror_points(plan, job), group, plan.base.wandb_init_timeout) as mirrors:
-        out = launch.drive(dataclasses.replace(job, trackers=mirrors.runs), stop, resume)
+        out = drive(dataclasses.replace(job, trackers=mirrors.runs), stop, resume)
         result = sweep_result(plan, out, resume is not None)
         if launch.report_stopped(out, out_dir):
             return result
@@ -356,7 +358,7 @@ def sweep_result(plan: SweepPlan, out: Outcome, resumed: bool) -> dict[str, Any]
     """``sweep.json``: the grid, the timings, the aggregate rows over seeds and every point's summary."""
     num_points = len(plan.points)
     total_steps = out.done * plan.base.steps_per_iteration
-    common = {"env_steps": total_steps, **launch.timings(out), **launch.platform(out)}
+    common = {"env_steps": total_steps, **launch.timings(out), **platform(out)}
     summaries = point_summaries(plan, out, common)
     return {
         "axes": plan.axes,
@@ -453,7 +455,7 @@ class SweepCommand:
 def check_point_split(cfg: Config, plan: SweepPlan) -> None:
     """Several processes: the points must spread over every device of every process."""
     available = sharding.resolve_num_devices(cfg.num_devices)
-    multihost.check_device_split(sharding.point_device_count(len(plan.points), available))
+    collective.check_device_split(sharding.point_device_count(len(plan.points), available))
 
 
 if __name__ == "__main__":

@@ -26,9 +26,10 @@ online, credentials): checked in step 2, before anything is written
 (`coherent_jax.run.tracking.preflight`); a W&B run that fails to start ends a new run with
 its directory removed again.
 
-`drive` and the summary helpers are the part of the run both commands' bodies share:
-the loop under a stop request, the timing fields of a summary, the line that says a
-stopped run can be resumed.
+The summary helpers are the part of the run both commands' bodies share: the timing
+fields of a summary, the line that says a stopped run can be resumed. Their loop is
+`coherent_jax.run.loop.drive`, imported when a run starts (the launch path itself
+imports no JAX: ``--help``, bad input and dry runs go without it).
 """
 
 from __future__ import annotations
@@ -41,8 +42,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
-import jax
-
 from coherent_jax import cli
 from coherent_jax.config import Config, ConfigError
 from coherent_jax.config.checks import warmup_warning
@@ -50,10 +49,10 @@ from coherent_jax.envs.quiet import quiet_imports
 from coherent_jax.exit_codes import EXIT_BAD_INPUT, EXIT_DIVERGED, EXIT_OK, signal_status
 from coherent_jax.run import multihost, rundir, runlock, tracking
 from coherent_jax.run.divergence import DivergenceError
-from coherent_jax.run.loop import PREFIX, StopRequest, run_loop
-from coherent_jax.run.loop_state import Job, Outcome
+from coherent_jax.run.loop_state import Outcome
 from coherent_jax.run.runs import (
     METRICS,
+    PREFIX,
     Checkpoint,
     CheckpointError,
     prepare_output_dir,
@@ -61,6 +60,7 @@ from coherent_jax.run.runs import (
     record_versions,
     split_resume,
 )
+from coherent_jax.run.stop import StopRequest
 from coherent_jax.run.tracking import TrackingError
 
 
@@ -335,18 +335,6 @@ def exit_status(summary: dict[str, Any]) -> int:
     return EXIT_DIVERGED if summary.get("diverged") else EXIT_OK
 
 
-def drive(
-    job: Job,
-    stop: StopRequest | None,
-    resume: Checkpoint | None,
-    progress_fn: Callable[[int, dict[str, float]], None] | None = None,
-) -> Outcome:
-    """`run_loop` under `stop`, or under a stop request of its own when called from Python."""
-    with contextlib.ExitStack() as stack:
-        stop = stop or stack.enter_context(StopRequest())
-        return run_loop(job, stop, resume, progress_fn)
-
-
 def timings(out: Outcome) -> dict[str, float]:
     """The seconds a summary reports: compilation, training, evaluation (this session's compile)."""
     return {
@@ -354,11 +342,6 @@ def timings(out: Outcome) -> dict[str, float]:
         "train_s": round(out.loop.train_s, 2),
         "eval_s": round(out.loop.eval_s, 2),
     }
-
-
-def platform(out: Outcome) -> dict[str, Any]:
-    """Where a summary's run ran: JAX's version, its backend, the devices used."""
-    return {"jax_version": jax.__version__, "backend": jax.default_backend(), "num_devices": out.num_devices}
 
 
 def report_stopped(out: Outcome, run_dir: Path | None) -> bool:

@@ -30,11 +30,11 @@ iteration `iterate` (which calls `guard`, the checks of `coherent_jax.run.diverg
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import signal
 import sys
-import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -48,10 +48,10 @@ from tqdm.auto import tqdm
 
 from coherent_jax.agents.trainer import Trainer
 from coherent_jax.config import limits
-from coherent_jax.run import multihost, sharding
+from coherent_jax.run import collective, sharding
+from coherent_jax.run.collective import to_host
 from coherent_jax.run.divergence import DivergenceError, PointView, check_finite
-from coherent_jax.run.loop_state import Job, Outcome, Programs, Session
-from coherent_jax.run.multihost import to_host
+from coherent_jax.run.loop_state import Job, Outcome, Programs, Session, to_float
 from coherent_jax.run.runs import (
     CHECKPOINT,
     METRICS,
@@ -64,6 +64,7 @@ from coherent_jax.run.runs import (
     state_to_bytes,
     truncate_metrics,
 )
+from coherent_jax.run.stop import StopRequest
 from coherent_jax.sweep_axis import vmap_points
 
 
@@ -77,51 +78,6 @@ def run_keys(seed: int):
     key = jax.random.PRNGKey(seed)
     key, init_key = jax.random.split(key)
     return key, init_key
-
-
-def to_float(x: Any) -> float | None:
-    """A metric as JSON has it: a float, or None when not finite."""
-    value = float(x)
-    return value if math.isfinite(value) else None
-
-
-class StopRequest:
-    """Turns SIGINT/SIGTERM into a request to stop after the current iteration.
-
-    Installed before anything slow (imports, compiles), so a Ctrl-C at any moment
-    ends the program cleanly instead of with a traceback. A second signal ends the
-    process at once, by the signal's default action.
-    """
-
-    def __init__(self) -> None:
-        self.signum: int | None = None
-        self._previous: dict[int, Any] = {}
-
-    def __enter__(self) -> StopRequest:
-        if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                self._previous[sig] = signal.signal(sig, self._handle)
-        return self
-
-    def _handle(self, signum: int, frame: Any) -> None:
-        if self.signum is not None:
-            signal.signal(signum, signal.SIG_DFL)
-            signal.raise_signal(signum)
-            return
-        self.signum = signum
-        print(
-            f"\n{PREFIX} {signal.Signals(signum).name}: stopping after the current step",
-            file=sys.stderr,
-            flush=True,
-        )
-
-    @property
-    def name(self) -> str | None:
-        return signal.Signals(self.signum).name if self.signum is not None else None
-
-    def __exit__(self, *exc: Any) -> None:
-        for sig, handler in self._previous.items():
-            signal.signal(sig, handler)
 
 
 def _per_point(values: dict[str, Any], n: int) -> dict[str, Any]:
@@ -254,12 +210,12 @@ def open_outputs(run: Session, stop: StopRequest) -> None:
     run.diverged = {int(k): v for k, v in loop.diverged.items()}
     run.elapsed_before = loop.elapsed_s
     run.files, run.writers = _open_outputs(job, run.start, run.resumed)
-    run.checkpoints = multihost.from_writer(job.run_dir is not None)
+    run.checkpoints = collective.from_writer(job.run_dir is not None)
     run.bar = tqdm(
         total=cfg.num_iterations * cfg.steps_per_iteration,
         initial=run.start * cfg.steps_per_iteration,
         unit="step",
-        disable=not cfg.progress or not multihost.is_writer(),  # one progress bar per run
+        disable=not cfg.progress or not collective.is_writer(),  # one progress bar per run
         dynamic_ncols=True,
         mininterval=1.0,
         # One rate: the postfix's training env steps/s (tqdm's own would count compile and eval).
@@ -269,7 +225,7 @@ def open_outputs(run: Session, stop: StopRequest) -> None:
     run.saved = run.start if run.resumed else -1
     # A signal to one process stops all of them after the same iteration; the agreed
     # value, not the local one, decides (a signal may arrive after the agreement).
-    run.stopping = multihost.largest(stop.signum or 0)
+    run.stopping = collective.largest(stop.signum or 0)
 
 
 def iterate(run: Session, i: int) -> dict[str, Any]:
@@ -281,15 +237,15 @@ def iterate(run: Session, i: int) -> dict[str, Any]:
     job, cfg, loop, n, programs = run.job, run.job.cfg, run.loop, run.job.num_points, run.programs
     t0 = time.perf_counter()
     run.state, metrics = programs.iteration(run.state)
-    metrics = _per_point(multihost.to_host(metrics), n)
-    finite = np.asarray(multihost.to_host(programs.check_params(run.state))).reshape(n)
+    metrics = _per_point(collective.to_host(metrics), n)
+    finite = np.asarray(collective.to_host(programs.check_params(run.state))).reshape(n)
     loop.train_s += time.perf_counter() - t0
     guard(run, i + 1, metrics, finite)
     if i == cfg.num_iterations - 1 or (cfg.eval_every > 0 and (i + 1) % cfg.eval_every == 0):
         t0 = time.perf_counter()
         keys_now = programs.split(run.key)
         run.key, eval_key = (keys_now[:, 0], keys_now[:, 1]) if job.points else (keys_now[0], keys_now[1])
-        run.last_eval = _per_point(multihost.to_host(programs.evaluate(run.state, eval_key)), n)
+        run.last_eval = _per_point(collective.to_host(programs.evaluate(run.state, eval_key)), n)
         loop.eval_s += time.perf_counter() - t0
         metrics.update(run.last_eval)
     ret = metrics["train/episode_return"]
@@ -421,7 +377,7 @@ def run_loop(
             if progress_fn:
                 progress_fn(run.done, {k: float(v[0]) for k, v in metrics.items()})
             every = cfg.checkpoint_every > 0 and run.done % cfg.checkpoint_every == 0
-            run.stopping = multihost.largest(stop.signum or 0)
+            run.stopping = collective.largest(stop.signum or 0)
             if run.checkpoints and (i == cfg.num_iterations - 1 or every or run.stopping):
                 save_checkpoint(run)
                 run.saved = run.done
@@ -446,6 +402,23 @@ def run_loop(
         diverged=run.diverged,
         wall_s=run.elapsed_before + time.perf_counter() - run.t_start,
     )
+
+
+def drive(
+    job: Job,
+    stop: StopRequest | None,
+    resume: Checkpoint | None,
+    progress_fn: Callable[[int, dict[str, float]], None] | None = None,
+) -> Outcome:
+    """`run_loop` under `stop`, or under a stop request of its own when called from Python."""
+    with contextlib.ExitStack() as stack:
+        stop = stop or stack.enter_context(StopRequest())
+        return run_loop(job, stop, resume, progress_fn)
+
+
+def platform(out: Outcome) -> dict[str, Any]:
+    """Where a summary's run ran: JAX's version, its backend, the devices used."""
+    return {"jax_version": jax.__version__, "backend": jax.default_backend(), "num_devices": out.num_devices}
 
 
 def write_params(trainer: Trainer, state: Any, point_dirs: list[Path], points: bool) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -137,3 +138,9 @@ class Session:
     done: int = 0
     saved: int = -1
     stopping: int = 0
+
+
+def to_float(x: Any) -> float | None:
+    """A metric as JSON has it: a float, or None when not finite."""
+    value = float(x)
+    return value if math.isfinite(value) else None

@@ -279,7 +279,7 @@ def state_to_bytes(state: Any) -> bytes:
     import numpy as np
     from flax import serialization
 
-    from coherent_jax.run.multihost import to_host
+    from coherent_jax.run.collective import to_host
 
     leaves = jax.tree_util.tree_leaves(to_host(state))
     return serialization.msgpack_serialize({str(i): np.asarray(x) for i, x in enumerate(leaves)})

@@ -30,8 +30,8 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from coherent_jax.agents.trainer import Trainer
 from coherent_jax.config import ConfigError
-from coherent_jax.run import multihost
-from coherent_jax.run.multihost import place
+from coherent_jax.run import collective
+from coherent_jax.run.collective import place
 from coherent_jax.sweep_axis import POINT_AXIS, vmap_points
 
 ENV_AXIS = "envs"
@@ -191,11 +191,11 @@ def check_devices(cfg: Any, split_envs: bool = True) -> bool:
     num_devices = resolve_num_devices(cfg.num_devices)
     if split_envs:
         check_env_split(cfg.num_envs, num_devices)
-        multihost.check_device_split(num_devices)
-    return multihost.is_writer()
+        collective.check_device_split(num_devices)
+    return collective.is_writer()
 
 
 def maybe_initialize_distributed(enabled: bool) -> None:
-    """`coherent_jax.run.multihost.initialize` once, before any other JAX call, when ``enabled``."""
+    """`coherent_jax.run.collective.initialize` once, before any other JAX call, when ``enabled``."""
     if enabled:
-        multihost.initialize()
+        collective.initialize()

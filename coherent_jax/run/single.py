@@ -13,15 +13,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from coherent_jax.agents import make_trainer
 from coherent_jax.config import Config, parse_overrides
 from coherent_jax.envs.registry import task_label
 from coherent_jax.run import launch, rundir, tracking
-from coherent_jax.run.loop import PREFIX, StopRequest, to_float, write_params
-from coherent_jax.run.loop_state import Job, Outcome
-from coherent_jax.run.memory import check_memory
+from coherent_jax.run.loop_state import Job, Outcome, to_float
 from coherent_jax.run.runs import (
     METRICS,
+    PREFIX,
     Checkpoint,
     atomic_write,
     config_text,
@@ -31,7 +29,7 @@ from coherent_jax.run.runs import (
     stored_config,
     write_config,
 )
-from coherent_jax.run.sharding import check_devices
+from coherent_jax.run.stop import StopRequest
 
 
 def default_run_dir(cfg: Config) -> Path:
@@ -55,6 +53,9 @@ def train(
     summary's ``stopped_by`` names the signal when SIGINT/SIGTERM ended the run early.
     """
     # W&B first: a server that does not answer ends the run before the slow imports and builds.
+    from coherent_jax.agents import make_trainer  # lazy: JAX; the command starts without it
+    from coherent_jax.run.loop import drive, platform, write_params  # lazy: as make_trainer
+
     with tracking.mirrored(_mirror_points(cfg, run_dir), init_timeout=cfg.wandb_init_timeout) as mirrors:
         trainer = make_trainer(cfg)
         job = Job(
@@ -67,8 +68,8 @@ def train(
             label=f"{cfg.env} {cfg.algo} explore={cfg.explore}",
             trackers=mirrors.runs,
         )
-        out = launch.drive(job, stop, resume, progress_fn)
-        summary = run_summary(cfg, out, resume is not None)
+        out = drive(job, stop, resume, progress_fn)
+        summary = run_summary(cfg, out, resume is not None, platform(out))
         if launch.report_stopped(out, run_dir):
             return summary
         write_params(trainer, out.state, [run_dir] if run_dir else [], points=False)  # every process
@@ -85,8 +86,9 @@ def train(
     return summary
 
 
-def run_summary(cfg: Config, out: Outcome, resumed: bool) -> dict[str, Any]:
-    """``summary.json``: the run's settings, final returns, timings and platform."""
+def run_summary(cfg: Config, out: Outcome, resumed: bool, where: dict[str, Any]) -> dict[str, Any]:
+    """``summary.json``: the run's settings, final returns, timings and platform (``where``,
+    `coherent_jax.run.loop.platform`)."""
     total_steps = out.done * cfg.steps_per_iteration
     last_eval = {k: v[0] for k, v in out.last_eval.items()}
     return {
@@ -102,7 +104,7 @@ def run_summary(cfg: Config, out: Outcome, resumed: bool) -> dict[str, Any]:
         **launch.timings(out),
         "wall_s": round(out.wall_s, 2),
         "train_env_steps_per_s": round(total_steps / max(out.loop.train_s, 1e-9), 1),
-        **launch.platform(out),
+        **where,
         "resumed_from": out.start if resumed else None,
         "stopped_by": out.stopped_by,
         "physics": out.physics,
@@ -134,6 +136,9 @@ class TrainCommand:
         return resume_config(resume_dir, rest)
 
     def check(self, plan: Config) -> bool:
+        from coherent_jax.run.memory import check_memory  # lazy: JAX; --help and dry runs go without
+        from coherent_jax.run.sharding import check_devices  # lazy: as check_memory
+
         is_writer = check_devices(plan)  # several hosts: only process 0 writes
         check_memory(plan)
         return is_writer
