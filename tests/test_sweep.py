@@ -21,6 +21,7 @@ from coherent_jax.config import (
     sweepable,
 )
 from coherent_jax.run.runs import read_metrics
+from coherent_jax.sweeps import program
 
 TINY = [
     "env=pointmass",
@@ -225,7 +226,7 @@ def test_sweepable_keys_enter_only_through_state_hparams():
 def test_sweepable_declarations_match_every_trainer():
     """For every valid (algo, explore) pair, the fields' declarations name exactly the keys that reach the
     trainer's hyperparameters: a trainer built with every sweepable key changed holds the base trainer's
-    hyperparameters with just the declared keys' leaves replaced (`sweep.point_hparams`), each of them
+    hyperparameters with just the declared keys' leaves replaced (`program.point_hparams`), each of them
     changed. So a sweep needs no trainer per point, and refuses an axis a pair does not read."""
     import jax
 
@@ -258,12 +259,14 @@ def test_sweepable_declarations_match_every_trainer():
                 cfg = parse_overrides([*args, *(f"{k}={v}" for k, v in changes.items())])
                 own = make_trainer(cfg, env, eval_env).init_hparams()
                 declared = {k: v for k, v in changes.items() if sweepable(k).read_by(algo, explore)}
-                derived = sweep.point_hparams(base_hp, sweep.Point(index=0, values=declared, seed=0, cfg=cfg))
+                derived = program.point_hparams(
+                    base_hp, sweep.Point(index=0, values=declared, seed=0, cfg=cfg)
+                )
                 assert jax.tree.structure(derived) == jax.tree.structure(own)
                 for a, b in zip(jax.tree.leaves(derived), jax.tree.leaves(own), strict=True):
                     assert a.dtype == b.dtype and np.array_equal(a, b), (algo, explore)
                 for key in declared:  # each declared key's leaf really moved
-                    one = sweep.point_hparams(base_hp, sweep.Point(0, {key: changed[key]}, 0, cfg))
+                    one = program.point_hparams(base_hp, sweep.Point(0, {key: changed[key]}, 0, cfg))
                     moved = [
                         not np.array_equal(a, b)
                         for a, b in zip(jax.tree.leaves(one), jax.tree.leaves(base_hp), strict=True)
