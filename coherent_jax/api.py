@@ -29,10 +29,9 @@ import numpy as np
 from coherent_jax.config import Config, ConfigError, override_items
 from coherent_jax.config.legacy import overrides_of
 from coherent_jax.envs.vec_env import VecEnv
-from coherent_jax.policy import PARAMS
 from coherent_jax.policy import load_policy as read_policy
 from coherent_jax.run import launch
-from coherent_jax.run.runs import CHECKPOINT, METRICS, load_config, read_metrics
+from coherent_jax.run.runs import CHECKPOINT, METRICS, PARAMS, load_config, read_metrics
 from coherent_jax.run.single import TrainCommand
 from coherent_jax.run.stop import StopRequest
 

@@ -34,13 +34,14 @@ import re
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 from coherent_jax import cli
 from coherent_jax.config import ConfigError, limits
+from coherent_jax.config.checks import gymnasium_id
+from coherent_jax.envs.registry import CLASSIC_IDS, check_task
 from coherent_jax.exit_codes import EXIT_BAD_INPUT
-from coherent_jax.run import rundir, tracking, video
-from coherent_jax.run.runs import CHECKPOINT, CheckpointError, decode_checkpoint, load_config
+from coherent_jax.run import rundir, tracking, video_path
+from coherent_jax.run.runs import CHECKPOINT, PARAMS, CheckpointError, decode_checkpoint, load_config
 
 ENGINES = ("jax", "gymnasium")
 GYMNASIUM_EXTRA = 'pip install -e ".[gym]"'
@@ -61,8 +62,8 @@ KEYS: dict[str, cli.Key] = {
     ),
     "video_path": cli.Key(
         "",
-        video.check_path,
-        video.PATH_ALLOWED,
+        video_path.check_path,
+        video_path.PATH_ALLOWED,
         "where the video goes, only with video=true; default "
         "RUN_DIR/videos/eval-it<iteration>-s<seed>.mp4 (.gif without ffmpeg)",
     ),
@@ -114,176 +115,21 @@ def parse_eval_args(argv: Sequence[str]) -> tuple[Path, EvalConfig]:
     return Path(positional[0]), EvalConfig(**settings)
 
 
-def gymnasium_id(env: str) -> str:
-    """The Gymnasium id of task ``env``; raises `ConfigError` naming the tasks that have one."""
-    from coherent_jax.envs.registry import TASKS, check_task
-
-    if not check_task(env).gymnasium_id:
-        having = ", ".join(name for name, spec in TASKS.items() if spec.gymnasium_id)
-        raise ConfigError(
-            f"invalid value for 'engine': gymnasium with env={env}, which has no Gymnasium id "
-            f"(allowed: engine=jax, or a run of one of {having})"
-        )
-    return TASKS[env].gymnasium_id
-
-
 def check_gymnasium(env: str = "") -> None:
     """Raises `ConfigError` in one line when Gymnasium's env of task ``env`` cannot be made:
     a classic task needs Gymnasium, a MuJoCo task (or none named) ``gymnasium[mujoco]``."""
-    from coherent_jax.envs.registry import CLASSIC_IDS, check_task
-
     classic = bool(env) and check_task(env).gymnasium_id in CLASSIC_IDS
     try:
         if classic:
-            import gymnasium.envs.classic_control  # noqa: F401
+            import gymnasium.envs.classic_control  # noqa: F401  # lazy: the check is whether it imports
         else:
-            import gymnasium.envs.mujoco.mujoco_env  # noqa: F401 - needs mujoco (gymnasium[mujoco])
+            import gymnasium.envs.mujoco.mujoco_env  # noqa: F401  # lazy: needs gymnasium[mujoco], optional
     except Exception as exc:  # noqa: BLE001 - ImportError or gymnasium's DependencyNotInstalled
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         extra = "gymnasium" if classic else "gymnasium[mujoco]"
         raise ConfigError(
             f"engine=gymnasium needs {extra} ({reason}): install the gym extra, {GYMNASIUM_EXTRA}"
         ) from None
-
-
-def gymnasium_action_map(env: str, space):
-    """(action [..., p] in [-1, 1]) -> the action Gymnasium's env of task ``env`` receives: the
-    task's own map onto the action space ``space`` (`control` for a MuJoCo task; for a classic
-    task `to_bounds`, centre + a * half-width, as `coherent_jax.envs.classic` maps it)."""
-    import numpy as np
-
-    from coherent_jax.envs.registry import CLASSIC_IDS
-    from coherent_jax.envs.task import control, to_bounds
-
-    gym_id = gymnasium_id(env)
-    if gym_id in CLASSIC_IDS:
-        return lambda a: to_bounds(a, space.low, space.high)
-    from coherent_jax.envs.native import NATIVE_TASKS
-
-    ctrl_range = np.stack([space.low, space.high], axis=-1)
-    return lambda a: control(NATIVE_TASKS[gym_id], a, ctrl_range)
-
-
-def gymnasium_returns(policy, env: str, episode_length: int, episodes: int, seed: int):
-    """Returns and lengths [episodes] of the policy's deterministic episodes in Gymnasium.
-
-    One ``gymnasium.make(gym_id, max_episode_steps=episode_length)`` per episode, stepped
-    in lockstep so that the policy runs once per step on the batch of observations. Each
-    observation is cast to float32 (our observations' type) and passed through the
-    run's normalisation inside `Policy.mean_action`; the action is clipped to [-1, 1]
-    and mapped onto Gymnasium's action space with the task's own map
-    (`gymnasium_action_map`: centre + a * half-width), exactly what `VecEnv.step` and the
-    task do in training;
-    SAC's tanh-squashed mean is already in [-1, 1]. An episode ends where Gymnasium's
-    ``terminated`` or ``truncated`` (its time limit, here the run's ``episode_length``)
-    says. Episode i is reset with the i-th word of ``SeedSequence(seed)``, so ``seed``
-    reproduces the episodes and different seeds give different ones.
-    """
-    import gymnasium
-    import jax
-    import jax.numpy as jnp
-    import numpy as np
-
-    gym_id = gymnasium_id(env)
-    envs = [_make_quietly(gymnasium, gym_id, episode_length) for _ in range(episodes)]
-    space = envs[0].action_space
-    to_space = gymnasium_action_map(env, space)
-    act = jax.jit(lambda p, o: to_space(jnp.clip(p.mean_action(o), -1.0, 1.0)))
-    seeds = np.random.SeedSequence(seed).generate_state(episodes)
-    obs = np.stack([e.reset(seed=int(s))[0] for e, s in zip(envs, seeds, strict=True)])
-    returns, lengths = np.zeros(episodes), np.zeros(episodes, np.int64)
-    running = np.ones(episodes, bool)
-    while running.any():
-        actions = np.asarray(act(policy, jnp.asarray(obs, jnp.float32)), space.dtype)
-        for i in np.flatnonzero(running):
-            obs[i], reward, terminated, truncated, _ = envs[i].step(actions[i])
-            returns[i] += reward
-            lengths[i] += 1
-            running[i] = not (terminated or truncated)
-    for e in envs:
-        e.close()
-    return returns, lengths
-
-
-def _make_quietly(gymnasium, gym_id: str, episode_length: int):
-    """``gymnasium.make(gym_id, max_episode_steps=episode_length)`` without MuJoCo's compiler
-    warnings (settotalmass is deprecated in half_cheetah.xml and humanoid.xml), which it
-    prints and, with no handler set, appends to MUJOCO_LOG.TXT in the working directory."""
-    import mujoco
-
-    from coherent_jax.envs.quiet import quiet_stdio
-
-    previous = mujoco.get_mju_user_warning()
-    mujoco.set_mju_user_warning(lambda message: None)
-    try:
-        with quiet_stdio(force=True):
-            return gymnasium.make(gym_id, max_episode_steps=episode_length)
-    finally:
-        mujoco.set_mju_user_warning(previous)
-
-
-def evaluate_run(run_dir: Path, opts: EvalConfig) -> dict[str, Any]:
-    """Evaluates the policy of `run_dir`; returns the figures (and the video path)."""
-    import jax
-
-    from coherent_jax.agents.rollout import evaluation_metrics
-    from coherent_jax.envs.vec_env import VecEnv
-    from coherent_jax.policy import load_policy
-
-    cfg = load_config(run_dir)
-    recorder = video.Recorder(opts.max_frames)
-    if opts.video:
-        eval_env = video.recording_env(
-            cfg.env, opts.episodes, cfg.episode_length, recorder, cfg.physics, cfg.physics_threads
-        )
-    else:
-        eval_env = VecEnv(cfg.env, opts.episodes, cfg.episode_length, cfg.physics, cfg.physics_threads)
-    policy, origin = load_policy(run_dir, eval_env.observation_size, eval_env.action_size)
-    evaluate = jax.jit(lambda p, k: evaluation_metrics(eval_env, p.mean_action, k))
-    metrics = jax.device_get(evaluate(policy, jax.random.PRNGKey(opts.seed)))
-    result = {
-        "run_dir": str(run_dir),
-        "source": origin["source"],
-        "iteration": origin["iteration"],
-        "env_steps": origin["env_steps"],
-        "episodes": opts.episodes,
-        "seed": opts.seed,
-        "return_mean": float(metrics["eval/episode_return"]),
-        "return_std": float(metrics["eval/episode_return_std"]),
-        "episode_length_mean": float(metrics["eval/episode_length"]),
-        "engine": opts.engine,
-    }
-    if opts.engine == "gymnasium":
-        import gymnasium
-
-        returns, lengths = gymnasium_returns(policy, cfg.env, cfg.episode_length, opts.episodes, opts.seed)
-        result.update(
-            {
-                "gymnasium_id": gymnasium_id(cfg.env),
-                "gymnasium_version": gymnasium.__version__,
-                "gymnasium_return_mean": float(returns.mean()),
-                "gymnasium_return_std": float(returns.std()),
-                "gymnasium_episode_length_mean": float(lengths.mean()),
-            }
-        )
-    if opts.video:
-        jax.effects_barrier()
-        frames = video.render_frames(
-            video.mujoco_model_of(eval_env, cfg.env), recorder.qpos, opts.width, opts.height
-        )
-        stem = "final" if origin["iteration"] is None else f"it{origin['iteration']}"
-        name = f"eval-{stem}-s{opts.seed}{video.default_suffix()}"
-        path = Path(opts.video_path) if opts.video_path else run_dir / "videos" / name
-        video.write_video(path, frames, fps=1.0 / eval_env.dt)
-        result.update({"video": str(path), "frames": len(frames)})
-        if cfg.wandb:  # the run's own W&B run (its id in the run directory) gets the video
-            with tracking.session(run_dir):
-                mirror = tracking.WandbRun.open(
-                    run_dir, None, run_dir.name, init_timeout=cfg.wandb_init_timeout
-                )
-                mirror.video(path, step=None)
-                mirror.finish()
-    return result
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -294,8 +140,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     # Headless rendering; must be chosen before mujoco is first imported.
     os.environ.setdefault("MUJOCO_GL", "egl")
-    from coherent_jax.policy import PARAMS, PolicyError
-
     try:
         run_dir, opts = parse_eval_args(argv)
         if not run_dir.is_dir():
@@ -311,8 +155,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         cfg = load_config(run_dir)
         if (run_dir / CHECKPOINT).is_file() or not (run_dir / PARAMS).is_file():
             decode_checkpoint(run_dir / CHECKPOINT, cfg)  # refuses a missing or broken one
-        from coherent_jax.envs.registry import check_task
-
         if opts.video and check_task(cfg.env).backend == "jax":
             raise ConfigError(
                 f"invalid value for 'video': true with env={cfg.env} "
@@ -327,9 +169,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     print(f"[coherent_jax] evaluating {run_dir} ({opts.episodes} episodes)", flush=True)
+    from coherent_jax.run import evaluation  # lazy: JAX and MuJoCo, after MUJOCO_GL is set
+
     try:
-        result = evaluate_run(run_dir, opts)
-    except (CheckpointError, PolicyError, tracking.TrackingError) as exc:
+        result = evaluation.evaluate_run(run_dir, opts)
+    except (CheckpointError, evaluation.PolicyError, tracking.TrackingError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     when = (

@@ -34,10 +34,9 @@ from coherent_jax.agents.sac import make_actor
 from coherent_jax.config import Config, ConfigError, from_stored, to_dict, validate
 from coherent_jax.exploration import make_behaviour, make_strategy
 from coherent_jax.networks import RunningStats, SquashedGaussianActor, normalize, squash
-from coherent_jax.run.runs import CHECKPOINT, decode_checkpoint, load_config
+from coherent_jax.run.runs import CHECKPOINT, PARAMS, decode_checkpoint, load_config
 
 FORMAT = "coherent_jax-policy-1"
-PARAMS = "params.msgpack"
 
 
 class PolicyError(ValueError):

@@ -21,7 +21,8 @@ from test_evaluate import make_run
 
 from coherent_jax.agents.rollout import evaluation_metrics
 from coherent_jax.envs import VecEnv, check_task, make_brax_env
-from coherent_jax.evaluate import gymnasium_action_map, main
+from coherent_jax.evaluate import main
+from coherent_jax.run.evaluation import gymnasium_action_map
 
 gym = pytest.importorskip("gymnasium")
 

@@ -223,14 +223,14 @@ def test_video_frames_the_body_and_lights_it():
 
 def test_mp4_goes_through_ffmpeg_and_gif_without_it(tmp_path, monkeypatch):
     """With ffmpeg on the PATH the default is MP4, written from raw RGB frames on its stdin."""
-    from coherent_jax.run import video
+    from coherent_jax.run import video, video_path
 
     frames = [np.full((5, 7, 3), i * 40, dtype=np.uint8) for i in range(3)]
     cat = shutil.which("cat")  # the fake ffmpeg below runs where PATH holds nothing else
     monkeypatch.setenv("PATH", str(tmp_path / "empty"))
-    assert video.default_suffix() == ".gif"
+    assert video_path.default_suffix() == ".gif"
     with pytest.raises(ValueError):
-        video.check_path(str(tmp_path / "v.mp4"))
+        video_path.check_path(str(tmp_path / "v.mp4"))
     video.write_video(tmp_path / "v.gif", frames, fps=20.0)
     assert (tmp_path / "v.gif").read_bytes()[:6] == b"GIF89a"
 
@@ -245,8 +245,8 @@ def test_mp4_goes_through_ffmpeg_and_gif_without_it(tmp_path, monkeypatch):
     )
     fake.chmod(0o755)
     monkeypatch.setenv("PATH", str(bin_dir))
-    assert video.default_suffix() == ".mp4"
-    assert video.check_path(str(tmp_path / "out" / "v.mp4"))
+    assert video_path.default_suffix() == ".mp4"
+    assert video_path.check_path(str(tmp_path / "out" / "v.mp4"))
     video.write_video(tmp_path / "out" / "v.mp4", frames, fps=20.0)
     assert (tmp_path / "out" / "v.mp4").read_text() == "mp4\n"
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["v.mp4"]  # no temporary file left

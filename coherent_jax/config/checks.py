@@ -298,3 +298,14 @@ CROSS_CHECKS = (
     pink_needs_episodes,
     lattice_has_noise,
 )
+
+
+def gymnasium_id(env: str) -> str:
+    """The Gymnasium id of task ``env``; raises `ConfigError` naming the tasks that have one."""
+    if not check_task(env).gymnasium_id:
+        having = ", ".join(name for name, spec in TASKS.items() if spec.gymnasium_id)
+        raise ConfigError(
+            f"invalid value for 'engine': gymnasium with env={env}, which has no Gymnasium id "
+            f"(allowed: engine=jax, or a run of one of {having})"
+        )
+    return TASKS[env].gymnasium_id

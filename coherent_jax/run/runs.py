@@ -38,6 +38,7 @@ from coherent_jax.config.legacy import flat_dict, modern_key
 
 PREFIX = "[coherent_jax]"  # starts every line the command-line programs print
 CHECKPOINT = "checkpoint.msgpack"
+PARAMS = "params.msgpack"  # a finished run's final parameters (`coherent_jax.policy`)
 CONFIG = "config.yaml"
 METRICS = "metrics.jsonl"
 VERSIONS = "versions.json"

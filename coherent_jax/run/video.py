@@ -19,29 +19,18 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from coherent_jax import cli
+import jax
+import mujoco
+import numpy as np
+from PIL import Image
 
-FORMATS = (".mp4", ".gif")
+from coherent_jax.envs.native import mujoco_model
+from coherent_jax.envs.vec_env import VecEnv
+
 # Camera as Gymnasium's locomotion tasks set it: from the side, a little above.
 _AZIMUTH, _ELEVATION = 90.0, -20.0
 # Distance from the tracked body, in units of the body's radius (its farthest geom from the root).
 _DISTANCE_PER_RADIUS, _MIN_DISTANCE = 2.5, 1.5
-
-
-def default_suffix() -> str:
-    """``.mp4`` where ``ffmpeg`` is on the PATH, else ``.gif`` (Pillow writes those)."""
-    return ".mp4" if shutil.which("ffmpeg") else ".gif"
-
-
-PATH_ALLOWED = "a writable .gif path, or .mp4 when ffmpeg is on the PATH"
-
-
-def check_path(text: str) -> str:
-    """A ``video_path`` that can be written: ``.gif``, or ``.mp4`` with ``ffmpeg``; raises `ValueError`."""
-    suffix = Path(text).suffix.lower()
-    if suffix not in FORMATS or (suffix == ".mp4" and not shutil.which("ffmpeg")):
-        raise ValueError(text)
-    return cli.output_file(text)
 
 
 class Recorder:
@@ -53,8 +42,6 @@ class Recorder:
         self.ended = False
 
     def __call__(self, qpos: Any, done: Any) -> None:
-        import numpy as np
-
         if not self.ended and len(self.qpos) < self.max_frames:
             self.qpos.append(np.array(qpos, dtype=np.float64))
         self.ended = self.ended or bool(done)
@@ -69,9 +56,6 @@ def recording_env(
     threads: int = 1,
 ):
     """A `VecEnv` whose ``step`` also sends env 0's generalized positions to `recorder`."""
-    import jax
-
-    from coherent_jax.envs.vec_env import VecEnv
 
     class RecordingVecEnv(VecEnv):
         def step(self, state, action):
@@ -91,8 +75,6 @@ def mujoco_model_of(env: Any, task: str) -> Any:
     """The MuJoCo model behind an evaluation env (MJX's, or native physics' same MJCF)."""
     if hasattr(env.env, "sys"):
         return env.env.sys.mj_model
-    from coherent_jax.envs.native import mujoco_model
-
     return mujoco_model(task)[0]
 
 
@@ -108,9 +90,6 @@ def lit_model(mj_model: Any) -> Any:
 
 def tracking_camera(model: Any, data: Any) -> Any:
     """A camera tracking body 1 (the agent's root) from the side, at a distance fitting the body."""
-    import mujoco
-    import numpy as np
-
     camera = mujoco.MjvCamera()
     mujoco.mjv_defaultFreeCamera(model, camera)
     if model.nbody < 2:
@@ -127,8 +106,6 @@ def tracking_camera(model: Any, data: Any) -> Any:
 
 def render_frames(mj_model: Any, qpos: Sequence[Any], width: int, height: int) -> list[Any]:
     """RGB frames [height, width, 3] of the model at each configuration in `qpos`."""
-    import mujoco
-
     model = lit_model(mj_model)
     data = mujoco.MjData(model)
     frames = []
@@ -145,8 +122,6 @@ def render_frames(mj_model: Any, qpos: Sequence[Any], width: int, height: int) -
 
 def write_gif(path: Path, frames: Sequence[Any], fps: float) -> None:
     """An animated GIF of `frames`, written through a temporary file and a rename."""
-    from PIL import Image
-
     path.parent.mkdir(parents=True, exist_ok=True)
     images = [Image.fromarray(f) for f in frames]
     tmp = path.with_name(path.name + ".tmp")
@@ -163,8 +138,6 @@ def write_gif(path: Path, frames: Sequence[Any], fps: float) -> None:
 
 def write_mp4(path: Path, frames: Sequence[Any], fps: float) -> None:
     """An H.264 MP4 of `frames` through ``ffmpeg`` (raw RGB on its stdin), then a rename."""
-    import numpy as np
-
     path.parent.mkdir(parents=True, exist_ok=True)
     height, width = frames[0].shape[:2]
     tmp = path.with_name(path.name + ".tmp.mp4")
