@@ -197,7 +197,7 @@ def _restore(template: Any, stored: Any, where: str) -> Any:
 
 
 def policy_from_checkpoint(cfg: Config, state_bytes: bytes, obs_size: int, action_size: int) -> Policy:
-    """The policy inside a checkpoint's train state (`coherent_jax.run.runs.state_to_bytes`).
+    """The policy inside a checkpoint's train state (`coherent_jax.run.state_bytes.state_to_bytes`).
 
     The state is stored as its leaves in tree order, and every trainer's state starts
     with (params, opt_state, obs_stats) (`learner_template`): those leading leaves are

@@ -29,9 +29,8 @@ from coherent_jax.run.runs import (
     atomic_write,
     decode_checkpoint,
     encode_checkpoint,
-    restore_state,
-    state_to_bytes,
 )
+from coherent_jax.run.state_bytes import restore_state, state_to_bytes
 
 
 def measure(overrides: list[str], repeats: int) -> dict:

@@ -12,7 +12,8 @@ from helpers import child_env
 
 from coherent_jax.config import parse_overrides, to_dict
 from coherent_jax.evaluate import main, parse_eval_args
-from coherent_jax.run.runs import CHECKPOINT, LoopState, atomic_write, encode_checkpoint, state_to_bytes
+from coherent_jax.run.runs import CHECKPOINT, LoopState, atomic_write, encode_checkpoint
+from coherent_jax.run.state_bytes import state_to_bytes
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -60,10 +60,9 @@ from coherent_jax.run.runs import (
     LoopState,
     atomic_write,
     encode_checkpoint,
-    restore_state,
-    state_to_bytes,
     truncate_metrics,
 )
+from coherent_jax.run.state_bytes import restore_state, state_to_bytes
 from coherent_jax.run.stop import StopRequest
 from coherent_jax.sweep_axis import vmap_points
 

@@ -7,7 +7,8 @@ It is a msgpack map (flax serialisation, never pickle) of
 
 * ``meta``: JSON text: format tag, the config fingerprint, the iteration, the env
   steps and the run loop's own state (evaluation PRNG key, timers, last metrics);
-* ``state``: the leaves of the trainer's whole state pytree (`state_to_bytes`);
+* ``state``: the leaves of the trainer's whole state pytree
+  (`coherent_jax.run.state_bytes.state_to_bytes`);
 * ``sha256``: digest of ``meta`` and ``state``, so truncation or corruption is
   detected before anything is restored.
 
@@ -32,9 +33,13 @@ from pathlib import Path
 from typing import Any
 
 import msgpack
+import yaml
+from omegaconf import OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
-from coherent_jax.config import Config, ConfigError, from_stored, to_dict, validate
+from coherent_jax.config import Config, ConfigError, from_stored, parse_overrides, to_dict, validate
 from coherent_jax.config.legacy import flat_dict, modern_key
+from coherent_jax.run.provenance import provenance
 
 PREFIX = "[coherent_jax]"  # starts every line the command-line programs print
 CHECKPOINT = "checkpoint.msgpack"
@@ -105,9 +110,6 @@ def load_config(run_dir: Path) -> Config:
     Raises `ConfigError` (one line) for a missing file, a malformed YAML, an unknown
     key or a bad value (a NaN learning rate, say), naming the file and the key.
     """
-    import yaml
-    from omegaconf.errors import OmegaConfBaseException
-
     path = Path(run_dir) / CONFIG
     if not path.is_file():
         raise ConfigError(
@@ -138,8 +140,6 @@ def load_config(run_dir: Path) -> Config:
 def package_versions() -> dict[str, str]:
     """Python, platform and the versions of the packages a run's numbers depend on, and the
     project's commit and the CPU (`coherent_jax.run.provenance`)."""
-    from coherent_jax.run.provenance import provenance
-
     versions = {"python": sys.version.split()[0], "platform": platform.platform()}
     for name in VERSIONED_PACKAGES:
         try:
@@ -147,7 +147,7 @@ def package_versions() -> dict[str, str]:
         except importlib.metadata.PackageNotFoundError:
             versions[name] = "not installed"
     try:
-        import jax
+        import jax  # lazy: this module loads without JAX (--help, bad input, dry runs)
 
         versions["jax_backend"] = jax.default_backend()
     except Exception:  # noqa: BLE001 - best effort: versions.json must not stop a run
@@ -267,54 +267,6 @@ def decode_checkpoint(path: Path, cfg: Config) -> Checkpoint:
     )
 
 
-def state_to_bytes(state: Any) -> bytes:
-    """The leaves of the state pytree, in tree order, as flax msgpack.
-
-    A state spread over several processes is gathered first: every process must call this.
-
-    Leaves rather than the tree itself: the physics state of an MJX environment is a
-    pytree that flax's serialisation does not know, and the tree structure is
-    rebuilt from the trainer's own template on restore.
-    """
-    import jax
-    import numpy as np
-    from flax import serialization
-
-    from coherent_jax.run.collective import to_host
-
-    leaves = jax.tree_util.tree_leaves(to_host(state))
-    return serialization.msgpack_serialize({str(i): np.asarray(x) for i, x in enumerate(leaves)})
-
-
-def restore_state(template: Any, state_bytes: bytes, path: Path) -> Any:
-    """The state pytree of a checkpoint, shaped like `template` (checked leaf by leaf).
-
-    `template` may hold arrays or ``jax.ShapeDtypeStruct``s (``jax.eval_shape`` of
-    the trainer's ``init``).
-    """
-    import jax
-    import numpy as np
-    from flax import serialization
-
-    try:
-        stored = serialization.msgpack_restore(state_bytes)
-        leaves = [np.asarray(stored[str(i)]) for i in range(len(stored))]
-    except Exception as exc:  # noqa: BLE001
-        raise CheckpointError(f"checkpoint {str(path)!r}: unreadable state ({exc})") from None
-    flat_t, treedef = jax.tree_util.tree_flatten_with_path(template)
-    if len(flat_t) != len(leaves):
-        raise CheckpointError(
-            f"checkpoint {str(path)!r} has {len(leaves)} arrays, this trainer {len(flat_t)}"
-        )
-    for (where, t), s in zip(flat_t, leaves, strict=True):
-        if s.shape != tuple(t.shape) or s.dtype != t.dtype:
-            raise CheckpointError(
-                f"checkpoint {str(path)!r}: {jax.tree_util.keystr(where)} is {s.dtype}{list(s.shape)}, "
-                f"this trainer expects {t.dtype}{list(t.shape)}"
-            )
-    return jax.device_put(jax.tree_util.tree_unflatten(treedef, leaves))
-
-
 def read_metrics(path: Path) -> list[dict[str, Any]]:
     """Rows of a ``metrics.jsonl``; a partial last line (killed mid-write) is dropped."""
     rows = []
@@ -375,8 +327,6 @@ def resume_config(resume_dir: str, overrides: list[str]) -> tuple[Config, Path]:
     it now lives (moved, copied, or reached by another relative path). A ``run_dir``
     given with the resume must name the same directory.
     """
-    from coherent_jax.config import parse_overrides
-
     path = Path(resume_dir)
     if not resume_dir or not path.is_dir():
         raise ConfigError(
@@ -454,8 +404,6 @@ def stored_config(cfg: Config) -> dict[str, Any]:
 
 def config_text(cfg: Config) -> str:
     """The text of ``config.yaml`` for `cfg` (`stored_config` as YAML)."""
-    from omegaconf import OmegaConf
-
     return OmegaConf.to_yaml(stored_config(cfg))
 
 
