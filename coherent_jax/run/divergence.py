@@ -12,12 +12,12 @@ import math
 from pathlib import Path
 from typing import Any
 
+import jax
+import numpy as np
+
 from coherent_jax.agents.trainer import Trainer
 from coherent_jax.run.runs import CHECKPOINT
-
-
-class DivergenceError(RuntimeError):
-    """A loss or a parameter became non-finite; the message names the iteration and the quantity."""
+from coherent_jax.run.stop import DivergenceError
 
 
 class PointView:
@@ -27,16 +27,11 @@ class PointView:
         self.trainer, self.index = trainer, index
 
     def export_params(self, states: Any) -> Any:
-        import jax
-
         return jax.tree.map(lambda x: x[self.index], self.trainer.export_params(states))
 
 
 def first_non_finite(tree: Any) -> str:
     """Path of the first array of `tree` (on the host) holding a NaN or an infinity."""
-    import jax
-    import numpy as np
-
     for where, leaf in jax.tree_util.tree_flatten_with_path(jax.device_get(tree))[0]:
         leaf = np.asarray(leaf)
         if np.issubdtype(leaf.dtype, np.inexact) and not np.all(np.isfinite(leaf)):

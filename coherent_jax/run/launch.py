@@ -48,7 +48,6 @@ from coherent_jax.config.checks import warmup_warning
 from coherent_jax.envs.quiet import quiet_imports
 from coherent_jax.exit_codes import EXIT_BAD_INPUT, EXIT_DIVERGED, EXIT_OK, signal_status
 from coherent_jax.run import multihost, rundir, runlock, tracking
-from coherent_jax.run.divergence import DivergenceError
 from coherent_jax.run.loop_state import Outcome
 from coherent_jax.run.runs import (
     METRICS,
@@ -60,7 +59,7 @@ from coherent_jax.run.runs import (
     record_versions,
     split_resume,
 )
-from coherent_jax.run.stop import StopRequest
+from coherent_jax.run.stop import DivergenceError, StopRequest
 from coherent_jax.run.tracking import TrackingError
 
 

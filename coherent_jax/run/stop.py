@@ -1,4 +1,5 @@
-"""SIGINT/SIGTERM as a request to stop a run after its current iteration (`StopRequest`)."""
+"""What ends a run early: SIGINT/SIGTERM, a request to stop after the current iteration
+(`StopRequest`), and a divergence (`DivergenceError`, raised by `coherent_jax.run.divergence`)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,10 @@ import threading
 from typing import Any
 
 from coherent_jax.run.runs import PREFIX
+
+
+class DivergenceError(RuntimeError):
+    """A loss or a parameter became non-finite; the message names the iteration and the quantity."""
 
 
 class StopRequest:
