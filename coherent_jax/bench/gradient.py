@@ -49,10 +49,10 @@ import numpy as np
 from coherent_jax import cli
 from coherent_jax.bench import measure
 from coherent_jax.exploration.base import Segment
-from coherent_jax.exploration.coherent.strategy import exact as E
-from coherent_jax.exploration.coherent.strategy import filter as F
-from coherent_jax.exploration.coherent.strategy import joint as J
-from coherent_jax.exploration.coherent.strategy import strategy as C
+from coherent_jax.exploration.coherent import exact as E
+from coherent_jax.exploration.coherent import filter as F
+from coherent_jax.exploration.coherent import joint as J
+from coherent_jax.exploration.coherent import strategy as C
 
 MODES = ("stored", "exact", "episode")
 #: which reference each mode is exact for: ``episode`` the whole-episode chain, ``segment``

@@ -25,7 +25,8 @@ from coherent_jax import cli
 from coherent_jax.agents import make_trainer
 from coherent_jax.bench import IGNORED, measure
 from coherent_jax.config import Config, parse_overrides, to_dict
-from coherent_jax.envs.registry import brax_counterpart, make_brax_env
+from coherent_jax.envs.make import make_brax_env
+from coherent_jax.envs.registry import brax_counterpart
 from coherent_jax.envs.vec_env import VecEnv
 
 # Rows besides the raw env; brax_ppo is Brax's own trainer.

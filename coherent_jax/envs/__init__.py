@@ -18,8 +18,6 @@ from coherent_jax.envs.registry import (
     TaskSpec,
     UnknownTaskError,
     check_task,
-    env_sizes,
-    make_brax_env,
     resolve_physics,
 )
 
@@ -28,6 +26,8 @@ _LAZY = {
     "EnvState": "coherent_jax.envs.vec_env",
     "StepOutcome": "coherent_jax.envs.vec_env",
     "VecEnv": "coherent_jax.envs.vec_env",
+    "env_sizes": "coherent_jax.envs.make",
+    "make_brax_env": "coherent_jax.envs.make",
 }
 
 

@@ -49,4 +49,4 @@ class quiet_stdio:
 def quiet_imports() -> None:
     """Imports MJX once with its output muted: it prints lines when its optional `warp` backend is missing."""
     with quiet_stdio(force=True):
-        import mujoco.mjx  # noqa: F401
+        import mujoco.mjx  # noqa: F401  # lazy: importing it muted is this function's purpose

@@ -23,11 +23,8 @@ DeepMind Control Suite, Gymnasium's classic exploration tasks, a test task.
 from __future__ import annotations
 
 import re
-import warnings
 from collections.abc import Mapping
-from typing import Any
 
-from coherent_jax.envs.quiet import quiet_stdio
 from coherent_jax.envs.spec import (  # noqa: F401 - the registry's names too
     USER_TASK_FORM,
     TaskDefinitionError,
@@ -230,7 +227,9 @@ def check_task(name: str) -> TaskSpec:
     A ``MODULE:NAME`` task is imported and checked here (JAX and MuJoCo are loaded then);
     a bad one raises `TaskDefinitionError`."""
     if is_user_task(name):
-        from coherent_jax.envs.user_task import load_user_task
+        from coherent_jax.envs.user_task import (
+            load_user_task,  # lazy: JAX and MuJoCo; this module has neither
+        )
 
         return load_user_task(name).spec
     if name not in TASKS:
@@ -309,70 +308,6 @@ def resolve_physics(task: str, physics: str, backend: str | None = None) -> str:
 
 def _jax_backend() -> str:
     """JAX's default backend (``cpu``, ``gpu``, ``tpu``)."""
-    import jax
+    import jax  # lazy: the config reads this module without JAX
 
     return jax.default_backend()
-
-
-def make_brax_env(name: str, **kwargs: Any):
-    """Builds the raw (unwrapped, unbatched) environment of task `name` with Brax's interface
-    (``reset(key)``, ``step(state, action)``, states with ``obs``, ``reward``, ``done``): a
-    ``brax-*`` task, a ``dmc-*`` task (Playground's env) or ``pointmass``; Gymnasium's
-    tasks are not Brax environments."""
-    spec = check_task(name)
-    if spec.playground_id:
-        return make_playground_env(spec.playground_id, **kwargs)
-    if spec.backend == "jax":  # this package's own pure-JAX tasks
-        from coherent_jax.envs.classic import CLASSIC_TASKS
-        from coherent_jax.envs.pointmass import PointMass
-
-        return {"pointmass": PointMass, **CLASSIC_TASKS}[spec.brax_name](**kwargs)
-    if spec.gymnasium_id:
-        short = next(s for s, g in SHORT_NAMES.items() if g == spec.gymnasium_id)
-        raise UnknownTaskError(
-            f"env {name!r} is Gymnasium's {spec.gymnasium_id} on native MuJoCo, not a Brax env; "
-            f"Brax's re-creation is 'brax-{short}'"
-        )
-    # Brax prints a warning for its optional Warp backend on import; it is noise here.
-    with quiet_stdio():
-        from brax import envs as brax_envs
-
-    with warnings.catch_warnings():
-        # Brax warns that its own pipelines are unmaintained; we use the MJX one.
-        warnings.filterwarnings("ignore", message="Brax System, piplines")
-        with quiet_stdio(force=True):  # MuJoCo's compiler prints deprecation notes
-            env = brax_envs.get_environment(spec.brax_name, backend=spec.backend, **kwargs)
-    if spec.ls_iterations is not None:
-        env.sys = env.sys.tree_replace({"opt.ls_iterations": spec.ls_iterations})
-    return env
-
-
-def make_playground_env(playground_id: str, **config_overrides: Any):
-    """MuJoCo Playground's DeepMind Control env ``playground_id`` on MJX's JAX implementation.
-
-    Playground 0.2.0 defaults to MJX's Warp implementation, which steps a fixed batch of
-    worlds of its own and does not ``vmap``; ``impl="jax"`` is plain MJX, vmapped here like
-    Brax's envs. Everything else is Playground's default config (1000-step episodes,
-    its control and simulation steps).
-    """
-    try:
-        with quiet_stdio(force=True):  # Warp prints its kernel-cache lines on import
-            from mujoco_playground import registry as playground
-    except ImportError as err:  # pragma: no cover - a dependency of the package
-        raise UnknownTaskError(
-            f"the DeepMind Control tasks need MuJoCo Playground (pip install playground): {err}"
-        ) from None
-    with quiet_stdio(force=True):
-        return playground.load(playground_id, config_overrides={"impl": "jax", **config_overrides})
-
-
-def env_sizes(env) -> tuple[int, int]:
-    """(observation size, action size) of a Brax env without running it.
-
-    Brax's ``observation_size`` property runs an eager reset, hundreds of small XLA
-    compilations (about 20 s on this CPU); ``jax.eval_shape`` only traces it.
-    """
-    import jax
-
-    state = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
-    return int(state.obs.shape[-1]), int(env.action_size)

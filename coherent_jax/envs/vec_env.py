@@ -21,13 +21,12 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from coherent_jax.envs.make import env_sizes, make_brax_env
 from coherent_jax.envs.mjx_physics import MjxPhysics
 from coherent_jax.envs.native import NativePhysics, mujoco_model, native_task
 from coherent_jax.envs.registry import (
     DEFAULT_THREADS,
     check_task,
-    env_sizes,
-    make_brax_env,
     resolve_physics,
 )
 from coherent_jax.sweep_axis import any_point

@@ -39,6 +39,7 @@ import signal
 import subprocess
 import sys
 import threading
+import traceback
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -237,8 +238,6 @@ def run_cli(main: Callable[[], int]) -> int:
         if _PEER_FAILURE.search(str(exc)):
             os.write(2, f"{_COLLECTIVE_FAILED}{first[:300]}\n".encode())
             _leave(EXIT_PEER_FAILED)
-        import traceback
-
         traceback.print_exc()
         _leave(1)
     if status != 0 and _multi_process():
