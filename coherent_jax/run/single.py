@@ -53,10 +53,10 @@ def train(
     summary's ``stopped_by`` names the signal when SIGINT/SIGTERM ended the run early.
     """
     # W&B first: a server that does not answer ends the run before the slow imports and builds.
-    from coherent_jax.agents import make_trainer  # lazy: JAX; the command starts without it
-    from coherent_jax.run.loop import drive, platform, write_params  # lazy: as make_trainer
-
     with tracking.mirrored(_mirror_points(cfg, run_dir), init_timeout=cfg.wandb_init_timeout) as mirrors:
+        from coherent_jax.agents import make_trainer  # lazy: JAX; the command starts without it
+        from coherent_jax.run.loop import drive, platform, write_params  # lazy: as make_trainer
+
         trainer = make_trainer(cfg)
         job = Job(
             cfg=cfg,
