@@ -11,7 +11,7 @@
 `learn` is ``python -m coherent_jax.train`` called from Python: the same launch path
 (`coherent_jax.run.launch.run`: checks, run directory, lock, config, loop, summary), the same
 files and lines, the same refusals raised instead of printed. `load_policy` is the
-policy evaluation acts with (`coherent_jax.policy.load_policy`, what ``python -m
+policy evaluation acts with (`coherent_jax.run.policy.load_policy`, what ``python -m
 coherent_jax.evaluate`` reads), as a plain function of observations.
 """
 
@@ -29,8 +29,8 @@ import numpy as np
 from coherent_jax.config import Config, ConfigError, override_items
 from coherent_jax.config.legacy import overrides_of
 from coherent_jax.envs.vec_env import VecEnv
-from coherent_jax.policy import load_policy as read_policy
 from coherent_jax.run import launch
+from coherent_jax.run.policy import load_policy as read_policy
 from coherent_jax.run.runs import CHECKPOINT, METRICS, PARAMS, load_config, read_metrics
 from coherent_jax.run.single import TrainCommand
 from coherent_jax.run.stop import StopRequest
@@ -45,7 +45,7 @@ class PolicyFunction:
     task's ``VecEnv.step`` clips it. Those are the task's actions; the task itself maps
     them onto its actuators' range. Needs JAX: the network is the run's Flax module,
     called through one jitted function (compiled on the first call, and again for each
-    new batch shape). ``policy`` is the `coherent_jax.policy.Policy` underneath (for
+    new batch shape). ``policy`` is the `coherent_jax.run.policy.Policy` underneath (for
     ``Policy.sample`` or to use it inside JAX code); ``origin`` says where it was read
     from (``source``, ``iteration``, ``env_steps``).
     """
@@ -80,7 +80,7 @@ def load_policy(run_dir: str | Path) -> PolicyFunction:
     ``params.msgpack``, as ``python -m coherent_jax.evaluate`` reads it; see
     `PolicyFunction` for what the action is. Needs JAX (the policy is the run's Flax
     module). Raises `ConfigError`, `coherent_jax.run.runs.CheckpointError` or
-    `coherent_jax.policy.PolicyError` in one line for a directory that holds no usable policy.
+    `coherent_jax.run.policy.PolicyError` in one line for a directory that holds no usable policy.
     """
     run_dir = Path(run_dir)
     cfg = load_config(run_dir)

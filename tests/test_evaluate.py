@@ -316,7 +316,7 @@ def test_policy_restored_without_a_trainer_acts_as_the_agent(tmp_path, monkeypat
     from coherent_jax.agents.onpolicy import OnPolicyTrainer
     from coherent_jax.agents.sac import SACTrainer
     from coherent_jax.networks import normalize
-    from coherent_jax.policy import Policy, load_policy
+    from coherent_jax.run.policy import Policy, load_policy
 
     cfg = parse_overrides([*POINTMASS, *overrides])
     trainer = agents.make_trainer(cfg)

@@ -19,7 +19,7 @@ from helpers import child_env
 
 from coherent_jax.agents import losses, make_trainer
 from coherent_jax.config import SWEEPABLE, ConfigError, help_text, parse_overrides
-from coherent_jax.policy import load_policy
+from coherent_jax.run.policy import load_policy
 from coherent_jax.run.runs import load_config, read_metrics, resume_config, write_config
 from coherent_jax.sweep import parse_sweep
 from coherent_jax.train import main

@@ -22,8 +22,8 @@ from coherent_jax.envs.quiet import quiet_stdio
 from coherent_jax.envs.registry import CLASSIC_IDS
 from coherent_jax.envs.task import control, to_bounds
 from coherent_jax.envs.vec_env import VecEnv
-from coherent_jax.policy import PolicyError, load_policy
 from coherent_jax.run import tracking, video
+from coherent_jax.run.policy import PolicyError, load_policy
 from coherent_jax.run.runs import load_config
 from coherent_jax.run.video_path import default_suffix
 
