@@ -46,7 +46,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import curves  # beside this file (reproduce.py puts experiments/ on sys.path)
-import numpy as np
 from cells import Cell
 
 # What the report reads of the classic cells besides the returns (`curves.py` keeps them).
@@ -84,17 +83,14 @@ def goal_rows(cell: Cell, results: Path, label) -> list[str]:
     """Table rows, per strategy (``label(cell, run)``) of a classic cell: the seeds that ever
     reached the goal in training, when they first did, and the seeds whose final policy
     reaches it (in at least one evaluation episode)."""
-    from stats import first_positive  # the sparse suite's first reward, the same reading
+    from stats import reach_summary  # the sparse suite's first reward, the same reading
 
     final, train = (curves.load_runs(results, cell.suite, cell.name, m) for m in GOAL_METRICS)
     rows = []
     for name in sorted({label(cell, r) for r in train}):
-        firsts = [first_positive(r) for r in train if label(cell, r) == name]
+        hit, n, first = reach_summary([r for r in train if label(cell, r) == name])
         reaches = [bool(r.values[-1] > 0.0) for r in final if label(cell, r) == name]
-        hit = [f for f in firsts if f is not None]
-        first = f"{np.median(hit):,.0f}" if hit else "-"
-        n = len(firsts)
-        rows.append(f"| {name} | {len(hit)} of {n} | {first} | {sum(reaches)} of {len(reaches)} |")
+        rows.append(f"| {name} | {hit} of {n} | {first} | {sum(reaches)} of {len(reaches)} |")
     return rows
 
 

@@ -79,10 +79,8 @@ def reach_rows(cell: reproduce.Cell, results: Path) -> list[str]:
     runs = curves.load_runs(results, cell.suite, cell.name, REACH_METRIC)
     rows = []
     for label in sorted({_label(cell, r) for r in runs}):
-        firsts = [reached_reward(r) for r in runs if _label(cell, r) == label]
-        hit = [f for f in firsts if f is not None]
-        first = f"{np.median(hit):,.0f}" if hit else "-"
-        rows.append(f"| {cell.setting('env')} | {label} | {len(hit)} of {len(firsts)} | {first} |")
+        hit, n, first = stats.reach_summary([r for r in runs if _label(cell, r) == label])
+        rows.append(f"| {cell.setting('env')} | {label} | {hit} of {n} | {first} |")
     return rows
 
 

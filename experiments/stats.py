@@ -89,3 +89,11 @@ def first_positive(run) -> float | None:
     None if it never is (NaN, an iteration that logged nothing, counts as not above)."""
     hits = np.flatnonzero(np.nan_to_num(run.values, nan=0.0) > 0.0)
     return float(run.steps[hits[0]]) if hits.size else None
+
+
+def reach_summary(runs) -> tuple[int, int, str]:
+    """(how many of `runs` ever turned positive, how many runs, the median env step of their
+    first positive value as a table shows it, or "-" when none did)."""
+    firsts = [first_positive(r) for r in runs]
+    hit = [f for f in firsts if f is not None]
+    return len(hit), len(firsts), (f"{np.median(hit):,.0f}" if hit else "-")
