@@ -30,6 +30,7 @@ _LAZY = {
     "load_policy": "coherent_jax.api",
     "TrainResult": "coherent_jax.api",
     "PolicyFunction": "coherent_jax.api",
+    "TrainedPolicy": "coherent_jax.policy",
 }
 __all__ = ["__version__", *_LAZY]
 

@@ -5,14 +5,15 @@
     cfg = coherent_jax.make_config(env="hopper", preset="thesis", explore="coherent")
     result = coherent_jax.learn(cfg)                # or learn({"env": "hopper", ...})
     result.run_dir, result.metrics[-1], result.summary["final_eval_return"]
-    action = result.policy(obs)                     # numpy in, numpy out
+    action, _ = result.policy.predict(obs)         # numpy in, numpy out, the env's action space
     policy = coherent_jax.load_policy("runs/hopper-...")   # any run directory, later
 
 `learn` is ``python -m coherent_jax.train`` called from Python: the same launch path
 (`coherent_jax.run.launch.run`: checks, run directory, lock, config, loop, summary), the same
-files and lines, the same refusals raised instead of printed. `load_policy` is the
-policy evaluation acts with (`coherent_jax.run.policy.load_policy`, what ``python -m
-coherent_jax.evaluate`` reads), as a plain function of observations.
+files and lines, the same refusals raised instead of printed. `load_policy` is
+`coherent_jax.policy.load_policy`: the policy evaluation acts with (what ``python -m
+coherent_jax.evaluate`` reads) as a `TrainedPolicy`, with ``predict(obs, state,
+episode_start, deterministic)`` and actions in the env's own action space.
 """
 
 from __future__ import annotations
@@ -22,71 +23,16 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
 
-import jax
-import jax.numpy as jnp
-import numpy as np
-
 from coherent_jax.config import Config, ConfigError, override_items
 from coherent_jax.config.legacy import overrides_of
-from coherent_jax.envs.vec_env import VecEnv
+from coherent_jax.policy import TrainedPolicy, load_policy
 from coherent_jax.run import launch
-from coherent_jax.run.policy import load_policy as read_policy
-from coherent_jax.run.runs import CHECKPOINT, METRICS, PARAMS, load_config, read_metrics
+from coherent_jax.run.runs import CHECKPOINT, METRICS, PARAMS, read_metrics
 from coherent_jax.run.single import TrainCommand
 from coherent_jax.run.stop import StopRequest
 
-
-class PolicyFunction:
-    """A trained policy as a function of observations: obs [o] or [n, o] -> action [p] or [n, p].
-
-    The deterministic (mean) action evaluation takes: the observation normalised with the
-    run's statistics (when it normalised them), the algorithm's mean (A2C/PPO: the
-    strategy's mean action; SAC: tanh of the actor's mean), clipped to [-1, 1] as every
-    task's ``VecEnv.step`` clips it. Those are the task's actions; the task itself maps
-    them onto its actuators' range. Needs JAX: the network is the run's Flax module,
-    called through one jitted function (compiled on the first call, and again for each
-    new batch shape). ``policy`` is the `coherent_jax.run.policy.Policy` underneath (for
-    ``Policy.sample`` or to use it inside JAX code); ``origin`` says where it was read
-    from (``source``, ``iteration``, ``env_steps``).
-    """
-
-    def __init__(self, policy: Any, origin: dict[str, Any]) -> None:
-        self.policy = policy
-        self.origin = origin
-        self._act = jax.jit(lambda p, obs: jnp.clip(p.mean_action(obs), -1.0, 1.0))
-
-    @property
-    def obs_size(self) -> int:
-        return self.policy.obs_size
-
-    @property
-    def action_size(self) -> int:
-        return self.policy.action_size
-
-    def __call__(self, obs: Any) -> Any:
-        x = np.asarray(obs, np.float32)
-        if x.ndim not in (1, 2) or x.shape[-1] != self.obs_size:
-            raise ValueError(
-                f"invalid observation of shape {list(x.shape)} "
-                f"(allowed: [{self.obs_size}] or [n, {self.obs_size}])"
-            )
-        return np.asarray(self._act(self.policy, x))
-
-
-def load_policy(run_dir: str | Path) -> PolicyFunction:
-    """The policy of a run directory (a training run's or a sweep point's) as obs -> action.
-
-    Read from ``checkpoint.msgpack`` (verified against ``config.yaml``), else from
-    ``params.msgpack``, as ``python -m coherent_jax.evaluate`` reads it; see
-    `PolicyFunction` for what the action is. Needs JAX (the policy is the run's Flax
-    module). Raises `ConfigError`, `coherent_jax.run.runs.CheckpointError` or
-    `coherent_jax.run.policy.PolicyError` in one line for a directory that holds no usable policy.
-    """
-    run_dir = Path(run_dir)
-    cfg = load_config(run_dir)
-    env = VecEnv(cfg.env, 1, cfg.episode_length, cfg.physics, cfg.physics_threads)  # its sizes
-    policy, origin = read_policy(run_dir, env.observation_size, env.action_size)
-    return PolicyFunction(policy, origin)
+#: the policy `load_policy` returns (``PolicyFunction`` before it had ``predict``).
+PolicyFunction = TrainedPolicy
 
 
 class TrainResult(NamedTuple):
@@ -102,7 +48,7 @@ class TrainResult(NamedTuple):
         early, which ``resume=run_dir`` continues); None if it stopped before training.
     """
 
-    policy: PolicyFunction | None
+    policy: TrainedPolicy | None
     metrics: list[dict[str, Any]]
     run_dir: Path
     summary: dict[str, Any] | None

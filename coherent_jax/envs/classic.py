@@ -4,7 +4,7 @@
 Both follow Brax's ``Env`` interface, like `coherent_jax.envs.pointmass`, so they run
 inside the jitted iteration under the same wrapper as every task (`coherent_jax.envs.vec_env`:
 time limit, automatic resets, the agent's action clipped to [-1, 1]). The agent's action is
-mapped onto Gymnasium's action space by `coherent_jax.envs.task.to_bounds` (centre + a *
+mapped onto Gymnasium's action space by `coherent_jax.envs.action_map.to_bounds` (centre + a *
 half-width: [-1, 1] for the car, [-2, 2] for the pendulum), then clipped to the bounds as
 Gymnasium's ``step`` clips it. The formulas are those of Gymnasium 1.4.0's
 ``continuous_mountain_car.py`` and ``pendulum.py`` at their default arguments, in float32
@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 from brax.envs.base import Env, State
 
-from coherent_jax.envs.task import to_bounds
+from coherent_jax.envs.action_map import to_bounds
 
 
 class _Classic(Env):

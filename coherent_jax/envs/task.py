@@ -15,8 +15,9 @@ from typing import Any, NamedTuple
 import chex
 import jax
 import jax.numpy as jnp
-import numpy as np
 from flax import struct
+
+from coherent_jax.envs.action_map import ActionMap
 
 
 class Kinematics(NamedTuple):
@@ -115,23 +116,9 @@ class NativeTask:
 def control(task: NativeTask, action: jax.Array, ctrl_range) -> jax.Array:
     """The actuators' controls for ``action`` [..., nu] in [-1, 1]: as given, or mapped
     affinely onto ``ctrl_range`` [nu, 2] (the model's ``actuator_ctrlrange``) where the
-    task scales actions, in Brax's or Gymnasium's arithmetic (`NativeTask.brax_scaling`)."""
-    ctrl = action.astype(jnp.float32)
-    if not task.scale_action:
-        return ctrl
-    low, high = np.asarray(ctrl_range, np.float32).T
-    if task.brax_scaling:
-        return (ctrl + 1.0) * (high - low) * 0.5 + low
-    return to_bounds(ctrl, low, high)
-
-
-def to_bounds(action: jax.Array, low, high) -> jax.Array:
-    """``action`` in [-1, 1] mapped affinely onto [low, high] as centre + a * half-width
-    (float32): exactly ``a * high`` on a symmetric range, the action Gymnasium's env
-    receives, and ``a`` itself on [-1, 1]. Every task that maps the agent's action onto
-    its bounds Gymnasium's way uses this (`control`, `coherent_jax.envs.classic`)."""
-    low, high = np.asarray(low, np.float32), np.asarray(high, np.float32)
-    return (high + low) / 2 + action.astype(jnp.float32) * ((high - low) / 2)
+    task scales actions, in Brax's or Gymnasium's arithmetic (`NativeTask.brax_scaling`),
+    by the task's `coherent_jax.envs.action_map.ActionMap`."""
+    return ActionMap.of_task(task.scale_action, task.brax_scaling, ctrl_range).unclipped(action)
 
 
 @struct.dataclass

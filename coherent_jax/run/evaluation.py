@@ -17,10 +17,10 @@ import numpy as np
 
 from coherent_jax.agents.rollout import evaluation_metrics
 from coherent_jax.config.checks import gymnasium_id
+from coherent_jax.envs.action_map import ActionMap
 from coherent_jax.envs.native import NATIVE_TASKS
 from coherent_jax.envs.quiet import quiet_stdio
 from coherent_jax.envs.registry import CLASSIC_IDS
-from coherent_jax.envs.task import control, to_bounds
 from coherent_jax.envs.vec_env import VecEnv
 from coherent_jax.run import tracking, video
 from coherent_jax.run.policy import PolicyError, load_policy
@@ -30,15 +30,16 @@ from coherent_jax.run.video_path import default_suffix
 __all__ = ["PolicyError", "evaluate_run", "gymnasium_action_map", "gymnasium_returns"]
 
 
-def gymnasium_action_map(env: str, space):
-    """(action [..., p] in [-1, 1]) -> the action Gymnasium's env of task ``env`` receives: the
-    task's own map onto the action space ``space`` (`control` for a MuJoCo task; for a classic
-    task `to_bounds`, centre + a * half-width, as `coherent_jax.envs.classic` maps it)."""
+def gymnasium_action_map(env: str, space) -> ActionMap:
+    """The `ActionMap` from the agent's action in [-1, 1] to the action Gymnasium's env of task
+    ``env`` receives: the task's own map onto the action space ``space`` (a MuJoCo task's
+    `ActionMap.of_task` onto the Box's bounds; a classic task's centre + a * half-width,
+    as `coherent_jax.envs.classic` maps it). Calling it clips to [-1, 1] first."""
     gym_id = gymnasium_id(env)
     if gym_id in CLASSIC_IDS:
-        return lambda a: to_bounds(a, space.low, space.high)
-    ctrl_range = np.stack([space.low, space.high], axis=-1)
-    return lambda a: control(NATIVE_TASKS[gym_id], a, ctrl_range)
+        return ActionMap.of_box(space)
+    task = NATIVE_TASKS[gym_id]
+    return ActionMap.of_task(task.scale_action, task.brax_scaling, np.stack([space.low, space.high], axis=-1))
 
 
 def gymnasium_returns(policy, env: str, episode_length: int, episodes: int, seed: int):
@@ -60,7 +61,7 @@ def gymnasium_returns(policy, env: str, episode_length: int, episodes: int, seed
     envs = [_make_quietly(gymnasium, gym_id, episode_length) for _ in range(episodes)]
     space = envs[0].action_space
     to_space = gymnasium_action_map(env, space)
-    act = jax.jit(lambda p, o: to_space(jnp.clip(p.mean_action(o), -1.0, 1.0)))
+    act = jax.jit(lambda p, o: to_space(p.mean_action(o)))
     seeds = np.random.SeedSequence(seed).generate_state(episodes)
     obs = np.stack([e.reset(seed=int(s))[0] for e, s in zip(envs, seeds, strict=True)])
     returns, lengths = np.zeros(episodes), np.zeros(episodes, np.int64)
