@@ -91,9 +91,10 @@ def _make_quietly(gymnasium, gym_id: str, episode_length: int):
         mujoco.set_mju_user_warning(previous)
 
 
-def evaluate_run(run_dir: Path, opts: Any) -> dict[str, Any]:
+def evaluate_run(run_dir: Path, opts: Any, mirror_wandb: bool = True) -> dict[str, Any]:
     """Evaluates the policy of `run_dir` with `opts` (a `coherent_jax.evaluate.EvalConfig`);
-    returns the figures (and the video path)."""
+    returns the figures (and the video path). ``mirror_wandb=False`` keeps the video off the
+    run's W&B run (an export, which uses no network)."""
     cfg = load_config(run_dir)
     recorder = video.Recorder(opts.max_frames)
     if opts.video:
@@ -138,7 +139,7 @@ def evaluate_run(run_dir: Path, opts: Any) -> dict[str, Any]:
         path = Path(opts.video_path) if opts.video_path else run_dir / "videos" / name
         video.write_video(path, frames, fps=1.0 / eval_env.dt)
         result.update({"video": str(path), "frames": len(frames)})
-        if cfg.wandb:  # the run's own W&B run (its id in the run directory) gets the video
+        if cfg.wandb and mirror_wandb:  # the run's own W&B run (its id in the run directory) gets the video
             with tracking.session(run_dir):
                 mirror = tracking.WandbRun.open(
                     run_dir, None, run_dir.name, init_timeout=cfg.wandb_init_timeout
