@@ -37,21 +37,24 @@ CASES = [
 ]
 
 
-def random_policy(algo: str, explore: str, extra: dict, seed: int = 0) -> TrainedPolicy:
-    cfg = make_config(
-        {"env": "pointmass", "algo": algo, "explore": explore, "policy_hidden": [16, 8], **extra}
-    )
-    template = policy_template(cfg, OBS, ACT)["params"]
+def random_policy(
+    algo: str, explore: str, extra: dict, seed: int = 0, env: str = "pointmass", sizes=(OBS, ACT), amap=None
+) -> TrainedPolicy:
+    """A policy of task ``env`` with random parameters and observation statistics (no training)."""
+    obs_size, action_size = sizes
+    cfg = make_config({"env": env, "algo": algo, "explore": explore, "policy_hidden": [16, 8], **extra})
+    template = policy_template(cfg, obs_size, action_size)["params"]
     leaves, tree = jax.tree.flatten(template)
     rng = np.random.default_rng(seed)
     params = jax.tree.unflatten(tree, [rng.normal(0, 0.7, t.shape).astype(t.dtype) for t in leaves])
     stats = RunningStats(
-        mean=rng.normal(size=OBS).astype(np.float32),
-        var=rng.uniform(0.2, 3.0, OBS).astype(np.float32),
+        mean=rng.normal(size=obs_size).astype(np.float32),
+        var=rng.uniform(0.2, 3.0, obs_size).astype(np.float32),
         count=np.float32(100),
     )
-    amap = ActionMap.make("centre", [-3.0, -0.4, 0.0], [3.0, 0.4, 2.0])  # non-unit, one asymmetric
-    return TrainedPolicy(Policy.create(cfg, params, stats, OBS, ACT), amap, {"source": "test"})
+    if amap is None:  # non-unit, one asymmetric
+        amap = ActionMap.make("centre", [-3.0, -0.4, 0.0], [3.0, 0.4, 2.0])
+    return TrainedPolicy(Policy.create(cfg, params, stats, obs_size, action_size), amap, {"source": "test"})
 
 
 OBS_1000 = np.random.default_rng(1).normal(0, 2, (1000, OBS)).astype(np.float32)
