@@ -3,19 +3,16 @@ algorithm, shared by the module; stochastic acting with the strategy's noise sta
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import gymnasium
 import numpy as np
 import pytest
 import yaml
-from helpers import child_env
 from test_export import ACT, CASES, OBS, random_policy
 
 import coherent_jax
 from coherent_jax.config import make_config
 from coherent_jax.envs.action_map import ActionMap
+from coherent_jax.export import main as export_main
 from coherent_jax.policy import PolicyState, TrainedPolicy, load_policy
 
 TINY = {
@@ -150,25 +147,13 @@ def test_predict_in_a_gymnasium_loop_equals_evaluate_engine_gymnasium():
 
 # ------------------------------------------------------------ Hub folder
 def test_hub_folder_round_trips_through_load_policy(ppo_run, tmp_path):
+    """``python -m coherent_jax.export RUN_DIR format=hub`` (its main, in-process) writes the
+    folder; load_policy reads it back and predicts as the run directory does."""
     out = tmp_path / "hub"
-    args = [
-        sys.executable,
-        "-m",
-        "coherent_jax.export",
-        str(ppo_run),
-        "format=hub",
-        f"out={out}",
-        "episodes=3",
-    ]
-    done = subprocess.run(args, env=child_env(), capture_output=True, text=True)
-    assert done.returncode == 0, done.stderr
-    assert {p.name for p in out.iterdir()} >= {
-        "README.md",
-        "config.yaml",
-        "policy.msgpack",
-        "policy.json",
-        "policy.onnx",
-    }
+    args = [str(ppo_run), "format=hub", f"out={out}", "episodes=3"]
+    assert export_main(args) == 0
+    names = {p.name for p in out.iterdir()}
+    assert names >= {"README.md", "config.yaml", "policy.msgpack", "policy.json", "policy.onnx"}
     card = (out / "README.md").read_text()
     front = yaml.safe_load(card.split("---\n")[1])
     meta = front["coherent_jax"]
@@ -183,5 +168,7 @@ def test_hub_folder_round_trips_through_load_policy(ppo_run, tmp_path):
     a, _ = shipped.predict(obs, shipped.initial_state(50, seed=2), deterministic=False)
     b, _ = original.predict(obs, original.initial_state(50, seed=2), deterministic=False)
     np.testing.assert_array_equal(a, b)
-    again = subprocess.run(args, env=child_env(), capture_output=True, text=True)  # exists: refused
-    assert again.returncode == 2 and "exists (allowed: a new path, or force=true)" in again.stderr
+    before = sorted(p.name for p in tmp_path.rglob("*"))
+    assert export_main(args) == 2  # exists: refused, nothing written
+    assert export_main([str(ppo_run), "format=onnx", f"out={out / 'README.md'}"]) == 2
+    assert sorted(p.name for p in tmp_path.rglob("*")) == before
