@@ -30,7 +30,6 @@ renders the env's MuJoCo model where it exposes one (``mj_model``, or Brax's
 
 from __future__ import annotations
 
-import functools
 import inspect
 import typing
 from typing import Any, NamedTuple, NoReturn
@@ -206,18 +205,15 @@ def _episode_length(env: Any) -> int:
     return DEFAULT_EPISODE_LENGTH
 
 
-@functools.cache
-def _loaded(name: str) -> dict[str, LoadedJaxEnv]:
-    """Per-process store of the env of ``name`` (filled by `load_jax_env`)."""
-    return {}
+# The envs built in this process, by task name (`load_jax_env` fills it).
+_LOADED: dict[str, LoadedJaxEnv] = {}
 
 
 def load_jax_env(name: str, obj: Any) -> LoadedJaxEnv:
     """The env of task ``name``, whose attribute is `obj` (`is_brax_env`), built and checked
     (see the module's docstring) once per process. Raises `TaskDefinitionError`."""
-    store = _loaded(name)
-    if "env" in store:
-        return store["env"]
+    if name in _LOADED:
+        return _LOADED[name]
     env = _built(name, obj)
     try:
         action_size = env.action_size
@@ -233,14 +229,13 @@ def load_jax_env(name: str, obj: Any) -> LoadedJaxEnv:
         description=f"a JAX env of your own, {type(env).__name__} ({obs_size} obs, {action_size} act)",
         backend=JAX_ENV_BACKEND,
     )
-    store["env"] = LoadedJaxEnv(spec, BraxInterfaceEnv(env))
-    return store["env"]
+    _LOADED[name] = LoadedJaxEnv(spec, BraxInterfaceEnv(env))
+    return _LOADED[name]
 
 
 def jax_env(name: str) -> BraxInterfaceEnv:
     """The env of task ``name``, loaded by the registry's check of it
     (`coherent_jax.envs.registry.check_task`, which calls it first)."""
-    store = _loaded(name)
-    if "env" not in store:
+    if name not in _LOADED:
         _fail(name, "not loaded as a JAX environment (check_task loads it)")
-    return store["env"].env
+    return _LOADED[name].env
