@@ -208,3 +208,33 @@ def test_train_one_iteration_from_the_command_line_then_evaluate(tmp_path):
     proc = _cli(["-m", "coherent_jax.evaluate", str(run), "video=true"], tmp_path)
     assert proc.returncode == 2, proc.stderr
     assert "exposes no MuJoCo model" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.slow
+def test_a_playground_env_steps_as_playground_steps_it_and_exposes_its_model():
+    """The example's 3-link swimmer (MJX compiles: slow): two envs, three steps from the same
+    keys and actions, by `VecEnv` and by the env itself; its model and positions for video."""
+    name = f"{ROOT / 'examples' / 'train_playground_env.py'}:swimmer3"
+    vec = VecEnv(name, 2)
+    env = jax_env.jax_env(name)
+    assert env.mj_model is not None and env.mj_model.nq == 5  # x, y, heading and two joints
+    actions = jax.random.uniform(jax.random.PRNGKey(1), (3, 2, vec.action_size), minval=-1, maxval=1)
+
+    def by_vec(key):
+        state = vec.reset(key)
+        for action in actions:
+            state, out = vec.step(state, action)
+        return out.final_obs, out.reward, env.qpos(state.physics)
+
+    def by_hand(key):
+        _, reset_key = jax.random.split(key)
+        state = jax.vmap(env.env.reset)(jax.random.split(reset_key, 2))
+        for action in actions:
+            state = jax.vmap(env.env.step)(state, action)
+        return state.obs, state.reward, state.data.qpos
+
+    key = jax.random.PRNGKey(5)
+    options = {"xla_backend_optimization_level": 0}  # three steps: the compile is the cost
+    got_all, want_all = (jax.jit(f).lower(key).compile(options)(key) for f in (by_vec, by_hand))
+    for got, want in zip(got_all, want_all, strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6)
