@@ -199,7 +199,15 @@ def sac_sizes(cfg: Config) -> None:
 
 
 def physics_runs_task(cfg: Config) -> None:
-    """``physics=native`` needs a native task, ``physics=mjx`` a task MJX can run."""
+    """``physics=native`` needs a native task, ``physics=mjx`` a task MJX can run; a JAX
+    environment of the user's (``MODULE:NAME``) runs on its own backend, ``physics=auto``."""
+    if cfg.physics != "auto" and is_user_task(cfg.env) and task_spec(cfg.env).backend == "jax-env":
+        check(
+            False,
+            "physics",
+            cfg.physics,
+            f"auto with env={cfg.env} (a JAX environment runs on its own backend)",
+        )
     check(
         cfg.physics != "native" or cfg.env in NATIVE_TASKS or is_user_task(cfg.env),
         "env",

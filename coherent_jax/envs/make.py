@@ -9,6 +9,7 @@ from typing import Any
 import jax
 
 from coherent_jax.envs.classic import CLASSIC_TASKS
+from coherent_jax.envs.jax_env import JAX_ENV_BACKEND, jax_env
 from coherent_jax.envs.pointmass import PointMass
 from coherent_jax.envs.quiet import quiet_stdio
 from coherent_jax.envs.registry import SHORT_NAMES, UnknownTaskError, check_task
@@ -20,6 +21,8 @@ def make_brax_env(name: str, **kwargs: Any):
     ``brax-*`` task, a ``dmc-*`` task (Playground's env) or ``pointmass``; Gymnasium's
     tasks are not Brax environments."""
     spec = check_task(name)
+    if spec.backend == JAX_ENV_BACKEND:  # a JAX env of the user's, loaded by check_task
+        return jax_env(name)
     if spec.playground_id:
         return make_playground_env(spec.playground_id, **kwargs)
     if spec.backend == "jax":  # this package's own pure-JAX tasks

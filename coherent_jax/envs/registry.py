@@ -278,6 +278,13 @@ def resolve_physics(task: str, physics: str, backend: str | None = None) -> str:
     spec = check_task(task)
     if physics not in PHYSICS:
         raise PhysicsError(f"unknown physics {physics!r}; valid: {', '.join(PHYSICS)}")
+    if spec.backend == "jax-env":  # a JAX env with Brax's interface runs on its own backend (jax_env.py)
+        if physics != "auto":
+            raise PhysicsError(
+                f"physics={physics} does not apply to env {task!r}, a JAX environment that runs on "
+                "its own backend (allowed: auto)"
+            )
+        return spec.backend
     if spec.backend == "native":  # Gymnasium's tasks and the user's: they all have native MuJoCo
         if physics == "auto":
             backend = backend or _jax_backend()

@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from coherent_jax.envs import jax_env
 from coherent_jax.envs.quiet import quiet_stdio
 from coherent_jax.envs.spec import (
     USER_TASK_FORM,
@@ -114,11 +115,8 @@ def _definition(name: str) -> MjcfTask:
     """The `MjcfTask` that ``MODULE:NAME`` (or ``FILE.py:NAME``) names: imported, looked up, and
     called only if it is declared to make a task (`task_maker`)."""
     fail = functools.partial(_fail, name)
-    source, attr, is_file = user_task_parts(name)
-    module = _import_file(name, source) if is_file else _import_module(name, source)
-    if not hasattr(module, attr):
-        fail(f"{'file' if is_file else 'module'} {source!r} has no attribute {attr!r}")
-    task = getattr(module, attr)
+    attr = user_task_parts(name)[1]
+    task = user_attribute(name)
     if isinstance(task, MjcfTask):
         return task
     problem = task_maker(task)
@@ -183,6 +181,16 @@ def _import_file(name: str, path: str) -> Any:
         del sys.modules[module_name]
         _fail(name, f"cannot import file {path!r} ({_first_line(exc)})")
     return module
+
+
+def user_attribute(name: str) -> Any:
+    """The attribute ``NAME`` of task ``MODULE:NAME`` (or ``FILE.py:NAME``): its module or file
+    imported once per process, the attribute looked up, nothing called."""
+    source, attr, is_file = user_task_parts(name)
+    module = _import_file(name, source) if is_file else _import_module(name, source)
+    if not hasattr(module, attr):
+        _fail(name, f"{'file' if is_file else 'module'} {source!r} has no attribute {attr!r}")
+    return getattr(module, attr)
 
 
 def _fail(name: str, problem: str) -> NoReturn:
@@ -329,6 +337,11 @@ def load_user_task(name: str) -> LoadedTask:
     Raises `TaskDefinitionError` naming the task and the problem."""
     if not is_user_task(name):
         _fail(name, f"not of the form {USER_TASK_FORM}")
+    # A JAX environment with Brax's interface is a kind of its own, with no NativeTask
+    # (coherent_jax.envs.jax_env; VecEnv steps it as it steps Brax's envs).
+    attribute = user_attribute(name)
+    if jax_env.is_brax_env(attribute):
+        return LoadedTask(jax_env.load_jax_env(name, attribute).spec, None)
     task = _definition(name)
     fields = _checked_settings(name, task)
     loaded = _checked_model(name, task)

@@ -24,6 +24,7 @@ import mujoco
 import numpy as np
 from PIL import Image
 
+from coherent_jax.envs.jax_env import BraxInterfaceEnv
 from coherent_jax.envs.native import mujoco_model
 from coherent_jax.envs.vec_env import VecEnv
 
@@ -61,6 +62,8 @@ def recording_env(
         def step(self, state, action):
             if hasattr(state.physics, "kin"):  # native MuJoCo physics
                 qpos = state.physics.kin.qpos
+            elif isinstance(self.env, BraxInterfaceEnv):  # a JAX env of the user's
+                qpos = self.env.qpos(state.physics)
             else:
                 physics = state.physics.pipeline_state
                 qpos = physics.qpos if hasattr(physics, "qpos") else physics.q
@@ -73,6 +76,8 @@ def recording_env(
 
 def mujoco_model_of(env: Any, task: str) -> Any:
     """The MuJoCo model behind an evaluation env (MJX's, or native physics' same MJCF)."""
+    if isinstance(env.env, BraxInterfaceEnv):  # a JAX env of the user's: the model it exposes
+        return env.env.mj_model
     if hasattr(env.env, "sys"):
         return env.env.sys.mj_model
     return mujoco_model(task)[0]
