@@ -16,6 +16,11 @@ from typing import Any
 import jax
 import jaxlib
 
+try:
+    import resource
+except ImportError:  # not on Unix: no peak memory figure
+    resource = None
+
 
 def print_log(msg: str) -> None:
     """The suites' default progress log: stdout, flushed (a suite can run for an hour)."""
@@ -145,11 +150,11 @@ def cpu_model() -> str:
 
 def peak_rss_bytes() -> int | None:
     """This process's peak resident memory."""
+    if resource is None:
+        return None
     try:
-        import resource  # lazy: Unix only
-
         return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024  # Linux: KiB
-    except (ImportError, OSError):
+    except OSError:
         return None
 
 
