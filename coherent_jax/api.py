@@ -9,7 +9,7 @@
     policy = coherent_jax.load_policy("runs/hopper-...")   # any run directory, later
 
 `learn` is ``python -m coherent_jax.train`` called from Python: the same launch path
-(`coherent_jax.run.launch.run`: checks, run directory, lock, config, loop, summary), the same
+(`coherent_jax.run.single.launch_train`: checks, run directory, lock, config, loop, summary), the same
 files and lines, the same refusals raised instead of printed. `load_policy` is the
 policy evaluation acts with (`coherent_jax.run.policy.load_policy`, what ``python -m
 coherent_jax.evaluate`` reads), as a plain function of observations.
@@ -29,10 +29,9 @@ import numpy as np
 from coherent_jax.config import Config, ConfigError, override_items
 from coherent_jax.config.legacy import overrides_of
 from coherent_jax.envs.vec_env import VecEnv
-from coherent_jax.run import launch
 from coherent_jax.run.policy import load_policy as read_policy
 from coherent_jax.run.runs import CHECKPOINT, METRICS, PARAMS, load_config, read_metrics
-from coherent_jax.run.single import TrainCommand
+from coherent_jax.run.single import SUMMARY, launch_train
 from coherent_jax.run.stop import StopRequest
 
 
@@ -143,11 +142,11 @@ def learn(config: Config | Mapping[str, Any] | None = None) -> TrainResult:
             "(allowed: false; several hosts run python -m coherent_jax.train distributed=true)"
         )
     with StopRequest() as stop:
-        done = launch.run(TrainCommand(), items, stop)
+        done = launch_train(items, stop)
     run_dir = done.run_dir
     summary = done.summary
-    if summary is None and (run_dir / TrainCommand.summary_file).is_file():  # already complete
-        summary = json.loads((run_dir / TrainCommand.summary_file).read_text())
+    if summary is None and (run_dir / SUMMARY).is_file():  # already complete
+        summary = json.loads((run_dir / SUMMARY).read_text())
     has_policy = (run_dir / CHECKPOINT).is_file() or (run_dir / PARAMS).is_file()
     return TrainResult(
         policy=load_policy(run_dir) if has_policy else None,
