@@ -30,6 +30,8 @@ _LAZY = {
     "load_policy": "coherent_jax.api",
     "TrainResult": "coherent_jax.api",
     "PolicyFunction": "coherent_jax.api",
+    "Callback": "coherent_jax.run.callbacks",
+    "Stop": "coherent_jax.run.callbacks",
 }
 __all__ = ["__version__", *_LAZY]
 

@@ -53,7 +53,7 @@ from coherent_jax.run.runs import (
     read_metrics,
     record_versions,
 )
-from coherent_jax.run.stop import DivergenceError, StopRequest
+from coherent_jax.run.stop import CALLBACK, DivergenceError, StopRequest
 from coherent_jax.run.tracking import TrackingError
 
 HELP_FLAGS = ("-h", "--help", "help")
@@ -228,10 +228,10 @@ def started(held: Held, line: str, stop: StopRequest) -> bool:
 
 def exit_status(summary: dict[str, Any] | None, stop: StopRequest) -> int:
     """The status a run exits with: a signal's (also one before training: no summary), a
-    divergence's, or 0."""
+    divergence's, or 0 (also for a stop a callback asked for: the user's own request)."""
     if summary is None:
         return signal_status(stop.signum)
-    if summary["stopped_by"] is not None:
+    if summary["stopped_by"] not in (None, CALLBACK):
         return signal_status(signal.Signals[summary["stopped_by"]])
     return EXIT_DIVERGED if summary.get("diverged") else EXIT_OK
 
@@ -246,11 +246,13 @@ def timings(out: Outcome) -> dict[str, float]:
 
 
 def report_stopped(out: Outcome, run_dir: Path | None) -> bool:
-    """Whether a signal stopped the run; if so, says where it stopped and how to continue."""
+    """Whether a signal or a callback stopped the run; if so, says where it stopped and how to
+    continue."""
     if out.stopped_by is None:
         return False
+    why = f" ({out.stop_reason})" if out.stop_reason else ""
     print(
-        f"{PREFIX} stopped by {out.stopped_by} after iteration {out.done}; "
+        f"{PREFIX} stopped by {out.stopped_by}{why} after iteration {out.done}; "
         + (f"checkpoint saved; continue with resume={run_dir}" if run_dir else "nothing saved"),
         flush=True,
     )

@@ -18,7 +18,9 @@ from typing import Any
 from coherent_jax import cli
 from coherent_jax.config import Config, parse_overrides
 from coherent_jax.envs.registry import task_label
+from coherent_jax.run import callbacks as hooks
 from coherent_jax.run import launch, rundir, tracking
+from coherent_jax.run.callbacks import Callback, StartInfo
 from coherent_jax.run.launch import Launched
 from coherent_jax.run.loop_state import Job, Outcome, to_float
 from coherent_jax.run.runs import (
@@ -74,9 +76,9 @@ def describe_train(argv: Sequence[str]) -> str:
     )
 
 
-def launch_train(argv: Sequence[str], stop: StopRequest) -> Launched:
+def launch_train(argv: Sequence[str], stop: StopRequest, callbacks: Sequence[Callback] = ()) -> Launched:
     """Runs the command line `argv` of ``python -m coherent_jax.train``: parse, check, prepare
-    the run directory, train, exit status.
+    the run directory, train (with `callbacks`, from the Python API), exit status.
 
     Raises one of `launch.REFUSED` (bad input before anything is written, or on restoring a
     state that does not fit; a divergence).
@@ -103,7 +105,7 @@ def launch_train(argv: Sequence[str], stop: StopRequest) -> Launched:
             write_inputs(held.run_dir, cfg, held.resumed)
         if not launch.started(held, f"run dir {held.run_dir}", stop):
             return Launched(launch.exit_status(None, stop), held.run_dir, None)
-        summary = train(cfg, held.run_dir, resume=held.checkpoint, stop=stop)
+        summary = train(cfg, held.run_dir, resume=held.checkpoint, stop=stop, callbacks=callbacks)
     return Launched(launch.exit_status(summary, stop), held.run_dir, summary)
 
 
@@ -128,14 +130,17 @@ def train(
     progress_fn: Callable[[int, dict[str, float]], None] | None = None,
     resume: Checkpoint | None = None,
     stop: StopRequest | None = None,
+    callbacks: Sequence[Callback] = (),
 ) -> dict[str, Any]:
     """Runs training for ``cfg``; returns the summary (also written to ``run_dir``).
 
     ``progress_fn(iteration, metrics)`` receives every iteration's metrics (as
-    Python floats), in the manner of Brax's trainers. With `resume` (a verified
-    checkpoint of ``run_dir``) the run continues after the checkpoint's iteration.
-    Raises `DivergenceError` when a loss or a parameter becomes non-finite. The
-    summary's ``stopped_by`` names the signal when SIGINT/SIGTERM ended the run early.
+    Python floats), in the manner of Brax's trainers; `callbacks` are the hooks of
+    `coherent_jax.run.callbacks` (``on_start`` before the first iteration, ``on_end`` with
+    the summary). With `resume` (a verified checkpoint of ``run_dir``) the run continues
+    after the checkpoint's iteration. Raises `DivergenceError` when a loss or a parameter
+    becomes non-finite. The summary's ``stopped_by`` names the signal when SIGINT/SIGTERM
+    ended the run early, or is ``"callback"`` (with ``stop_reason``) when a callback did.
     """
     # W&B first: a server that does not answer ends the run before the slow imports and builds.
     with tracking.mirrored(_mirror_points(cfg, run_dir), init_timeout=cfg.wandb_init_timeout) as mirrors:
@@ -152,10 +157,13 @@ def train(
             point_dirs=[run_dir] if run_dir else [],
             label=f"{cfg.env} {cfg.algo} explore={cfg.explore}",
             trackers=mirrors.runs,
+            callbacks=tuple(callbacks),
         )
+        hooks.start(callbacks, StartInfo(cfg, run_dir, resume.iteration if resume else 0))
         out = drive(job, stop, resume, progress_fn)
         summary = run_summary(cfg, out, resume is not None, platform(out))
         if launch.report_stopped(out, run_dir):
+            hooks.end(callbacks, summary)
             return summary
         write_params(trainer, out.state, [run_dir] if run_dir else [], points=False)  # every process
         if run_dir:
@@ -168,6 +176,7 @@ def train(
         f"wall {summary['wall_s']:.0f} s" + (f"; run dir {run_dir}" if run_dir else ""),
         flush=True,
     )
+    hooks.end(callbacks, summary)
     return summary
 
 
@@ -192,6 +201,7 @@ def run_summary(cfg: Config, out: Outcome, resumed: bool, where: dict[str, Any])
         **where,
         "resumed_from": out.start if resumed else None,
         "stopped_by": out.stopped_by,
+        **({"stop_reason": out.stop_reason} if out.stop_reason else {}),
         "physics": out.physics,
     }
 
