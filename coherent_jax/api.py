@@ -7,10 +7,11 @@
     result.run_dir, result.metrics[-1], result.summary["final_eval_return"]
     action, _ = result.policy.predict(obs)         # numpy in, numpy out, the env's action space
     policy = coherent_jax.load_policy("runs/hopper-...")   # any run directory, later
+    coherent_jax.learn(cfg, callbacks=[MyCallback()])      # hooks; one can stop the run
 
 `learn` is ``python -m coherent_jax.train`` called from Python: the same launch path
-(`coherent_jax.run.launch.run`: checks, run directory, lock, config, loop, summary), the same
-files and lines, the same refusals raised instead of printed. `load_policy` is
+(`coherent_jax.run.single.launch_train`: checks, run directory, lock, config, loop, summary),
+the same files and lines, the same refusals raised instead of printed. `load_policy` is
 `coherent_jax.policy.load_policy`: the policy evaluation acts with (what ``python -m
 coherent_jax.evaluate`` reads) as a `TrainedPolicy`, with ``predict(obs, state,
 episode_start, deterministic)`` and actions in the env's own action space.
@@ -19,16 +20,17 @@ episode_start, deterministic)`` and actions in the env's own action space.
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
 from coherent_jax.config import Config, ConfigError, override_items
 from coherent_jax.config.legacy import overrides_of
 from coherent_jax.policy import TrainedPolicy, load_policy
-from coherent_jax.run import launch
+from coherent_jax.run.callbacks import Callback
+from coherent_jax.run.callbacks import checked as checked_callbacks
 from coherent_jax.run.runs import CHECKPOINT, METRICS, PARAMS, read_metrics
-from coherent_jax.run.single import TrainCommand
+from coherent_jax.run.single import SUMMARY, launch_train
 from coherent_jax.run.stop import StopRequest
 
 #: the policy `load_policy` returns (``PolicyFunction`` before it had ``predict``).
@@ -46,12 +48,16 @@ class TrainResult(NamedTuple):
       run_dir: the run directory.
       summary: ``summary.json`` (its ``stopped_by`` names the signal of a run stopped
         early, which ``resume=run_dir`` continues); None if it stopped before training.
+      stopped_by: None for a run that finished its budget; the signal's name (``"SIGINT"``,
+        ``"SIGTERM"``) or ``"callback"`` (the summary's ``stop_reason`` says why) for one
+        stopped early, which ``{"resume": run_dir}`` continues.
     """
 
     policy: TrainedPolicy | None
     metrics: list[dict[str, Any]]
     run_dir: Path
     summary: dict[str, Any] | None
+    stopped_by: str | None = None
 
 
 def _items(config: Config | Mapping[str, Any] | None) -> list[str]:
@@ -68,8 +74,14 @@ def _items(config: Config | Mapping[str, Any] | None) -> list[str]:
     )
 
 
-def learn(config: Config | Mapping[str, Any] | None = None) -> TrainResult:
+def learn(
+    config: Config | Mapping[str, Any] | None = None, callbacks: Sequence[Callback] | None = None
+) -> TrainResult:
     """Trains as ``python -m coherent_jax.train`` does and returns the `TrainResult`.
+
+    ``callbacks``: `coherent_jax.Callback` instances whose hooks the run calls
+    (`coherent_jax.run.callbacks`: ``on_start``, ``on_iteration`` with each metrics row,
+    which can stop the run with a checkpoint, ``on_evaluation``, ``on_end``).
 
     ``config`` is a `Config` (`make_config`) or a mapping of overrides
     (``{"env": "hopper", "ppo.clip_eps": 0.1}``, a group's keys dotted or nested);
@@ -82,6 +94,7 @@ def learn(config: Config | Mapping[str, Any] | None = None) -> TrainResult:
     SIGTERM stop the run after the current iteration, with a checkpoint.
     """
     items = _items(config)
+    hooks = checked_callbacks(callbacks)
     distributed = config.distributed if isinstance(config, Config) else (config or {}).get("distributed")
     if distributed:
         raise ConfigError(
@@ -89,15 +102,16 @@ def learn(config: Config | Mapping[str, Any] | None = None) -> TrainResult:
             "(allowed: false; several hosts run python -m coherent_jax.train distributed=true)"
         )
     with StopRequest() as stop:
-        done = launch.run(TrainCommand(), items, stop)
+        done = launch_train(items, stop, hooks)
     run_dir = done.run_dir
     summary = done.summary
-    if summary is None and (run_dir / TrainCommand.summary_file).is_file():  # already complete
-        summary = json.loads((run_dir / TrainCommand.summary_file).read_text())
+    if summary is None and (run_dir / SUMMARY).is_file():  # already complete
+        summary = json.loads((run_dir / SUMMARY).read_text())
     has_policy = (run_dir / CHECKPOINT).is_file() or (run_dir / PARAMS).is_file()
     return TrainResult(
         policy=load_policy(run_dir) if has_policy else None,
         metrics=read_metrics(run_dir / METRICS),
         run_dir=run_dir,
         summary=summary,
+        stopped_by=summary["stopped_by"] if summary is not None else stop.name,
     )

@@ -67,16 +67,18 @@ from coherent_jax.envs.registry import task_label
 from coherent_jax.run import launch, multihost, rundir
 from coherent_jax.run.runs import (
     METRICS,
-    Checkpoint,
     atomic_write,
     config_text,
     resume_point,
+    split_resume,
     write_config,
 )
 from coherent_jax.run.stop import StopRequest
 from coherent_jax.sweeps import resume as sweep_resume
 from coherent_jax.sweeps.plan import Point, SweepPlan
 
+MODULE = "coherent_jax.sweep"  # ``python -m MODULE``, which the supervisor of a distributed run starts
+SUMMARY = "sweep.json"  # written last: a resumed sweep holding it (and at its budget) is complete
 # Keys that may take a list of values: the state's array hyperparameters, and seed.
 AXIS_KEYS = (*SWEEPABLE, "seed")
 GRID = rundir.GRID
@@ -195,62 +197,86 @@ def sweep_help(items: Sequence[str] = ()) -> str:
     )
 
 
+def read_sweep(argv: Sequence[str]) -> tuple[SweepPlan, Path | None]:
+    """The plan of `argv` and, for ``resume=SWEEP_DIR``, the sweep's directory (its stored
+    config and grid, which the items may restate but not change); raises `ConfigError`."""
+    resume_dir, rest = split_resume(list(argv))
+    cli.check_unique(list(argv))
+    if resume_dir is None:
+        return parse_sweep(argv), None
+    cfg, out_dir, axes, seeds = sweep_resume.resume_plan(resume_dir, rest)
+    return make_plan(cfg, axes, seeds), out_dir
+
+
+def describe_sweep(argv: Sequence[str]) -> str:
+    """What a dry run prints: the resolved config and the grid as YAML, and where the sweep would
+    write; nothing is created or written, the devices and the memory are not checked."""
+    plan, run_dir = read_sweep(argv)
+    launch.warn(plan.base)
+    grid = {"grid": {"axes": plan.axes, "seeds": plan.seeds, "points": len(plan.points)}}
+    text = config_text(plan.base) + yaml.safe_dump(grid, sort_keys=False, default_flow_style=None)
+    return (
+        text.rstrip()
+        + "\n"
+        + launch.where(plan.base, run_dir, default_sweep_dir(plan.base), run_dir is not None)
+    )
+
+
+def launch_sweep(argv: Sequence[str], stop: StopRequest) -> launch.Launched:
+    """Runs the command line `argv` of ``python -m coherent_jax.sweep``: parse, check, prepare
+    the sweep's directory, run the grid, exit status. Raises one of `launch.BAD_INPUT`."""
+    plan, resume_dir = read_sweep(argv)
+    cfg = plan.base
+    supervised = launch.preflight(cfg, MODULE, argv)
+    if supervised is not None:
+        return launch.Launched(supervised, None, None)
+    from coherent_jax.sweeps.program import check_sweep, run_sweep  # lazy: JAX; bad input goes without
+
+    is_writer = check_sweep(plan)
+    if resume_dir is None:
+        held = launch.hold_new(Path(cfg.run_dir) if cfg.run_dir else default_sweep_dir(cfg), is_writer)
+    else:
+        checkpoint = resume_point(resume_dir, cfg, resume_dir / plan.points[0].name / METRICS)
+        finished = launch.is_complete(resume_dir, checkpoint, cfg, SUMMARY)
+        if checkpoint is not None:
+            sweep_resume.check_rows(resume_dir, [p.name for p in plan.points], checkpoint, finished)
+        if finished:
+            return launch.complete(resume_dir, checkpoint)
+        held = launch.hold_resumed(resume_dir, checkpoint, is_writer)
+    launch.warn(cfg)
+    with launch.holding(held):
+        if held.run_dir:
+            launch.begin(held, [held.run_dir / p.name / f for p in plan.points for f in (METRICS, "tb")])
+            write_grid(held.run_dir, plan, held.resumed)
+        if not launch.started(held, f"sweep dir {held.run_dir}: {len(plan.points)} points", stop):
+            return launch.Launched(launch.exit_status(None, stop), held.run_dir, None)
+        summary = run_sweep(plan, held.run_dir, resume=held.checkpoint, stop=stop)
+    return launch.Launched(launch.exit_status(summary, stop), held.run_dir, summary)
+
+
+def write_grid(run_dir: Path, plan: SweepPlan, resumed: bool) -> None:
+    """The shared ``config.yaml`` and, for a new sweep, ``grid.json``."""
+    write_config(run_dir, dataclasses.replace(plan.base, run_dir=str(run_dir)))
+    if not resumed:
+        grid = {"axes": plan.axes, "seeds": plan.seeds}
+        atomic_write(run_dir / GRID, json.dumps(grid, indent=2).encode())
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    return launch.run_command(list(sys.argv[1:] if argv is None else argv), sweep_help, SweepCommand())
-
-
-class SweepCommand:
-    """What ``python -m coherent_jax.sweep`` has of its own on the launch path: its plan is a `SweepPlan`."""
-
-    module = "coherent_jax.sweep"
-    summary_file = "sweep.json"
-
-    def config(self, plan: SweepPlan) -> Config:
-        return plan.base
-
-    def parse(self, argv: list[str]) -> SweepPlan:
-        return parse_sweep(argv)
-
-    def resume(self, resume_dir: str, rest: list[str]) -> tuple[SweepPlan, Path]:
-        cfg, out_dir, axes, seeds = sweep_resume.resume_plan(resume_dir, rest)
-        return make_plan(cfg, axes, seeds), out_dir
-
-    def check(self, plan: SweepPlan) -> bool:
-        from coherent_jax.sweeps.program import check_sweep  # lazy: JAX; --help and dry runs go without
-
-        return check_sweep(plan)
-
-    def default_dir(self, cfg: Config) -> Path:
-        return default_sweep_dir(cfg)
-
-    def resume_point(self, run_dir: Path, plan: SweepPlan) -> Checkpoint | None:
-        return resume_point(run_dir, plan.base, run_dir / plan.points[0].name / METRICS)
-
-    def check_rows(self, run_dir: Path, plan: SweepPlan, checkpoint: Checkpoint, finished: bool) -> None:
-        sweep_resume.check_rows(run_dir, [p.name for p in plan.points], checkpoint, finished)
-
-    def outputs(self, run_dir: Path, plan: SweepPlan) -> list[Path]:
-        return [run_dir / p.name / f for p in plan.points for f in (METRICS, "tb")]
-
-    def write_inputs(self, run_dir: Path, plan: SweepPlan, resumed: bool) -> None:
-        write_config(run_dir, dataclasses.replace(plan.base, run_dir=str(run_dir)))
-        if not resumed:
-            grid = {"axes": plan.axes, "seeds": plan.seeds}
-            atomic_write(run_dir / GRID, json.dumps(grid, indent=2).encode())
-
-    def dir_line(self, run_dir: Path, plan: SweepPlan) -> str:
-        return f"sweep dir {run_dir}: {len(plan.points)} points"
-
-    def describe(self, plan: SweepPlan) -> str:
-        grid = {"grid": {"axes": plan.axes, "seeds": plan.seeds, "points": len(plan.points)}}
-        return config_text(plan.base) + yaml.safe_dump(grid, sort_keys=False, default_flow_style=None)
-
-    def run(
-        self, plan: SweepPlan, run_dir: Path | None, checkpoint: Checkpoint | None, stop: StopRequest
-    ) -> dict:
-        from coherent_jax.sweeps.program import run_sweep  # lazy: as check_sweep
-
-        return run_sweep(plan, run_dir, resume=checkpoint, stop=stop)
+    """``python -m coherent_jax.sweep``: help, dry run or a sweep; its exit status. Bad input is
+    one line on stderr and status 2 (`launch.refuse`)."""
+    try:
+        mode, items = launch.split_mode(list(sys.argv[1:] if argv is None else argv))
+        if mode == launch.HELP:
+            return launch.answer(sweep_help(items))
+        if mode == launch.DRY:
+            return launch.answer(describe_sweep(items))
+        with StopRequest() as stop:  # SIGINT/SIGTERM: stop after the current iteration
+            return launch_sweep(items, stop).status
+    except launch.REFUSED as exc:
+        return launch.refuse(exc)
+    except KeyboardInterrupt:  # before the stop request took over
+        return launch.interrupted()
 
 
 if __name__ == "__main__":

@@ -29,9 +29,10 @@ anything is written, a key given twice, a configuration whose arrays cannot fit 
 memory (`coherent_jax.run.memory`), a sweep's directory given to ``resume=`` and a run whose
 ``metrics.jsonl`` lost rows before its checkpoint are refused like any bad input.
 A non-finite loss or parameter stops the run (exit status 3) naming
-the iteration and the quantity; the last good checkpoint stays. The launch path
-(`coherent_jax.run.launch`) and the loop (`coherent_jax.run.loop`) are shared with sweeps;
-`coherent_jax.run.single.TrainCommand` is what a single run has of its own. Exit statuses
+the iteration and the quantity; the last good checkpoint stays. `main` reads top down: the
+mode (``--help``, a dry run or a run), then `coherent_jax.run.single.launch_train` (parse,
+check, prepare the run directory, train, exit status). The helpers it shares with sweeps
+are `coherent_jax.run.launch`'s, the loop is `coherent_jax.run.loop`'s. Exit statuses
 (`coherent_jax.exit_codes`): 0 done, 2 bad input, 3 diverged, 4 another process of a
 ``distributed=true`` run failed (resumable; see `coherent_jax.run.multihost`), 128 +
 signal number when stopped by SIGINT/SIGTERM (resumable).
@@ -42,18 +43,32 @@ from __future__ import annotations
 import sys
 from collections.abc import Sequence
 
-from coherent_jax.config import help_text
+from coherent_jax.config import help_text, parse_overrides
 from coherent_jax.run import launch, multihost
-from coherent_jax.run.single import TrainCommand
+from coherent_jax.run.single import describe_train, launch_train
+from coherent_jax.run.stop import StopRequest
 
 
 def train_help(items: Sequence[str] = ()) -> str:
     """``--help``: every option with the value `items` (the other arguments) resolve it to."""
-    return help_text(TrainCommand().parse(list(items)) if items else None, items)
+    return help_text(parse_overrides(list(items)) if items else None, items)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    return launch.run_command(list(sys.argv[1:] if argv is None else argv), train_help, TrainCommand())
+    """``python -m coherent_jax.train``: help, dry run or a run; its exit status. Bad input is one
+    line on stderr and status 2, a divergence status 3 (`launch.refuse`)."""
+    try:
+        mode, items = launch.split_mode(list(sys.argv[1:] if argv is None else argv))
+        if mode == launch.HELP:
+            return launch.answer(train_help(items))
+        if mode == launch.DRY:
+            return launch.answer(describe_train(items))
+        with StopRequest() as stop:  # SIGINT/SIGTERM: stop after the current iteration
+            return launch_train(items, stop).status
+    except launch.REFUSED as exc:
+        return launch.refuse(exc)
+    except KeyboardInterrupt:  # before the stop request took over
+        return launch.interrupted()
 
 
 if __name__ == "__main__":

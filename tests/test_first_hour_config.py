@@ -13,7 +13,7 @@ from helpers import ROOT
 from coherent_jax import sweep, train
 from coherent_jax.config import ConfigError, parse_overrides
 from coherent_jax.config.checks import warmup_warning
-from coherent_jax.run import launch, single
+from coherent_jax.run import single
 from coherent_jax.run.loop import StopRequest
 from coherent_jax.run.runs import stored_config
 
@@ -175,9 +175,7 @@ def test_row13_sac_within_its_warmup_is_warned_of_naming_both_numbers(tmp_path, 
     assert err == [warning]
     assert os.listdir(tmp_path) == []
     # A run warns too, once every input is accepted (training itself is left out here).
-    monkeypatch.setattr(launch, "execute", lambda *args: {"stopped_by": None})
+    monkeypatch.setattr(single, "train", lambda *args, **kwargs: {"stopped_by": None})
     with StopRequest() as stop:
-        done = launch.run(
-            train.TrainCommand(), ["preset=thesis", "algo=sac", "total_steps=5000", "env=pointmass"], stop
-        )
+        done = single.launch_train(["preset=thesis", "algo=sac", "total_steps=5000", "env=pointmass"], stop)
     assert done.status == 0 and capsys.readouterr().err.strip().splitlines() == [warning]

@@ -10,10 +10,10 @@ import pytest
 
 from coherent_jax.config import parse_overrides
 from coherent_jax.envs.registry import PhysicsError, auto_physics, resolve_physics
-from coherent_jax.run import launch, tracking
+from coherent_jax.run import tracking
 from coherent_jax.run.loop import StopRequest
 from coherent_jax.run.runs import write_config
-from coherent_jax.run.single import TrainCommand
+from coherent_jax.run.single import launch_train
 from coherent_jax.train import main
 
 TINY = [
@@ -145,7 +145,7 @@ def test_row11_resume_without_a_checkpoint_says_so_and_sets_the_rows_aside(tmp_p
 
     stop = StopRequest()
     stop.signum = signal.SIGTERM  # stops before training: the resume's start, and no learning run
-    launched = launch.run(TrainCommand(), [f"resume={run}"], stop)
+    launched = launch_train([f"resume={run}"], stop)
     assert launched.summary is None
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "resume found no checkpoint" in err and "starting from iteration 0" in err
@@ -155,7 +155,7 @@ def test_row11_resume_without_a_checkpoint_says_so_and_sets_the_rows_aside(tmp_p
     assert not (run / "metrics.jsonl").exists()
 
     # Nothing logged (killed during the compile): said as well, nothing to set aside.
-    launch.run(TrainCommand(), [f"resume={run}"], stop)
+    launch_train([f"resume={run}"], stop)
     err = capsys.readouterr().err
     assert "resume found no checkpoint" in err and "set aside" not in err
     assert sorted(p.name for p in run.glob("metrics.jsonl*")) == [

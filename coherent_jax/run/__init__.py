@@ -1,6 +1,6 @@
 """Running a training: everything between a parsed config and a finished run directory.
 
-The launch path shared by ``train`` and ``sweep`` (`launch`, with a single run's own part
+The launch helpers shared by ``train`` and ``sweep`` (`launch`, with a single run's own path
 in `single`), the host loop (`loop`, its records in `loop_state`), the run directory and its
 checkpoints (`runs`, `rundir`, `runlock`, `provenance`), what a run writes beside them
 (`tracking` for Weights & Biases, `tb_events` for TensorBoard, `video`), the guards

@@ -10,8 +10,9 @@ states (``vmap(trainer.iteration)``). Either way it
 * writes one row per iteration to each point's ``metrics.jsonl`` and, with
   ``tensorboard=true``, to TensorBoard event files in the point's ``tb/`` (with
   ``wandb=true`` also to the point's W&B run, `coherent_jax.run.tracking`);
+* calls a single run's callbacks with each row (`coherent_jax.run.callbacks`);
 * writes ``checkpoint.msgpack`` (the whole state, `coherent_jax.run.runs`) every
-  ``checkpoint_every`` iterations, at the end, and when SIGINT/SIGTERM stops it;
+  ``checkpoint_every`` iterations, at the end, and when SIGINT/SIGTERM or a callback stops it;
 * continues from a checkpoint (``resume``), recomputing the rows past it, so the
   metrics equal those of an uninterrupted run;
 * guards against divergence after every iteration: a non-finite loss (of an
@@ -48,7 +49,7 @@ from tqdm.auto import tqdm
 
 from coherent_jax.agents.trainer import Trainer
 from coherent_jax.config import limits
-from coherent_jax.run import collective, sharding
+from coherent_jax.run import callbacks, collective, sharding
 from coherent_jax.run.collective import to_host
 from coherent_jax.run.divergence import DivergenceError, PointView, check_finite
 from coherent_jax.run.loop_state import Job, Outcome, Programs, Session, to_float
@@ -63,7 +64,7 @@ from coherent_jax.run.runs import (
     truncate_metrics,
 )
 from coherent_jax.run.state_bytes import restore_state, state_to_bytes
-from coherent_jax.run.stop import StopRequest
+from coherent_jax.run.stop import CALLBACK, StopRequest
 from coherent_jax.sweep_axis import vmap_points
 
 
@@ -278,23 +279,29 @@ def guard(run: Session, it: int, metrics: dict[str, Any], finite: Any) -> None:
             )
 
 
-def sink_metrics(run: Session, it: int, metrics: dict[str, Any]) -> None:
+def sink_metrics(run: Session, it: int, metrics: dict[str, Any]) -> list[dict[str, Any] | None]:
     """Step 5, sink metrics: iteration `it`'s row in each live point's ``metrics.jsonl`` and W&B
-    run (``wandb=true``; step: the iteration), its finite scalars in TensorBoard (step: env steps)."""
+    run (``wandb=true``; step: the iteration), its finite scalars in TensorBoard (step: env steps).
+    Returns the rows, one per point (None for a diverged one), as the files hold them."""
     cfg = run.job.cfg
     env_steps = it * cfg.steps_per_iteration
     time_s = run.elapsed_before + time.perf_counter() - run.t_start
-    for j, (f, w) in enumerate(zip(run.files, run.writers, strict=True)):
-        if j in run.diverged:
-            continue
+    rows: list[dict[str, Any] | None] = []
+    for j in range(run.job.num_points):
         row = {"iteration": it, "env_steps": env_steps, "time_s": time_s}
         row.update({k: to_float(v[j]) for k, v in metrics.items()})
+        rows.append(None if j in run.diverged else row)
+    for j, (f, w) in enumerate(zip(run.files, run.writers, strict=True)):
+        row = rows[j]
+        if row is None:
+            continue
         f.write(json.dumps(row) + "\n")
         f.flush()
         if run.job.trackers:
             run.job.trackers[j].log(row, it)
         if w is not None:
             w.add_scalars({k: float(v[j]) for k, v in metrics.items() if math.isfinite(v[j])}, env_steps)
+    return rows
 
 
 def save_checkpoint(run: Session) -> None:
@@ -357,10 +364,11 @@ def run_loop(
     """Runs `job` from scratch or from `resume`, until the budget is spent or `stop` is requested.
 
     The steps: `start_session`, `compile_programs`, then per iteration `iterate` (with
-    `guard`), `sink_metrics` and, every ``checkpoint_every`` iterations, at the end and
-    on a stop, `save_checkpoint`. ``progress_fn(iteration, metrics)`` receives a single
-    run's metrics (Python floats) after every iteration. Raises `DivergenceError` when
-    a single run diverges (see the module docstring for sweeps).
+    `guard`), `sink_metrics`, the job's callbacks (`coherent_jax.run.callbacks.iteration`;
+    one that asks to stop is a `StopRequest.request`) and, every ``checkpoint_every``
+    iterations, at the end and on a stop, `save_checkpoint`. ``progress_fn(iteration,
+    metrics)`` receives a single run's metrics (Python floats) after every iteration. Raises
+    `DivergenceError` when a single run diverges (see the module docstring for sweeps).
     """
     cfg, n = job.cfg, job.num_points
     run = start_session(job, resume, time.perf_counter())
@@ -368,22 +376,26 @@ def run_loop(
     open_outputs(run, stop)
     try:
         for i in range(run.start, cfg.num_iterations):
-            if run.stopping:
+            if run.stopping or stop.reason:
                 break
             metrics = iterate(run, i)
-            sink_metrics(run, i + 1, metrics)
+            rows = sink_metrics(run, i + 1, metrics)
             run.done = i + 1
             if progress_fn:
                 progress_fn(run.done, {k: float(v[0]) for k, v in metrics.items()})
+            reason = callbacks.iteration(job.callbacks, rows[0]) if job.callbacks else None
+            if reason is not None:
+                stop.request(reason)
             every = cfg.checkpoint_every > 0 and run.done % cfg.checkpoint_every == 0
             run.stopping = collective.largest(stop.signum or 0)
-            if run.checkpoints and (i == cfg.num_iterations - 1 or every or run.stopping):
+            halt = bool(run.stopping) or stop.reason is not None
+            if run.checkpoints and (i == cfg.num_iterations - 1 or every or halt):
                 save_checkpoint(run)
                 run.saved = run.done
             show_progress(run)
             if len(run.diverged) == n:
                 break
-        if run.stopping and run.checkpoints and run.saved != run.done:
+        if (run.stopping or stop.reason) and run.checkpoints and run.saved != run.done:
             save_checkpoint(run)  # stopped before the first iteration: resume starts here
     finally:
         close_outputs(run)
@@ -395,11 +407,12 @@ def run_loop(
         compile_s=run.compile_s,
         num_devices=run.num_devices,
         physics=run.physics,
-        stopped_by=signal.Signals(run.stopping).name if run.stopping else None,
+        stopped_by=signal.Signals(run.stopping).name if run.stopping else CALLBACK if stop.reason else None,
         last_return=[float(x) for x in run.last_return],
         last_eval={k: [float(x) for x in v] for k, v in run.last_eval.items()},
         diverged=run.diverged,
         wall_s=run.elapsed_before + time.perf_counter() - run.t_start,
+        stop_reason=stop.reason if not run.stopping else None,
     )
 
 
@@ -409,7 +422,10 @@ def drive(
     resume: Checkpoint | None,
     progress_fn: Callable[[int, dict[str, float]], None] | None = None,
 ) -> Outcome:
-    """`run_loop` under `stop`, or under a stop request of its own when called from Python."""
+    """`run_loop` under `stop`, or under a stop request of its own when called from Python.
+    Callbacks are a single run's: a sweep's `Job` with callbacks is a `ValueError`."""
+    if job.callbacks and job.points:
+        raise ValueError("invalid callbacks for a sweep (allowed: callbacks of a single run)")
     with contextlib.ExitStack() as stack:
         stop = stop or stack.enter_context(StopRequest())
         return run_loop(job, stop, resume, progress_fn)

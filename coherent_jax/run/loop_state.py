@@ -30,6 +30,7 @@ class Job:
       label: how the start-up line names the job.
       trackers: per point, a W&B run receiving each of its rows (`coherent_jax.run.tracking.WandbRun`,
         ``wandb=true``); empty: none.
+      callbacks: a single run's `coherent_jax.run.callbacks.Callback`s, called with each row.
     """
 
     cfg: Config
@@ -41,6 +42,7 @@ class Job:
     hparams: Any = None
     label: str = ""
     trackers: Sequence[Any] = ()
+    callbacks: Sequence[Any] = ()
 
     @property
     def points(self) -> bool:
@@ -62,7 +64,8 @@ class Outcome:
       compile_s: seconds of compilation in this process.
       num_devices: devices the work was spread over.
       physics: the physics engine the trainer's env resolved to.
-      stopped_by: the signal's name when SIGINT/SIGTERM ended it early, else None.
+      stopped_by: the signal's name when SIGINT/SIGTERM ended it early, ``"callback"`` when
+        a callback did (``stop_reason`` says why), else None.
       last_return, last_eval: per point (lists of length num_points).
       diverged: per diverged point (index), the reason.
       wall_s: seconds since the run began, over all its sessions.
@@ -80,6 +83,7 @@ class Outcome:
     last_eval: dict[str, list[float]]
     diverged: dict[int, str]
     wall_s: float
+    stop_reason: str | None = None
 
 
 class Programs(NamedTuple):

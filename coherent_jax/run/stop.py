@@ -1,5 +1,6 @@
-"""What ends a run early: SIGINT/SIGTERM, a request to stop after the current iteration
-(`StopRequest`), and a divergence (`DivergenceError`, raised by `coherent_jax.run.divergence`)."""
+"""What ends a run early: SIGINT/SIGTERM or a callback, a request to stop after the current
+iteration (`StopRequest`), and a divergence (`DivergenceError`, raised by
+`coherent_jax.run.divergence`)."""
 
 from __future__ import annotations
 
@@ -15,17 +16,28 @@ class DivergenceError(RuntimeError):
     """A loss or a parameter became non-finite; the message names the iteration and the quantity."""
 
 
+CALLBACK = "callback"  # a summary's ``stopped_by`` when a callback stopped the run
+
+
 class StopRequest:
-    """Turns SIGINT/SIGTERM into a request to stop after the current iteration.
+    """Turns SIGINT/SIGTERM, or a callback's `request`, into a request to stop after the
+    current iteration.
 
     Installed before anything slow (imports, compiles), so a Ctrl-C at any moment
     ends the program cleanly instead of with a traceback. A second signal ends the
-    process at once, by the signal's default action.
+    process at once, by the signal's default action. ``signum`` is the signal's number;
+    ``reason`` what a callback said (`coherent_jax.run.callbacks`).
     """
 
     def __init__(self) -> None:
         self.signum: int | None = None
+        self.reason: str | None = None
         self._previous: dict[int, Any] = {}
+
+    def request(self, reason: str) -> None:
+        """A callback's request to stop after the current iteration (the first reason is kept)."""
+        if self.reason is None:
+            self.reason = reason
 
     def __enter__(self) -> StopRequest:
         if threading.current_thread() is threading.main_thread():
