@@ -25,6 +25,7 @@ import time
 import jax
 import numpy as np
 
+from coherent_jax import strategies
 from coherent_jax.agents import make_trainer
 from coherent_jax.config import parse_overrides
 from coherent_jax.run.loop import run_keys
@@ -54,25 +55,23 @@ SAC = [
     "sac.buffer_size=1024",
     "eval_episodes=4",
 ]
-STRATEGIES = {
-    "action": ["explore=action"],
-    "coherent": ["explore=coherent"],
+# Coherent's inference and gradient forms, which run the same classes: checked on top of
+# the registry's strategies and variants.
+COHERENT_FORMS = {
     "coherent_filter": ["explore=coherent", "coherent.inference=filter"],
-    "coherent_mc": ["explore=coherent", "coherent.integration=mc"],
-    "coherent_all": ["explore=coherent", "coherent.integration=mc", "coherent.layers=all"],
     "coherent_episode": ["explore=coherent", "coherent.gradient=episode"],
     "coherent_stored": ["explore=coherent", "coherent.gradient=stored"],
-    "noisynet": ["explore=noisynet"],
-    "psne": ["explore=psne"],
-    "gsde": ["explore=gsde"],
-    "pink": ["explore=pink"],
-    "lattice": ["explore=lattice"],
+}
+# Every strategy and variant of the registry (a run's name: its own, "-" as "_"), then the forms.
+STRATEGIES = {
+    **{name.replace("-", "_"): list(strategies.overrides(name)) for name in strategies.on_policy_names()},
+    **COHERENT_FORMS,
 }
 RUNS: dict[str, list[str]] = {}
-for _algo in ("ppo", "a2c"):
+for _algo in strategies.ON_POLICY:
     for _name, _extra in STRATEGIES.items():
         RUNS[f"{_algo}-{_name}"] = [*ON_POLICY, f"algo={_algo}", *_extra]
-for _name in ("action", "coherent", "psne", "gsde", "pink", "lattice"):
+for _name in (n for n in strategies.EXPLORES if "sac" in strategies.SUPPORTED_ALGOS[n]):
     RUNS[f"sac-{_name}"] = [*SAC, *STRATEGIES[_name]]
 ITERATIONS = {"sac": 6}  # SAC: two warm-up iterations, then updates and sigma adaptation
 DEFAULT_ITERATIONS = 3

@@ -48,10 +48,15 @@ from pathlib import Path
 import curves  # beside this file (reproduce.py puts experiments/ on sys.path)
 from cells import Cell
 
+from coherent_jax import strategies
+
 # What the report reads of the classic cells besides the returns (`curves.py` keeps them).
 GOAL_METRICS = (curves.EVAL_GOAL, curves.TRAIN_GOAL)
 CLASSIC_TASK = "mountain_car_continuous"
-CLASSIC_STRATEGIES = ("action", "noisynet", "psne", "gsde", "pink", "lattice")
+# Every PPO strategy of the registry; coherent runs at `CLASSIC_BETAS`.
+CLASSIC_STRATEGIES = tuple(
+    s for s in strategies.EXPLORES if s != "coherent" and "ppo" in strategies.SUPPORTED_ALGOS[s]
+)
 CLASSIC_BETAS = (0.0, 0.01, 0.1)
 CLASSIC_COHERENT = ("coherent.gradient=episode",)
 CLASSIC_BETA_TAG = "beta-episode"  # not the sparse suite's "beta": another kind of cell

@@ -29,6 +29,7 @@ import numpy as np
 
 from coherent_jax.bench.gradient import sample_episode
 from coherent_jax.bench.measure import write_json_atomic
+from coherent_jax.exploration.chain import ChainParams
 from coherent_jax.exploration.coherent.filter import log_marginals
 
 #: the windows of steps the table reports, as [start, end) (end clipped to T)
@@ -45,11 +46,11 @@ def smooth_features(rng: np.random.Generator, num_steps: int, q: int, rho: float
     return out
 
 
-def step_scores(x, a, mu, w_std, action_std, beta) -> np.ndarray:
+def step_scores(x, a, params: ChainParams) -> np.ndarray:
     """[T, p, q+1]: d log p(a_t | a_<t, s_<=t) / d mu for every t of one episode (call under x64)."""
     first = jnp.zeros(x.shape[0], bool).at[0].set(True)
-    fn = lambda m: log_marginals(x, a, first, m, w_std, action_std, beta)  # noqa: E731
-    return np.asarray(jax.jacfwd(fn)(jnp.asarray(mu)))
+    fn = lambda m: log_marginals(x, a, first, params._replace(mu=m))  # noqa: E731
+    return np.asarray(jax.jacfwd(fn)(jnp.asarray(params.mu)))
 
 
 def credit(num_steps: int, betas: list[float], episodes: int, seed: int, p: int = 6, q: int = 64) -> dict:
@@ -63,8 +64,9 @@ def credit(num_steps: int, betas: list[float], episodes: int, seed: int, p: int 
     for beta in betas:
         sq = np.zeros(num_steps)
         for _ in range(episodes):
-            a = sample_episode(rng, x, mu, w_std, action_std, beta)
-            sq += np.sum(step_scores(x, a, mu, w_std, action_std, beta) ** 2, axis=(1, 2)) / episodes
+            params = ChainParams(mu, w_std, action_std, beta)
+            a = sample_episode(rng, x, params)
+            sq += np.sum(step_scores(x, a, params) ** 2, axis=(1, 2)) / episodes
         rows.append(
             {
                 "beta": beta,

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from coherent_jax import strategies
 from coherent_jax.config import ALGOS, ConfigError, parse_overrides
 from coherent_jax.run.single import train
 
@@ -54,16 +55,13 @@ ALGO_EXTRA = {
 }
 MC = ["coherent.beta=0.1", "coherent.action_std=0.3", "coherent.w_std_init=0.01"]
 MC_ALL = ["coherent.beta=0.1", "coherent.action_std=0.3", "coherent.w_std_init=0.03"]
+# Settings under which a strategy or variant learns on pointmass (none: its defaults).
+EXTRA = {"coherent": ["coherent.beta=0.1"], "coherent-mc": MC, "coherent-all": MC_ALL}
+# Every strategy of the registry and each of its variants: (label, its settings, EXTRA's).
 STRATEGIES = [
-    ("action", ["explore=action"], []),
-    ("coherent", ["explore=coherent"], ["coherent.beta=0.1"]),
-    ("coherent mc", ["explore=coherent", "coherent.integration=mc"], MC),
-    ("coherent mc all", ["explore=coherent", "coherent.integration=mc", "coherent.layers=all"], MC_ALL),
-    ("noisynet", ["explore=noisynet"], []),
-    ("psne", ["explore=psne"], []),
-    ("gsde", ["explore=gsde"], []),
-    ("pink", ["explore=pink"], []),
-    ("lattice", ["explore=lattice"], []),
+    (name.replace("-", " "), list(strategies.overrides(name)), EXTRA.get(name, []))
+    for s in strategies.STRATEGIES
+    for name in (s.name, *s.variants)
 ]
 
 

@@ -78,21 +78,23 @@ from cells import (  # noqa: E402, F401  (re-exported: the state of a cell is re
 )
 from classic import classic_cells  # noqa: E402  (the classic suite: MountainCar, its budget)
 
+from coherent_jax import strategies  # noqa: E402  (the registry's names, no JAX)
+
 RESULTS = ROOT / "experiments" / "results"
 
 # The thesis's comparisons (chapter 4; its chapter 5 is not in our copy): A2C and PPO
 # with each exploration strategy on the standard locomotion tasks.
 THESIS_TASKS = ("halfcheetah", "walker2d", "hopper")
 ONPOLICY_STRATEGIES = ("action", "coherent", "noisynet", "psne")
-SAC_STRATEGIES = ("action", "coherent", "psne")
-# `beyond`: newer strategies beside the thesis's on the same tasks, each cell named by its
-# label in the report (`report._label`: the cell name's last part).
-BEYOND_STRATEGIES = ("gsde", "pink", "lattice")
+SAC_STRATEGIES = tuple(s for s in ONPOLICY_STRATEGIES if "sac" in strategies.SUPPORTED_ALGOS[s])
+# `beyond`: every other strategy of the registry beside the thesis's on the same tasks,
+# each cell named by its label in the report (`report._label`: the cell name's last part).
+BEYOND_STRATEGIES = tuple(s for s in strategies.EXPLORES if s not in ONPOLICY_STRATEGIES)
 # Coloured noise for on-policy algorithms (Hollenstein, Martius, Piater, AAAI 2024): an
 # exponent near 0.5 rather than pink's 1 suits PPO; its cells are tagged with it.
 PINK_ONPOLICY_EXPONENT = 0.5
 PINK_ONPOLICY_TAG = f"exp{PINK_ONPOLICY_EXPONENT:g}"
-BEYOND_SAC_STRATEGIES = ("gsde", "pink", "lattice")
+BEYOND_SAC_STRATEGIES = tuple(s for s in BEYOND_STRATEGIES if "sac" in strategies.SUPPORTED_ALGOS[s])
 # The report's labels of the beyond cells, the strategies the thesis's are compared with.
 BEYOND_LABELS = (*BEYOND_STRATEGIES, f"pink-{PINK_ONPOLICY_TAG}")
 ABLATION_TASK = "halfcheetah"
@@ -110,7 +112,10 @@ SPARSE_TASKS = (
     "dmc-ball_in_cup",
     "dmc-finger_turn_hard",
 )
-SPARSE_STRATEGIES = ("action", "noisynet", "psne", "gsde", "pink", "lattice")
+# Every PPO strategy of the registry; coherent runs as the beta sweep of `sparse_cells`.
+SPARSE_STRATEGIES = tuple(
+    s for s in strategies.EXPLORES if s != "coherent" and "ppo" in strategies.SUPPORTED_ALGOS[s]
+)
 SPARSE_BETAS = (0.0, 0.01, 0.1)
 SPARSE_STEPS = 1_000_000
 

@@ -47,6 +47,7 @@ from jax.sharding import Mesh, NamedSharding, SingleDeviceSharding  # noqa: E402
 from jax.sharding import PartitionSpec as P  # noqa: E402
 
 from coherent_jax.bench import measure  # noqa: E402
+from coherent_jax.exploration.chain import ChainParams  # noqa: E402
 from coherent_jax.exploration.coherent.exact import chained_marginals  # noqa: E402
 from coherent_jax.exploration.coherent.filter import prior_belief  # noqa: E402
 
@@ -84,10 +85,7 @@ def objective(params, a, adv, first):
             x,
             a,
             first,
-            params["mu"],
-            params["w_std"],
-            params["action_std"],
-            jnp.float32(0.01),
+            ChainParams(params["mu"], params["w_std"], params["action_std"], jnp.float32(0.01)),
             from_prior=True,
         )[0]
         return jnp.sum(adv * logp)

@@ -12,7 +12,7 @@ import chex
 import jax
 import jax.numpy as jnp
 
-from coherent_jax.exploration.chain import chain_step
+from coherent_jax.exploration.chain import ChainParams, chain_step
 from coherent_jax.exploration.coherent.filter import Belief, segment_marginals
 from coherent_jax.networks import augment
 
@@ -33,7 +33,9 @@ def log_marginals_from(
     `coherent_filter.segment_marginals` without the predictive variances; returns
     (logp [T], final belief).
     """
-    logp, final_belief, _ = segment_marginals(belief0, x, a, first, mu, w_std, action_std, beta, remat)
+    logp, final_belief, _ = segment_marginals(
+        belief0, x, a, first, ChainParams(mu, w_std, action_std, beta), remat
+    )
     return logp, final_belief
 
 

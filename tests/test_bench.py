@@ -117,6 +117,7 @@ def test_dense_reference_checkpointed_equals_plain_and_block():
     import jax
     import jax.numpy as jnp
 
+    from coherent_jax.exploration.chain import ChainParams
     from coherent_jax.exploration.coherent.filter import log_marginals
 
     x, a, first, mu, w_std, action_std, beta = sample_segments(
@@ -125,7 +126,7 @@ def test_dense_reference_checkpointed_equals_plain_and_block():
     x, a, first = x[0], a[0], first[0]
 
     def value_and_grad(fn, **kw):
-        total = lambda m, s: jnp.sum(fn(x, a, first, m, s, action_std, beta, **kw))
+        total = lambda m, s: jnp.sum(fn(x, a, first, ChainParams(m, s, action_std, beta), **kw))
         return jax.jit(jax.value_and_grad(total, argnums=(0, 1)))(mu, w_std)
 
     plain = value_and_grad(dense_log_marginals)

@@ -27,6 +27,7 @@ from references import (
 )
 
 from coherent_jax.exploration.base import SEGMENT_AXES, Segment
+from coherent_jax.exploration.chain import ChainParams
 from coherent_jax.exploration.coherent import exact as E
 from coherent_jax.exploration.coherent import filter as C
 from coherent_jax.exploration.coherent import joint as J
@@ -46,13 +47,17 @@ def _weighted(logp_fn):
 
 
 def _chained_8(x, a, first, mu, w_std, action_std, beta):
-    return E.chained_marginals(C.prior_belief(mu, w_std), x, a, first, mu, w_std, action_std, beta, 8)[0]
+    return E.chained_marginals(
+        C.prior_belief(mu, w_std), x, a, first, ChainParams(mu, w_std, action_std, beta), 8
+    )[0]
 
 
 def _chained_8_from_prior(x, a, first, mu, w_std, action_std, beta):
     # A belief of junk: with from_prior it must not be read.
     junk = C.Belief(jnp.full_like(mu, jnp.nan), jnp.full(mu.shape + mu.shape[-1:], jnp.nan, mu.dtype))
-    return E.chained_marginals(junk, x, a, first, mu, w_std, action_std, beta, 8, from_prior=True)[0]
+    return E.chained_marginals(
+        junk, x, a, first, ChainParams(mu, w_std, action_std, beta), 8, from_prior=True
+    )[0]
 
 
 def refiltered_marginals(
@@ -105,7 +110,7 @@ def refiltered_marginals(
     all_a = jnp.concatenate([jnp.zeros((pad, a.shape[1]), a.dtype), jnp.asarray(history_a, a.dtype), a])
     all_first = jnp.concatenate([jnp.ones((pad,), bool), history_first, first])
     logp, _, pred_var = E.chained_marginals(
-        C.prior_belief(mu, w_std), all_x, all_a, all_first, mu, w_std, action_std, beta, block
+        C.prior_belief(mu, w_std), all_x, all_a, all_first, ChainParams(mu, w_std, action_std, beta), block
     )
     return logp[-num_steps:], pred_var[-num_steps:]
 
@@ -168,7 +173,14 @@ def test_skipped_blocks_before_the_episode_start_change_nothing_kept(x64, beta):
         def logp_fn(x, a, first, mu, w_std, action_std, beta):
             prior = C.prior_belief(mu, w_std)
             return E.chained_marginals(
-                prior, x, a, first, mu, w_std, action_std, beta, 8, from_prior=True, start_block=start
+                prior,
+                x,
+                a,
+                first,
+                ChainParams(mu, w_std, action_std, beta),
+                8,
+                from_prior=True,
+                start_block=start,
             )[0]
 
         return _weighted(logp_fn)
@@ -183,7 +195,13 @@ def test_skipped_blocks_before_the_episode_start_change_nothing_kept(x64, beta):
     mu, w_std, action_std = heads(params)
     x = trunk(params["theta"], obs)
     logp, _, pred_var = E.chained_marginals(
-        C.prior_belief(mu, w_std), x, a, first, mu, w_std, action_std, beta, 8, start_block=jnp.asarray(2)
+        C.prior_belief(mu, w_std),
+        x,
+        a,
+        first,
+        ChainParams(mu, w_std, action_std, beta),
+        8,
+        start_block=jnp.asarray(2),
     )
     assert np.all(np.asarray(logp[8:16]) == 0.0) and np.all(np.asarray(pred_var[8:16]) == 1.0)
     assert np.all(np.asarray(logp[16:]) != 0.0)
@@ -202,7 +220,7 @@ def test_stored_belief_gives_the_right_values_but_not_the_thesis_gradient(x64):
     mu0, w_std0, action_std0 = heads(params)
     x0 = trunk(params["theta"], obs)
     _, stored, _ = C.segment_marginals(
-        C.prior_belief(mu0, w_std0), x0[:h], a[:h], first[:h], mu0, w_std0, action_std0, beta
+        C.prior_belief(mu0, w_std0), x0[:h], a[:h], first[:h], ChainParams(mu0, w_std0, action_std0, beta)
     )
     z_mean, z_cov = (stored.mean - mu0) / w_std0, stored.cov / (w_std0[:, :, None] * w_std0[:, None, :])
 
@@ -212,7 +230,9 @@ def test_stored_belief_gives_the_right_values_but_not_the_thesis_gradient(x64):
         mu, w_std, action_std = heads(params)
         belief = C.Belief(mu + w_std * z_mean, w_std[:, :, None] * z_cov * w_std[:, None, :])
         x = trunk(params["theta"], obs)
-        logp, _, _ = J.segment_marginals_joint(belief, x[h:], a[h:], first[h:], mu, w_std, action_std, beta)
+        logp, _, _ = J.segment_marginals_joint(
+            belief, x[h:], a[h:], first[h:], ChainParams(mu, w_std, action_std, beta)
+        )
         return jnp.sum(adv * logp)
 
     value, grad = held(params)
@@ -232,10 +252,7 @@ def test_block_size_divides():
             jnp.zeros((6, 2)),
             jnp.zeros((6, 1)),
             jnp.zeros(6, bool),
-            jnp.zeros((1, 3)),
-            jnp.ones((1, 3)),
-            jnp.ones(1),
-            0.1,
+            ChainParams(jnp.zeros((1, 3)), jnp.ones((1, 3)), jnp.ones(1), 0.1),
             block=4,
         )
 

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from references import dense_thesis_logp, joint_episode_logp, x64_enabled
 
+from coherent_jax.exploration.chain import ChainParams, chain_params
 from coherent_jax.exploration.coherent import filter as coherent_filter
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -67,10 +68,12 @@ def call_log_marginals(problem, beta, fn=_log_marginals):
             jnp.asarray(problem["x"]),
             jnp.asarray(problem["a"]),
             jnp.asarray(problem["first"]),
-            jnp.asarray(problem["mu"]),
-            jnp.asarray(problem["w_std"]),
-            jnp.asarray(problem["action_std"]),
-            jnp.asarray(beta),
+            chain_params(
+                jnp.asarray(problem["mu"]),
+                jnp.asarray(problem["w_std"]),
+                jnp.asarray(problem["action_std"]),
+                jnp.asarray(beta),
+            ),
         )
     )
 
@@ -127,7 +130,7 @@ def test_first_step_always_starts_from_prior(x64):
 
     mu, w_std = jnp.asarray(problem["mu"]), jnp.asarray(problem["w_std"])
     junk = coherent_filter.Belief(mean=mu + 3.0, cov=jnp.ones((2, 4, 4)) * 7.0)
-    args = (problem["x"][0], problem["a"][0], True, mu, w_std, problem["action_std"], 0.2)
+    args = (problem["x"][0], problem["a"][0], True, chain_params(mu, w_std, problem["action_std"], 0.2))
     from_junk, logp_junk = coherent_filter.filter_step(junk, *args)
     from_prior, logp_prior = coherent_filter.filter_step(coherent_filter.prior_belief(mu, w_std), *args)
     np.testing.assert_allclose(logp_junk, logp_prior, rtol=1e-14)
@@ -147,7 +150,8 @@ def test_gradients_match_finite_differences(x64, beta):
     names = ("x", "mu", "w_std", "action_std")
 
     def objective(x, mu, w_std, action_std):
-        logp = coherent_filter.log_marginals(x, problem["a"], problem["first"], mu, w_std, action_std, beta)
+        chain = chain_params(mu, w_std, action_std, beta)
+        logp = coherent_filter.log_marginals(x, problem["a"], problem["first"], chain)
         return jnp.sum(weights * logp)
 
     grads = jax.grad(objective, argnums=(0, 1, 2, 3))(*(jnp.asarray(problem[n]) for n in names))
@@ -265,33 +269,29 @@ def test_jit_and_vmap_match_python_loop():
                 f32(stacked["x"][b]),
                 f32(stacked["a"][b]),
                 f32(stacked["first"][b]),
-                params["mu"],
-                params["w_std"],
-                params["action_std"],
-                0.4,
+                chain_params(params["mu"], params["w_std"], params["action_std"], 0.4),
             )
             for b in range(batch)
         ]
     )
-    over_envs = jax.jit(jax.vmap(coherent_filter.log_marginals, in_axes=(0, 0, 0, None, None, None, None)))
+    over_envs = jax.jit(jax.vmap(coherent_filter.log_marginals, in_axes=(0, 0, 0, None)))
     batched = over_envs(
         f32(stacked["x"]),
         f32(stacked["a"]),
         f32(stacked["first"]),
-        params["mu"],
-        params["w_std"],
-        params["action_std"],
-        jnp.float32(0.4),
+        chain_params(params["mu"], params["w_std"], params["action_std"], jnp.float32(0.4)),
     )
     assert batched.shape == (batch, num_steps) and batched.dtype == jnp.float32
     np.testing.assert_allclose(batched, loop, rtol=1e-5, atol=1e-5)
 
     betas = np.array([0.0, 0.4, 1.0], np.float32)
-    over_betas = jax.jit(jax.vmap(coherent_filter.log_marginals, in_axes=(None,) * 6 + (0,)))
+    # Only beta is swept: the axes of the named parameters are named too.
+    beta_axes = ChainParams(mu=None, w_std=None, action_std=None, beta=0)
+    over_betas = jax.jit(jax.vmap(coherent_filter.log_marginals, in_axes=(None, None, None, beta_axes)))
     env0 = (f32(stacked["x"][0]), f32(stacked["a"][0]), f32(stacked["first"][0]))
-    swept = over_betas(*env0, params["mu"], params["w_std"], params["action_std"], betas)
+    swept = over_betas(*env0, ChainParams(params["mu"], params["w_std"], params["action_std"], betas))
     for beta, row in zip(betas, swept, strict=True):
-        single = coherent_filter.log_marginals(*env0, *params.values(), beta)
+        single = coherent_filter.log_marginals(*env0, chain_params(*params.values(), beta))
         np.testing.assert_allclose(row, single, rtol=1e-5, atol=1e-5)
 
 

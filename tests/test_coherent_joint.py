@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from coherent_jax.exploration.chain import chain_params
 from coherent_jax.exploration.coherent import filter as C
 from coherent_jax.exploration.coherent import joint as J
 
@@ -32,9 +33,10 @@ def random_problem(rng, T, p, q, resets):
 @pytest.mark.parametrize("resets", [(), (0,), (5,), (0, 7), (11,)])
 def test_joint_equals_filter_float64(x64, beta, resets):
     rng = np.random.default_rng(hash((beta, resets)) % 2**32)
-    args = random_problem(rng, T=12, p=3, q=4, resets=resets)
-    logp_f, belief_f, var_f = C.segment_marginals(*args, beta)
-    logp_j, belief_j, var_j = J.segment_marginals_joint(*args, beta)
+    belief0, x, a, first, *heads = random_problem(rng, T=12, p=3, q=4, resets=resets)
+    args = (belief0, x, a, first, chain_params(*heads, beta))
+    logp_f, belief_f, var_f = C.segment_marginals(*args)
+    logp_j, belief_j, var_j = J.segment_marginals_joint(*args)
     assert logp_j.dtype == jnp.float64
     np.testing.assert_allclose(logp_j, logp_f, rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(var_j, var_f, rtol=1e-10)
@@ -50,7 +52,7 @@ def test_joint_gradients_equal_filter_gradients(x64, beta):
     weights = jnp.asarray(rng.normal(size=9))
 
     def loss(fn, x, mu, w_std, action_std):
-        logp, _, _ = fn(belief0, x, a, first, mu, w_std, action_std, beta)
+        logp, _, _ = fn(belief0, x, a, first, chain_params(mu, w_std, action_std, beta))
         return jnp.sum(weights * logp)
 
     args = (jnp.asarray(x), jnp.asarray(mu), jnp.asarray(w_std), jnp.asarray(action_std))
@@ -72,14 +74,13 @@ def test_joint_float32_consecutive_segments_match_float64(beta):
     x = jnp.asarray(np.tanh(np.cumsum(rng.normal(size=(4 * T, q)), 0) * 0.1), jnp.float32)
     a = jnp.asarray(rng.normal(size=(4 * T, p)) * 0.5, jnp.float32)
     first = jnp.zeros((4 * T,), bool).at[0].set(True)
-    ref = C.log_marginals(x, a, first, mu, w_std, action_std, beta)
+    chain = chain_params(mu, w_std, action_std, beta)
+    ref = C.log_marginals(x, a, first, chain)
     belief = C.prior_belief(mu, w_std)
     logps = []
     for k in range(4):
         sl = slice(k * T, (k + 1) * T)
-        logp, belief, _ = J.segment_marginals_joint(
-            belief, x[sl], a[sl], first[sl], mu, w_std, action_std, beta
-        )
+        logp, belief, _ = J.segment_marginals_joint(belief, x[sl], a[sl], first[sl], chain)
         logps.append(logp)
     logp = jnp.concatenate(logps)
     assert logp.dtype == jnp.float32 and bool(jnp.all(jnp.isfinite(logp)))

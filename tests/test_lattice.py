@@ -13,8 +13,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from coherent_jax.agents.registry import make_behaviour, make_strategy
 from coherent_jax.config import ConfigError, parse_overrides
-from coherent_jax.exploration import make_behaviour, make_strategy
 from coherent_jax.exploration.base import Segment
 from coherent_jax.networks import SquashedGaussianActor
 from coherent_jax.run.single import train

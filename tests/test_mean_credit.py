@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 from helpers import ROOT, child_env, load_experiment
 
+from coherent_jax.exploration.chain import ChainParams
+
 credit = load_experiment("mean_credit")
 
 
@@ -23,14 +25,14 @@ def _problem(beta, seed=0, num_steps=30, p=2, q=4):
     mu = 0.3 * rng.normal(size=(p, q + 1))
     w_std = rng.uniform(0.2, 0.6, size=(p, q + 1))
     action_std = rng.uniform(0.1, 0.3, size=p)
-    a = credit.sample_episode(rng, x, mu, w_std, action_std, beta)
+    a = credit.sample_episode(rng, x, ChainParams(mu, w_std, action_std, beta))
     return x, a, mu, w_std, action_std
 
 
 @pytest.mark.parametrize("beta", [0.0, 0.05, 0.3])
 def test_the_scores_of_an_episode_sum_to_the_gradient_of_its_joint_density(beta, x64):
     x, a, mu, w_std, action_std = _problem(beta)
-    scores = credit.step_scores(x, a, mu, w_std, action_std, beta)
+    scores = credit.step_scores(x, a, ChainParams(mu, w_std, action_std, beta))
     xh = np.concatenate([x, np.ones((x.shape[0], 1))], axis=1)
     lag = np.abs(np.subtract.outer(np.arange(len(x)), np.arange(len(x))))
     for i in range(mu.shape[0]):
@@ -41,7 +43,7 @@ def test_the_scores_of_an_episode_sum_to_the_gradient_of_its_joint_density(beta,
 
 def test_at_beta_one_each_steps_score_is_that_of_its_own_gaussian(x64):
     x, a, mu, w_std, action_std = _problem(1.0, seed=1)
-    scores = credit.step_scores(x, a, mu, w_std, action_std, 1.0)
+    scores = credit.step_scores(x, a, ChainParams(mu, w_std, action_std, 1.0))
     xh = np.concatenate([x, np.ones((x.shape[0], 1))], axis=1)
     var = (xh**2) @ (w_std**2).T + action_std**2  # [T, p]
     expected = ((a - xh @ mu.T) / var)[:, :, None] * xh[:, None, :]

@@ -5,11 +5,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from coherent_jax.agents.registry import make_behaviour
 from coherent_jax.agents.replay import Experience, replay_add, replay_init, replay_sample
 from coherent_jax.agents.sac import SACTrainer, polyak_update
 from coherent_jax.agents.sac_losses import soft_target
 from coherent_jax.config import parse_overrides
-from coherent_jax.exploration import make_behaviour
 from coherent_jax.exploration.adaptive import adapt_sigma, policy_distance
 from coherent_jax.networks import SquashedGaussianActor, squash
 from coherent_jax.run.single import train

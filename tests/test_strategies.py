@@ -7,17 +7,20 @@ state, so the behaviour noise is exactly the strategy's noise.
 """
 
 import functools
+import subprocess
+import sys
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import child_env
 
 from coherent_jax.agents.onpolicy import OnPolicyTrainer
+from coherent_jax.agents.registry import make_behaviour, make_strategy
 from coherent_jax.agents.rollout import unroll
 from coherent_jax.config import parse_overrides
 from coherent_jax.envs import VecEnv
-from coherent_jax.exploration import make_behaviour, make_strategy
 from coherent_jax.exploration.base import SEGMENT_AXES, Segment
 from coherent_jax.exploration.noisynet import factorised, noisy_dense
 from coherent_jax.exploration.pink import autocorrelation, coloured_noise
@@ -463,25 +466,48 @@ def test_sac_psne_fixed_per_episode_and_sigma_rule():
     assert float(new_hp["sigma"]) == pytest.approx(0.2)
 
 
-def test_strategy_table_names_importable_classes_and_every_refusal_has_a_reason():
-    """The one table of strategies: each class string resolves, every algorithm a strategy
-    lacks a class for is refused with a reason, and the config's choices are the table's."""
-    import importlib
-
+def test_registry_matches_the_jax_free_names_and_every_refusal_has_a_reason():
+    """The registry of classes and the JAX-free names agree row by row: a class of the right
+    base for every algorithm a strategy runs with, none for one it is refused with a
+    reason; the config's choices are the names."""
     from coherent_jax import config, strategies
-    from coherent_jax.exploration.base import OffPolicyBehaviour, OnPolicyStrategy
+    from coherent_jax.agents import registry
 
-    strategies.check_table()
-    for table, base in (
-        (strategies.ON_POLICY_CLASSES, OnPolicyStrategy),
-        (strategies.OFF_POLICY_CLASSES, OffPolicyBehaviour),
-    ):
-        for name, target in table.items():
-            module, cls = target.split(":")
-            found = getattr(importlib.import_module(f"coherent_jax.exploration.{module}"), cls)
-            assert issubclass(found, base), (name, target)
-    assert config.EXPLORES == tuple(s.name for s in strategies.STRATEGIES)
+    registry.check_registry()
+    assert config.EXPLORES == tuple(r.name for r in registry.REGISTRY) == strategies.EXPLORES
+    assert registry.off_policy_classes()["coherent"].__name__ == "CoherentBehaviour"
+    assert set(registry.on_policy_classes()) == {*strategies.EXPLORES, "coherent-mc", "coherent-all"}
+    # A row that disagrees is named.
+    extra = registry.Registered("extra", registry.REGISTRY[0].on_policy, None)
+    with pytest.raises(AssertionError, match="registry names"):
+        registry.check_registry((*registry.REGISTRY, extra))
+    with pytest.raises(AssertionError, match="'noisynet'"):
+        registry.check_registry(
+            tuple(
+                r if r.name != "noisynet" else registry.Registered("noisynet", r.on_policy, r.on_policy)
+                for r in registry.REGISTRY
+            )
+        )
     assert strategies.SUPPORTED_ALGOS["noisynet"] == ("ppo", "a2c")
     assert "score-function" in strategies.REFUSED[("noisynet", "sac")]
     with pytest.raises(config.ConfigError, match="score-function"):
         parse_overrides(["env=pointmass", "algo=sac", "explore=noisynet"])
+
+
+def test_the_names_the_config_validates_load_without_jax():
+    """The JAX-free names, and the config's refusal of a pair they refuse, load no JAX."""
+    code = (
+        "import sys\n"
+        "from coherent_jax.strategies import EXPLORES, SUPPORTED_ALGOS\n"
+        "from coherent_jax.config import ConfigError, parse_overrides\n"
+        "assert 'noisynet' in EXPLORES and SUPPORTED_ALGOS['noisynet'] == ('ppo', 'a2c')\n"
+        "try:\n"
+        "    parse_overrides(['env=pointmass', 'algo=sac', 'explore=noisynet'])\n"
+        "except ConfigError:\n"
+        "    pass\n"
+        "else:\n"
+        "    raise SystemExit('not refused')\n"
+        "assert 'jax' not in sys.modules, sorted(m for m in sys.modules if 'jax' in m)\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], env=child_env(), capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr

@@ -30,10 +30,10 @@ import optax
 
 from coherent_jax.agents import losses
 from coherent_jax.agents.onpolicy_state import AgentParams, HParams, RewardNorm, SplitOptState, TrainState
+from coherent_jax.agents.registry import make_strategy
 from coherent_jax.agents.rollout import EpisodeHistory, episode_metrics, evaluation_metrics, unroll
 from coherent_jax.config import Config
 from coherent_jax.envs.vec_env import VecEnv
-from coherent_jax.exploration import make_strategy
 from coherent_jax.exploration.base import OnPolicyStrategy, Segment
 from coherent_jax.networks import RunningStats, ValueNetwork, normalize, scale_rewards, update_stats
 from coherent_jax.sweep_axis import all_points

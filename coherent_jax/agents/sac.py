@@ -37,11 +37,11 @@ import optax
 from flax import struct
 
 from coherent_jax.agents import sac_losses
+from coherent_jax.agents.registry import make_behaviour
 from coherent_jax.agents.replay import Experience, ReplayBuffer, replay_add, replay_init, replay_sample
 from coherent_jax.agents.rollout import episode_metrics, evaluation_metrics, unroll
 from coherent_jax.config import Config
 from coherent_jax.envs.vec_env import EnvState, VecEnv
-from coherent_jax.exploration import make_behaviour
 from coherent_jax.exploration.base import ActOutput, OffPolicyBehaviour
 from coherent_jax.networks import QNetwork, RunningStats, SquashedGaussianActor, normalize, update_stats
 

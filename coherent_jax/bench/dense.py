@@ -9,10 +9,12 @@ import math
 import jax
 import jax.numpy as jnp
 
+from coherent_jax.exploration.chain import ChainParams
+
 _LOG_2PI = math.log(2.0 * math.pi)
 
 
-def dense_log_marginals(x, a, first, mu, w_std, action_std, beta, checkpoint_chunk: int = 0):
+def dense_log_marginals(x, a, first, params: ChainParams, checkpoint_chunk: int = 0):
     """The thesis's filter (4.33)-(4.49) on the flattened weights, as a reference.
 
     The weights are one vector w in R^(p(q+1)) laid out as in (4.30), the p rows of
@@ -32,8 +34,9 @@ def dense_log_marginals(x, a, first, mu, w_std, action_std, beta, checkpoint_chu
     flatters the dense side, except where its gradient must be checkpointed to fit
     in memory, which costs about one more forward pass (the bench records this).
 
-    Same contract as `coherent_filter.log_marginals`: x [T, q], a [T, p], first [T], mu and
-    w_std [p, q+1] (bias last), action_std [p]; t = 0 always starts from the prior.
+    Same contract as `coherent_filter.log_marginals`: x [T, q], a [T, p], first [T], the
+    chain's mu and w_std [p, q+1] (bias last), action_std [p] and beta; t = 0 always starts
+    from the prior.
     ``checkpoint_chunk > 0`` rematerialises the scan in chunks of that many steps
     (only the belief at each chunk start is kept for the backward pass), so the
     gradient fits in memory when p(q+1) is large.
@@ -41,6 +44,7 @@ def dense_log_marginals(x, a, first, mu, w_std, action_std, beta, checkpoint_chu
     Returns:
       logp [T].
     """
+    mu, w_std, action_std, beta = params
     num_steps, q = x.shape
     p = a.shape[-1]
     eye_p = jnp.eye(p, dtype=x.dtype)

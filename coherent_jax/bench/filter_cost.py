@@ -20,6 +20,7 @@ import numpy as np
 from coherent_jax.bench import measure
 from coherent_jax.bench.dense import dense_log_marginals, sample_segments
 from coherent_jax.config import Config
+from coherent_jax.exploration.chain import ChainParams
 from coherent_jax.exploration.coherent.filter import log_marginals
 
 _FILTER_AXES = (0, 0, 0, None, None, None, None)  # batched: x, a, first; shared: the parameters
@@ -29,7 +30,11 @@ def _filter_forward(impl, chunk=0):
     """log p of every sequence of the batch (``impl`` vmapped), checkpointed every `chunk` steps if > 0."""
 
     def f(x, a, first, mu, w_std, action_std, beta):
-        single = lambda *args: impl(*args, checkpoint_chunk=chunk) if chunk else impl(*args)
+        extra = {"checkpoint_chunk": chunk} if chunk else {}
+
+        def single(x, a, first, mu, w_std, action_std, beta):
+            return impl(x, a, first, ChainParams(mu, w_std, action_std, beta), **extra)
+
         return jax.vmap(single, _FILTER_AXES)(x, a, first, mu, w_std, action_std, beta)
 
     return f
@@ -43,7 +48,9 @@ def _filter_with_grad(impl, chunk=0, sequential=False):
 
             def one(inputs):
                 xi, ai, fi = inputs
-                logp = lambda m, s: jnp.sum(impl(xi, ai, fi, m, s, action_std, beta, checkpoint_chunk=chunk))
+                logp = lambda m, s: jnp.sum(
+                    impl(xi, ai, fi, ChainParams(m, s, action_std, beta), checkpoint_chunk=chunk)
+                )
                 return jax.value_and_grad(logp, argnums=(0, 1))(mu, w_std)
 
             values, (g_mu, g_std) = jax.lax.map(one, (x, a, first))

@@ -49,6 +49,7 @@ import numpy as np
 from coherent_jax import cli
 from coherent_jax.bench import measure
 from coherent_jax.exploration.base import Segment
+from coherent_jax.exploration.chain import ChainParams, chain_params
 from coherent_jax.exploration.coherent import exact as E
 from coherent_jax.exploration.coherent import filter as F
 from coherent_jax.exploration.coherent import joint as J
@@ -103,8 +104,9 @@ def parse(items: Sequence[str]) -> cli.Parsed:
     return cli.parse_command(items, KEYS, command="the gradient suite", config=False)
 
 
-def sample_episode(rng, x, mu, w_std, action_std, beta):
+def sample_episode(rng, x, params: ChainParams):
     """Actions of one episode drawn from the chain (4.1-4.5) and (4.29), in numpy float64."""
+    mu, w_std, action_std, beta = params
     num_steps, p = x.shape[0], mu.shape[0]
     xh = np.concatenate([x, np.ones((num_steps, 1))], axis=1)
     w = mu + w_std * rng.normal(size=mu.shape)
@@ -201,9 +203,8 @@ class _Forms:
         x = self.trunk(params, obs[-seg:])
         first = jnp.zeros(seg, bool).at[0].set(True)
         prior = F.prior_belief(mu, w_std)
-        logp, _, _ = E.chained_marginals(
-            prior, x, a[-seg:], first, mu, w_std, action_std, beta, E.block_size(seg), from_prior=True
-        )
+        chain = chain_params(mu, w_std, action_std, beta)
+        logp, _, _ = E.chained_marginals(prior, x, a[-seg:], first, chain, E.block_size(seg), from_prior=True)
         return logp
 
     def stored_mode(self, params, obs, a, beta, params0):
@@ -215,17 +216,15 @@ class _Forms:
         if h:
             first = jnp.zeros(h, bool).at[0].set(True)
             x0 = self.trunk(params0, obs[:h])
-            _, belief, _ = E.chained_marginals(
-                belief, x0, a[:h], first, mu0, w_std0, action_std0, beta, E.block_size(h)
-            )
+            chain0 = chain_params(mu0, w_std0, action_std0, beta)
+            _, belief, _ = E.chained_marginals(belief, x0, a[:h], first, chain0, E.block_size(h))
         z_mean = jax.lax.stop_gradient((belief.mean - mu0) / w_std0)
         z_cov = jax.lax.stop_gradient(belief.cov / (w_std0[:, :, None] * w_std0[:, None, :]))
         mu, w_std, action_std = self.heads(params)
         start = F.Belief(mu + w_std * z_mean, w_std[:, :, None] * z_cov * w_std[:, None, :])
         first = jnp.zeros(self.seg, bool).at[0].set(h == 0)
-        logp, _, _ = J.segment_marginals_joint(
-            start, self.trunk(params, obs[h:]), a[h:], first, mu, w_std, action_std, beta
-        )
+        chain = chain_params(mu, w_std, action_std, beta)
+        logp, _, _ = J.segment_marginals_joint(start, self.trunk(params, obs[h:]), a[h:], first, chain)
         return logp
 
 
@@ -257,7 +256,7 @@ def _case(settings: dict[str, Any], forms: _Forms, history: int, beta: float):
         "log_w_std": np.full((p, q + 1), math.log(settings["w_std"])),
     }
     x = np.asarray(forms.trunk(jax.tree.map(jnp.asarray, params0), jnp.asarray(obs)))
-    a = sample_episode(rng, x, params0["mu"], settings["w_std"], settings["action_std"], beta)
+    a = sample_episode(rng, x, ChainParams(params0["mu"], settings["w_std"], settings["action_std"], beta))
     adv = rng.normal(size=seg)
     # Evaluated away from the collection parameters, as after an update.
     params = jax.tree.map(lambda v, r=rng: v + settings["move"] * r.normal(size=np.shape(v)), params0)

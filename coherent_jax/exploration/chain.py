@@ -16,9 +16,55 @@ forms, SAC), a segment of ``unroll_length`` steps under ``coherent.gradient=exac
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import chex
 import jax
 import jax.numpy as jnp
+
+
+class ChainParams(NamedTuple):
+    """The parameters of the chain over the last layer, read by every inference function.
+
+    The model they define (thesis eqs. 4.1-4.5 and 4.29), with xh = [x; 1]:
+
+        a_t,i | w_t ~ N(w_t,i . xh_t, action_std_i^2)                              (4.29)
+        w_0 ~ N(mu, diag(w_std^2)),  w_t = (1 - beta) w_{t-1} + beta mu
+                                          + sqrt(2 beta - beta^2) w_std eps          (4.1-4.5)
+
+    Build it with `chain_params`, which checks the shapes.
+
+    Attributes:
+      mu: [p, q+1] mean of the last-layer weights, bias in the last column.
+      w_std: [p, q+1] standard deviation of each weight.
+      action_std: [p] action noise standard deviation.
+      beta: scalar in [0, 1], the chain's mixing rate (may be traced).
+    """
+
+    mu: chex.Array
+    w_std: chex.Array
+    action_std: chex.Array
+    beta: chex.Array
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(p, q+1): action dimensions and last-layer inputs with the bias."""
+        return self.mu.shape
+
+    def astype(self, dtype) -> ChainParams:
+        """Every field as an array of ``dtype``."""
+        return ChainParams(*(jnp.asarray(v).astype(dtype) for v in self))
+
+
+def chain_params(mu: chex.Array, w_std: chex.Array, action_std: chex.Array, beta: chex.Array) -> ChainParams:
+    """`ChainParams` after checking mu, w_std [p, q+1], action_std [p] and beta a scalar.
+
+    The values are kept as given (no cast), so building it changes no computation.
+    """
+    chex.assert_rank([mu, w_std, action_std, jnp.asarray(beta)], [2, 2, 1, 0])
+    chex.assert_equal_shape([mu, w_std])
+    chex.assert_shape(action_std, (mu.shape[0],))
+    return ChainParams(mu, w_std, action_std, beta)
 
 
 def innovation_var(beta: chex.Array) -> chex.Array:

@@ -30,9 +30,9 @@ from flax import serialization, struct
 from omegaconf import OmegaConf
 
 from coherent_jax.agents import onpolicy, sac
+from coherent_jax.agents.registry import make_behaviour, make_strategy
 from coherent_jax.agents.sac import make_actor
 from coherent_jax.config import Config, ConfigError, from_stored, to_dict, validate
-from coherent_jax.exploration import make_behaviour, make_strategy
 from coherent_jax.networks import RunningStats, SquashedGaussianActor, normalize, squash
 from coherent_jax.run.runs import CHECKPOINT, PARAMS, decode_checkpoint, load_config
 

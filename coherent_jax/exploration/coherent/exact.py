@@ -29,6 +29,7 @@ import chex
 import jax
 import jax.numpy as jnp
 
+from coherent_jax.exploration.chain import ChainParams
 from coherent_jax.exploration.coherent.filter import Belief
 from coherent_jax.exploration.coherent.joint import segment_marginals_joint
 
@@ -49,10 +50,7 @@ def chained_marginals(
     x: chex.Array,
     a: chex.Array,
     first: chex.Array,
-    mu: chex.Array,
-    w_std: chex.Array,
-    action_std: chex.Array,
-    beta: chex.Array,
+    params: ChainParams,
     block: int | None = None,
     from_prior: bool = False,
     remat: bool = False,
@@ -80,10 +78,8 @@ def chained_marginals(
       x: [T, q] last-layer inputs.
       a: [T, p] actions taken.
       first: [T] bool, True where an episode starts at t.
-      mu: [p, q+1] weight mean, bias in the last column.
-      w_std: [p, q+1] weight standard deviation.
-      action_std: [p] action noise standard deviation.
-      beta: scalar in [0, 1].
+      params: the chain's mu [p, q+1] (bias last), w_std [p, q+1], action_std [p] and
+        beta, a scalar in [0, 1].
       block: steps per block, a divisor of T; default `block_size(T)`.
       from_prior: the segment starts an episode (``belief0`` unused); the first block
         then skips the stored belief's terms (`segment_marginals_joint`).
@@ -105,9 +101,7 @@ def chained_marginals(
     if num_steps % block:
         raise ValueError(f"block={block} does not divide the segment length {num_steps}")
     num_blocks = num_steps // block
-    head = segment_marginals_joint(
-        belief0, x[:block], a[:block], first[:block], mu, w_std, action_std, beta, from_prior
-    )
+    head = segment_marginals_joint(belief0, x[:block], a[:block], first[:block], params, from_prior)
     if num_blocks == 1:
         return head
     logp0, belief1, pred_var0 = head
@@ -116,9 +110,7 @@ def chained_marginals(
         return v[block:].reshape((num_blocks - 1, block) + v.shape[1:])
 
     def score(belief, x_k, a_k, first_k):
-        logp, belief, pred_var = segment_marginals_joint(
-            belief, x_k, a_k, first_k, mu, w_std, action_std, beta
-        )
+        logp, belief, pred_var = segment_marginals_joint(belief, x_k, a_k, first_k, params)
         return belief, (logp, pred_var)
 
     def skip(belief, x_k, a_k, first_k):

@@ -35,7 +35,7 @@ import chex
 import jax
 import jax.numpy as jnp
 
-from coherent_jax.exploration.chain import innovation_var
+from coherent_jax.exploration.chain import ChainParams, innovation_var
 from coherent_jax.networks import augment
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -57,12 +57,12 @@ class Belief(NamedTuple):
     cov: chex.Array
 
 
-def _check_params(mu: chex.Array, w_std: chex.Array, action_std: chex.Array) -> tuple[int, int]:
-    """Asserts mu, w_std [p, q+1] and action_std [p]; returns (p, q+1)."""
-    chex.assert_rank([mu, w_std, action_std], [2, 2, 1])
-    chex.assert_equal_shape([mu, w_std])
-    p, n = mu.shape
-    chex.assert_shape(action_std, (p,))
+def _check_params(params: ChainParams) -> tuple[int, int]:
+    """Asserts mu, w_std [p, q+1], action_std [p] and a scalar beta; returns (p, q+1)."""
+    chex.assert_rank([params.mu, params.w_std, params.action_std, jnp.asarray(params.beta)], [2, 2, 1, 0])
+    chex.assert_equal_shape([params.mu, params.w_std])
+    p, n = params.mu.shape
+    chex.assert_shape(params.action_std, (p,))
     return p, n
 
 
@@ -89,13 +89,10 @@ def filter_step(
     x: chex.Array,
     a: chex.Array,
     first: chex.Array,
-    mu: chex.Array,
-    w_std: chex.Array,
-    action_std: chex.Array,
-    beta: chex.Array,
+    params: ChainParams,
 ) -> tuple[Belief, chex.Array]:
     """One step of the exact filter (see `filter_step_with_variance`); returns (belief, logp)."""
-    new_belief, logp, _ = filter_step_with_variance(belief, x, a, first, mu, w_std, action_std, beta)
+    new_belief, logp, _ = filter_step_with_variance(belief, x, a, first, params)
     return new_belief, logp
 
 
@@ -104,10 +101,7 @@ def filter_step_with_variance(
     x: chex.Array,
     a: chex.Array,
     first: chex.Array,
-    mu: chex.Array,
-    w_std: chex.Array,
-    action_std: chex.Array,
-    beta: chex.Array,
+    params: ChainParams,
 ) -> tuple[Belief, chex.Array, chex.Array]:
     """One step of the exact filter: score a_t, condition on it, propagate to t+1.
 
@@ -134,21 +128,20 @@ def filter_step_with_variance(
       x: [q] last-layer input x_t.
       a: [p] action a_t (before any squashing).
       first: bool scalar, True if an episode starts at t (belief reset to the prior).
-      mu: [p, q+1] weight mean, bias in the last column.
-      w_std: [p, q+1] weight standard deviation.
-      action_std: [p] action noise standard deviation (Lambda_a^-1/2).
-      beta: scalar in [0, 1], the chain's mixing rate.
+      params: the chain's mu [p, q+1] (bias last), w_std [p, q+1], action_std [p]
+        (Lambda_a^-1/2) and beta, a scalar in [0, 1].
 
     Returns:
       (belief over w_{t+1} before a_{t+1}, log p(a_t | a_<t, s_<=t) as a scalar,
       the predictive variances s [p]).
     """
-    p, n = _check_params(mu, w_std, action_std)
+    p, n = _check_params(params)
+    mu, w_std, action_std, beta = params
     chex.assert_shape([belief.mean], (p, n))
     chex.assert_shape([belief.cov], (p, n, n))
     chex.assert_shape(x, (n - 1,))
     chex.assert_shape(a, (p,))
-    chex.assert_rank([first, beta], 0)
+    chex.assert_rank(first, 0)
 
     prior = prior_belief(mu, w_std)
     mean = jnp.where(first, prior.mean, belief.mean)
@@ -181,13 +174,14 @@ def filter_step_with_variance(
     return Belief(mean=new_mean, cov=new_cov), logp, pred_var
 
 
-def segment_inputs(belief0, x, a, first, mu, w_std, action_std, beta):
+def segment_inputs(belief0: Belief, x, a, first, params: ChainParams):
     """Checks the shapes of a segment's inputs and casts them to one dtype.
 
     One dtype for the whole computation (and a scan's carry): float64 under x64 if
     any input is, else float32. Returns the inputs in the order given.
     """
-    p, n = _check_params(mu, w_std, action_std)
+    p, n = _check_params(params)
+    mu, w_std, action_std, _ = params
     chex.assert_rank([x, a, first], [2, 2, 1])
     num_steps = x.shape[0]
     chex.assert_shape(x, (num_steps, n - 1))
@@ -197,9 +191,8 @@ def segment_inputs(belief0, x, a, first, mu, w_std, action_std, beta):
     chex.assert_shape([belief0.cov], (p, n, n))
     dtype = jnp.result_type(x, a, mu, w_std, action_std, belief0.mean, belief0.cov)
     cast = lambda v: jnp.asarray(v).astype(dtype)  # noqa: E731
-    x, a, mu, w_std, action_std, beta = map(cast, (x, a, mu, w_std, action_std, beta))
     belief0 = Belief(mean=cast(belief0.mean), cov=cast(belief0.cov))
-    return belief0, x, a, jnp.asarray(first, dtype=bool), mu, w_std, action_std, beta
+    return belief0, cast(x), cast(a), jnp.asarray(first, dtype=bool), params.astype(dtype)
 
 
 def predictive_entropy(pred_var: chex.Array) -> chex.Array:
@@ -212,10 +205,7 @@ def segment_marginals(
     x: chex.Array,
     a: chex.Array,
     first: chex.Array,
-    mu: chex.Array,
-    w_std: chex.Array,
-    action_std: chex.Array,
-    beta: chex.Array,
+    params: ChainParams,
     remat: bool = False,
 ) -> tuple[chex.Array, Belief, chex.Array]:
     """log p(a_t | a_<t, s_<=t) over a segment that starts from a given belief.
@@ -233,10 +223,8 @@ def segment_marginals(
       x: [T, q] last-layer inputs.
       a: [T, p] actions taken.
       first: [T] bool, True where an episode starts at t.
-      mu: [p, q+1] weight mean, bias in the last column.
-      w_std: [p, q+1] weight standard deviation.
-      action_std: [p] action noise standard deviation.
-      beta: scalar in [0, 1].
+      params: the chain's mu [p, q+1] (bias last), w_std [p, q+1], action_std [p] and
+        beta, a scalar in [0, 1].
       remat: if True the scan body is ``jax.checkpoint``ed: the backward pass
         recomputes each step's intermediates from the stored belief instead of keeping
         several [p, q+1, q+1] arrays per step.
@@ -245,15 +233,11 @@ def segment_marginals(
       (logp [T], the belief over w_T before a_T to start the next segment, the
       predictive variances s [T, p] of every step).
     """
-    belief0, x, a, first, mu, w_std, action_std, beta = segment_inputs(
-        belief0, x, a, first, mu, w_std, action_std, beta
-    )
+    belief0, x, a, first, params = segment_inputs(belief0, x, a, first, params)
 
     def body(belief, step):
         x_t, a_t, first_t = step
-        new_belief, logp, pred_var = filter_step_with_variance(
-            belief, x_t, a_t, first_t, mu, w_std, action_std, beta
-        )
+        new_belief, logp, pred_var = filter_step_with_variance(belief, x_t, a_t, first_t, params)
         return new_belief, (logp, pred_var)
 
     if remat:
@@ -266,10 +250,7 @@ def log_marginals(
     x: chex.Array,
     a: chex.Array,
     first: chex.Array,
-    mu: chex.Array,
-    w_std: chex.Array,
-    action_std: chex.Array,
-    beta: chex.Array,
+    params: ChainParams,
 ) -> chex.Array:
     """log p(a_t | a_<t, s_<=t) within each episode, w integrated out (4.37, 4.49).
 
@@ -282,13 +263,11 @@ def log_marginals(
       x: [T, q] last-layer inputs.
       a: [T, p] actions taken (pre-squash).
       first: [T] bool, True where an episode starts at t.
-      mu: [p, q+1] weight mean, bias in the last column.
-      w_std: [p, q+1] weight standard deviation.
-      action_std: [p] action noise standard deviation.
-      beta: scalar in [0, 1].
+      params: the chain's mu [p, q+1] (bias last), w_std [p, q+1], action_std [p] and
+        beta, a scalar in [0, 1].
 
     Returns:
       logp [T].
     """
-    logp, _, _ = segment_marginals(prior_belief(mu, w_std), x, a, first, mu, w_std, action_std, beta)
+    logp, _, _ = segment_marginals(prior_belief(params.mu, params.w_std), x, a, first, params)
     return logp

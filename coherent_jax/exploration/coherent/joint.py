@@ -14,6 +14,7 @@ import chex
 import jax
 import jax.numpy as jnp
 
+from coherent_jax.exploration.chain import ChainParams
 from coherent_jax.exploration.coherent.filter import Belief, segment_inputs
 from coherent_jax.exploration.linalg import masked_gram, whiten
 from coherent_jax.networks import augment
@@ -26,10 +27,7 @@ def segment_marginals_joint(
     x: chex.Array,
     a: chex.Array,
     first: chex.Array,
-    mu: chex.Array,
-    w_std: chex.Array,
-    action_std: chex.Array,
-    beta: chex.Array,
+    params: ChainParams,
     from_prior: bool = False,
 ) -> tuple[chex.Array, Belief, chex.Array]:
     """`segment_marginals` computed from the joint Gaussian of the segment's actions.
@@ -62,9 +60,8 @@ def segment_marginals_joint(
 
     Args and returns: as `segment_marginals`.
     """
-    belief0, x, a, first, mu, w_std, action_std, beta = segment_inputs(
-        belief0, x, a, first, mu, w_std, action_std, beta
-    )
+    belief0, x, a, first, params = segment_inputs(belief0, x, a, first, params)
+    mu, w_std, action_std, beta = params
     if from_prior:
         first = first.at[0].set(True)
     num_steps = x.shape[0]

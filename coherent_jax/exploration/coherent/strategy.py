@@ -18,7 +18,7 @@ import jax.numpy as jnp
 
 from coherent_jax.exploration.adaptive import SigmaRule, adapt_sigma, policy_distance
 from coherent_jax.exploration.base import SEGMENT_AXES, ActOutput, OffPolicyBehaviour, SegmentLogProb
-from coherent_jax.exploration.chain import chain_step
+from coherent_jax.exploration.chain import ChainParams, chain_params, chain_step
 from coherent_jax.exploration.coherent.exact import MAX_BLOCK, block_size, chained_marginals
 from coherent_jax.exploration.coherent.filter import (
     Belief,
@@ -206,6 +206,10 @@ class CoherentExploration(ChainStrategy):
         """(mu, w_std, action_std) of the last layer (`LastLayer.weights`)."""
         return self.layer.weights(params, self._action_std(params, hparams))
 
+    def _chain(self, params, hparams) -> ChainParams:
+        """The chain's parameters: the last layer's (`_head`) and ``hparams["beta"]``."""
+        return chain_params(*self._head(params, hparams), hparams["beta"])
+
     @property
     def _keeps_belief(self) -> bool:
         """Whether the carry holds a belief: not when every segment is scored at once from
@@ -237,8 +241,8 @@ class CoherentExploration(ChainStrategy):
     # ------------------------------------------------------------ collection
     def act(self, key, params, hparams, carry, obs, first):
         chex.assert_rank([obs, first], [2, 1])
-        mu, w_std, action_std = self._head(params, hparams)
-        beta = hparams["beta"]
+        chain = self._chain(params, hparams)
+        mu, w_std, action_std, beta = chain
         x = self.layer.features(params, obs)  # [n, q]
         num_envs = x.shape[0]
         k_w, k_a = jax.random.split(key)
@@ -257,7 +261,7 @@ class CoherentExploration(ChainStrategy):
             return ActOutput(action, logp, carry._replace(z=z))
 
         def filt(c, x_e, a_e, f_e):
-            belief, logp = filter_step(_to_weights(c, mu, w_std), x_e, a_e, f_e, mu, w_std, action_std, beta)
+            belief, logp = filter_step(_to_weights(c, mu, w_std), x_e, a_e, f_e, chain)
             return _to_standard(belief, mu, w_std), logp
 
         (mean, cov), logp = jax.vmap(filt)(carry, x, action, first)
@@ -276,18 +280,16 @@ class CoherentExploration(ChainStrategy):
         first = self._chain_first(first)
         return first.at[0].set(jnp.logical_or(first[0], restart))
 
-    def _score(self, belief0, x, a, first, mu, w_std, action_std, beta):
+    def _score(self, belief0, x, a, first, chain: ChainParams):
         """The segment's marginals in the configured form; (logp, end belief, variances)."""
         if self.inference == "filter":
-            return segment_marginals(belief0, x, a, first, mu, w_std, action_std, beta, remat=self.remat)
+            return segment_marginals(belief0, x, a, first, chain, remat=self.remat)
         # With the exact gradient every segment starts the chain: the stored belief's
         # terms are zero and need not be formed.
         from_prior = self.gradient == "exact"
         if x.shape[0] > MAX_BLOCK:
-            return chained_marginals(
-                belief0, x, a, first, mu, w_std, action_std, beta, from_prior=from_prior, remat=self.remat
-            )
-        return segment_marginals_joint(belief0, x, a, first, mu, w_std, action_std, beta, from_prior)
+            return chained_marginals(belief0, x, a, first, chain, from_prior=from_prior, remat=self.remat)
+        return segment_marginals_joint(belief0, x, a, first, chain, from_prior)
 
     def score_segment(self, params, hparams, segment, carry, log_prob):
         segment.check(batch_rank=1)
@@ -297,14 +299,13 @@ class CoherentExploration(ChainStrategy):
             return self.batch_log_prob(params, hparams, segment).log_prob, carry
         if self.inference == "filter":
             return log_prob, carry  # scored step by step in `act`
-        mu, w_std, action_std = self._head(params, hparams)
+        chain = self._chain(params, hparams)
+        mu, w_std = chain.mu, chain.w_std
         x = self.layer.features(params, segment.obs)  # [T, n, q]
 
         def score(c0, x_e, a_e, f_e):
             f_e = self._segment_first(f_e, c0.restart)
-            logp, belief, _ = self._score(
-                self._segment_belief(c0, mu, w_std), x_e, a_e, f_e, mu, w_std, action_std, hparams["beta"]
-            )
+            logp, belief, _ = self._score(self._segment_belief(c0, mu, w_std), x_e, a_e, f_e, chain)
             return logp, _to_standard(belief, mu, w_std)
 
         logp, (mean, cov) = jax.vmap(score, in_axes=(0, 1, 1, 1), out_axes=(1, 0))(
@@ -320,22 +321,20 @@ class CoherentExploration(ChainStrategy):
         before ``start_block`` skipped (default: its own `window_start_block`)."""
         segment.check()
         actions = segment.action
-        mu, w_std, action_std = self._head(params, hparams)
+        chain = self._chain(params, hparams)
         x = self.layer.features(params, segment.obs)
         if self.gradient == "episode":
             if start_block is None:
                 start_block = window_start_block(segment.first, self.history_length, self.block)
-            return self._window_log_prob(
-                x, actions, segment.first, mu, w_std, action_std, hparams["beta"], start_block
-            )
+            return self._window_log_prob(x, actions, segment.first, chain, start_block)
         # The stored belief is a constant of the data (like a stored RNN state); its
         # mapping onto the current mu and w_std is not.
         # With gradient="exact" a segment's chain starts at its first step, so the
         # stored belief is never used and nothing is held constant.
         carry0 = jax.tree.map(jax.lax.stop_gradient, segment.carry0)
         first = self._segment_first(segment.first, carry0.restart)
-        belief0 = self._segment_belief(carry0, mu, w_std)
-        logp, _, pred_var = self._score(belief0, x, actions, first, mu, w_std, action_std, hparams["beta"])
+        belief0 = self._segment_belief(carry0, chain.mu, chain.w_std)
+        logp, _, pred_var = self._score(belief0, x, actions, first, chain)
         return SegmentLogProb(logp, predictive_entropy(pred_var))
 
     def batch_log_prob(self, params, hparams, segment):
@@ -346,7 +345,7 @@ class CoherentExploration(ChainStrategy):
         per_segment = jax.vmap(self.log_prob, in_axes=(None, None, SEGMENT_AXES, None), out_axes=1)
         return per_segment(params, hparams, segment, start)
 
-    def _window_log_prob(self, x, actions, first, mu, w_std, action_std, beta, start) -> SegmentLogProb:
+    def _window_log_prob(self, x, actions, first, chain: ChainParams, start) -> SegmentLogProb:
         """``gradient="episode"``: a window of `history_length` prefix steps and a segment,
         scored from the prior at its first step as blocks of the joint form chained by
         differentiable beliefs (`coherent_exact.chained_marginals`). The window always
@@ -354,16 +353,13 @@ class CoherentExploration(ChainStrategy):
         the blocks before ``start`` (`window_start_block`) are skipped, as nothing kept
         depends on them. The trainer reads the last T steps."""
         first = jnp.asarray(first, bool).at[0].set(True)
-        prior = prior_belief(mu, w_std)
+        prior = prior_belief(chain.mu, chain.w_std)
         logp, _, pred_var = chained_marginals(
             prior,
             x,
             actions,
             first,
-            mu,
-            w_std,
-            action_std,
-            beta,
+            chain,
             self.block,
             from_prior=True,
             remat=self.remat,
