@@ -25,10 +25,10 @@ import jax
 import numpy as np
 import yaml
 
+from coherent_jax.agents.registry import make_behaviour
 from coherent_jax.config import Config, from_stored, validate
 from coherent_jax.envs.action_map import ActionMap
 from coherent_jax.envs.vec_env import VecEnv
-from coherent_jax.exploration import make_behaviour
 from coherent_jax.run.policy import Policy, PolicyError
 from coherent_jax.run.policy import load_policy as read_policy
 from coherent_jax.run.runs import load_config
