@@ -28,7 +28,10 @@ import typing
 from collections.abc import Callable
 from typing import Any
 
+import gymnasium
 import numpy as np
+from gymnasium import spaces
+from gymnasium.wrappers import TimeLimit
 
 from coherent_jax.envs.quiet import quiet_stdio
 from coherent_jax.envs.spec import (
@@ -76,8 +79,6 @@ class GymSource:
 
     def make(self, episode_length: int):
         """A fresh env whose episodes are truncated after ``episode_length`` steps."""
-        from gymnasium.wrappers import TimeLimit
-
         return TimeLimit(self.build(), max_episode_steps=int(episode_length))
 
 
@@ -85,8 +86,6 @@ def gym_maker(obj: Any) -> str | None:
     """None if `obj` may be called to make a Gymnasium env (a ``gymnasium.Env`` subclass, or a
     Python function with no required parameters whose return annotation resolves to
     ``gymnasium.Env`` or a subclass); otherwise what it is, for the refusal. Nothing is called."""
-    import gymnasium
-
     if inspect.isclass(obj):
         return None if issubclass(obj, gymnasium.Env) else f"the class {obj.__name__}"
     if not inspect.isfunction(obj):
@@ -107,8 +106,6 @@ def gym_maker(obj: Any) -> str | None:
 
 def _registered(name: str) -> tuple[Callable[[], Any], int]:
     """(builder, registered episode length) of ``gym:[MODULE:]ID``."""
-    import gymnasium
-
     module, gym_id = gym_id_parts(name)
     if module:
         import_module(name, module)  # its registrations
@@ -125,8 +122,6 @@ def _registered(name: str) -> tuple[Callable[[], Any], int]:
 
 
 def _checked_space(name: str, what: str, space: Any) -> None:
-    from gymnasium import spaces
-
     if not isinstance(space, spaces.Box):
         refuse(name, f"{what} space is {type(space).__name__} (allowed: a flat Box)")
     if len(space.shape) != 1:
@@ -147,8 +142,6 @@ def check_gym_env(name: str, build: Callable[[], Any], episode_length: int | Non
     """Builds the env once and checks its spaces, ``reset`` and one ``step`` with a sample action;
     raises `TaskDefinitionError` in one line, quoting the env's own error. `episode_length` None:
     the env's ``spec.max_episode_steps``, else 1000."""
-    import gymnasium
-
     env = _try(name, f"{getattr(build, '__name__', 'building the env')}()", build)
     if not isinstance(env, gymnasium.Env):
         refuse(name, f"building it returned a {type(env).__name__}, not a gymnasium.Env")

@@ -37,6 +37,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 from flax import struct
 
@@ -144,8 +145,6 @@ def _env_state(env: Any) -> dict[str, Any]:
     record = {"env": env, "np_random": getattr(inner, "_np_random", None)}
     data, model = getattr(inner, "data", None), getattr(inner, "model", None)
     if data is not None and model is not None and hasattr(data, "qpos"):
-        import mujoco
-
         spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
         state = np.empty(mujoco.mj_stateSize(model, spec))
         mujoco.mj_getState(model, data, state, spec)
@@ -160,13 +159,16 @@ def _env_from(record: dict[str, Any]) -> Any:
     if record["np_random"] is not None:
         inner._np_random = record["np_random"]
     if "mujoco" in record:
-        import mujoco
-
         state, warm = record["mujoco"]
         mujoco.mj_setState(inner.model, inner.data, state, mujoco.mjtState.mjSTATE_FULLPHYSICS)
         mujoco.mj_forward(inner.model, inner.data)
         inner.data.qacc_warmstart[:] = warm
     return env
+
+
+def env_seeds(keys: jax.Array) -> jax.Array:
+    """The ``env.reset(seed=...)`` of each env, [n] int32 in [0, 2^31 - 1), from its key [n]."""
+    return jax.vmap(lambda k: jax.random.randint(k, (), 0, 2**31 - 1))(keys)
 
 
 class GymPhysics:
@@ -184,7 +186,7 @@ class GymPhysics:
         self.dt = source.dt
 
     def reset(self, keys: jax.Array) -> GymState:
-        seeds = jax.vmap(lambda k: jax.random.randint(k, (), 0, 2**31 - 1))(keys)
+        seeds = env_seeds(keys)
         n = keys.shape[0]
         shapes = (
             jax.ShapeDtypeStruct((n, self.observation_size), jnp.float32),
