@@ -209,3 +209,8 @@ class GymPhysics:
         )
         out = jax.pure_callback(self.pool.step, shapes, env_action, state.tick, vmap_method="broadcast_all")
         return GymState(*out)
+
+
+def host_pool(env: Any) -> HostPool | None:
+    """The host pool of a `coherent_jax.envs.vec_env.VecEnv` running a Gymnasium env, else None."""
+    return getattr(getattr(env, "env", None), "pool", None)
