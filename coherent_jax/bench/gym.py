@@ -38,6 +38,7 @@ from coherent_jax import cli
 from coherent_jax.api import learn
 from coherent_jax.bench import measure
 from coherent_jax.config import make_config
+from coherent_jax.envs.gym_source import quietly
 from coherent_jax.envs.vec_env import VecEnv
 
 # How long the suite takes at its defaults (`python -m coherent_jax.bench --help` prints it).
@@ -62,10 +63,11 @@ def parse(items: Sequence[str]) -> cli.Parsed:
 
 
 def _sync(gym_id: str, n: int, actions: np.ndarray, episode_length: int) -> float:
-    envs = gymnasium.vector.SyncVectorEnv(
-        [lambda: gymnasium.make(gym_id, max_episode_steps=episode_length) for _ in range(n)]
-    )
-    envs.reset(seed=0)
+    with quietly():
+        envs = gymnasium.vector.SyncVectorEnv(
+            [lambda: gymnasium.make(gym_id, max_episode_steps=episode_length) for _ in range(n)]
+        )
+        envs.reset(seed=0)
     t0 = time.perf_counter()
     for a in actions:
         envs.step(a)

@@ -21,6 +21,7 @@ What ``NAME`` may be follows the rule of the user's MJCF tasks: a ``gymnasium.En
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import inspect
@@ -29,6 +30,7 @@ from collections.abc import Callable
 from typing import Any
 
 import gymnasium
+import mujoco
 import numpy as np
 from gymnasium import spaces
 from gymnasium.wrappers import TimeLimit
@@ -82,6 +84,20 @@ class GymSource:
         return TimeLimit(self.build(), max_episode_steps=int(episode_length))
 
 
+@contextlib.contextmanager
+def quietly():
+    """Builds and resets envs without their prints and MuJoCo's compiler warnings, which MuJoCo
+    would otherwise append to ``MUJOCO_LOG.TXT`` in the working directory (Gymnasium's
+    ``half_cheetah.xml`` uses a deprecated attribute)."""
+    previous = mujoco.get_mju_user_warning()
+    mujoco.set_mju_user_warning(lambda message: None)
+    try:
+        with quiet_stdio(force=True):
+            yield
+    finally:
+        mujoco.set_mju_user_warning(previous)
+
+
 def gym_maker(obj: Any) -> str | None:
     """None if `obj` may be called to make a Gymnasium env (a ``gymnasium.Env`` subclass, or a
     Python function with no required parameters whose return annotation resolves to
@@ -130,7 +146,7 @@ def _checked_space(name: str, what: str, space: Any) -> None:
 
 def _try(name: str, what: str, fn: Callable[[], Any]) -> Any:
     try:
-        with quiet_stdio(force=True):
+        with quietly():
             return fn()
     except TaskDefinitionError:
         raise

@@ -1,10 +1,11 @@
 """Gymnasium environments stepped on the host from inside the jitted iteration.
 
 `GymPhysics` holds a pool of Python env copies on the host (`HostPool`) and reaches it
-through ``jax.pure_callback``, as native MuJoCo is reached (`coherent_jax.envs.native`),
-so the training iteration stays one compiled function.
+through a pure callback (`host_call`, XLA's buffers read and written in place), as native
+MuJoCo is reached (`coherent_jax.envs.native`), so the training iteration stays one
+compiled function.
 
-**Why ``pure_callback`` and a tick.** The pool has state (the envs), so its calls must run
+**Why a pure callback and a tick.** The pool has state (the envs), so its calls must run
 once each, in program order. ``io_callback(ordered=True)`` would order them but cannot be
 vmapped, and a sweep vmaps the whole iteration over its points. Instead every call takes
 and returns a ``tick`` (the number of steps the pool has taken) that travels in the JAX
@@ -33,6 +34,7 @@ checkpoint carries (`coherent_jax.run.runs`), so a resumed run steps on bit for 
 from __future__ import annotations
 
 import pickle
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -40,9 +42,9 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 from flax import struct
+from jax.experimental.buffer_callback import buffer_callback
 
-from coherent_jax.envs.gym_source import GymSource
-from coherent_jax.envs.quiet import quiet_stdio
+from coherent_jax.envs.gym_source import GymSource, quietly
 from coherent_jax.envs.task import to_bounds
 
 
@@ -83,7 +85,7 @@ class HostPool:
         if len(self.envs) != flat.size:
             for env in self.envs:
                 env.close()
-            with quiet_stdio(force=True):
+            with quietly():
                 self.envs = [self.source.make(self.episode_length) for _ in range(flat.size)]
         obs = np.stack([env.reset(seed=int(s))[0] for env, s in zip(self.envs, flat, strict=True)])
         self.tick = 0
@@ -130,10 +132,10 @@ class HostPool:
 
     def restore(self, blob: bytes) -> None:
         """Puts the pool back where `snapshot` was taken."""
-        state = pickle.loads(blob)
         for env in self.envs:
             env.close()
-        with quiet_stdio(force=True):
+        with quietly():  # unpickling a MuJoCo env builds its model again
+            state = pickle.loads(blob)
             self.envs = [_env_from(s) for s in state["envs"]]
         self.tick = int(state["tick"])
 
@@ -154,7 +156,7 @@ def _env_state(env: Any) -> dict[str, Any]:
 
 
 def _env_from(record: dict[str, Any]) -> Any:
-    env = pickle.loads(pickle.dumps(record["env"]))
+    env = record["env"]
     inner = env.unwrapped
     if record["np_random"] is not None:
         inner._np_random = record["np_random"]
@@ -164,6 +166,21 @@ def _env_from(record: dict[str, Any]) -> Any:
         mujoco.mj_forward(inner.model, inner.data)
         inner.data.qacc_warmstart[:] = warm
     return env
+
+
+def host_call(fn: Callable[..., tuple[np.ndarray, ...]], shapes: tuple, *args: jax.Array) -> tuple:
+    """``fn(*args)`` on the host as NumPy arrays, from inside the jit: a pure callback whose arguments
+    and results are XLA's own buffers read and written in place (``buffer_callback``), not copied
+    into JAX arrays first as ``jax.pure_callback`` copies them (``device_put``, most of a call's
+    cost on CPU: ``python -m coherent_jax.bench gym``). Under vmap ``fn`` gets the batch's leading
+    axes."""
+
+    def callback(ctx, out, *buffers):
+        results = fn(*(np.asarray(b) for b in buffers))
+        for o, r in zip(out, results, strict=True):
+            np.asarray(o)[...] = r
+
+    return tuple(buffer_callback(callback, shapes, vmap_method="broadcast_all")(*args))
 
 
 def env_seeds(keys: jax.Array) -> jax.Array:
@@ -192,7 +209,7 @@ class GymPhysics:
             jax.ShapeDtypeStruct((n, self.observation_size), jnp.float32),
             jax.ShapeDtypeStruct((n,), jnp.int32),
         )
-        obs, tick = jax.pure_callback(self.pool.reset, shapes, seeds, vmap_method="broadcast_all")
+        obs, tick = host_call(self.pool.reset, shapes, seeds)
         zeros = jnp.zeros((n,), jnp.float32)
         return GymState(obs, zeros, zeros, jnp.zeros((n,), bool), obs, tick)
 
@@ -207,7 +224,7 @@ class GymPhysics:
             jax.ShapeDtypeStruct((n, self.observation_size), jnp.float32),
             jax.ShapeDtypeStruct((n,), jnp.int32),
         )
-        out = jax.pure_callback(self.pool.step, shapes, env_action, state.tick, vmap_method="broadcast_all")
+        out = host_call(self.pool.step, shapes, env_action, state.tick)
         return GymState(*out)
 
 
