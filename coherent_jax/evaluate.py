@@ -160,6 +160,14 @@ def main(argv: Sequence[str] | None = None) -> int:
                 f"invalid value for 'video': true with env={cfg.env} "
                 "(allowed: false; this task has no MuJoCo model to render)"
             )
+        if opts.video and check_task(cfg.env).backend == "gym":
+            from coherent_jax.envs import gym_source, user_task  # lazy: JAX, MuJoCo; Gymnasium envs only
+
+            problem = gym_source.render_problem(user_task.load_user_task(cfg.env).gym)
+            if problem:
+                raise ConfigError(
+                    f"invalid value for 'video': true with env={cfg.env} (allowed: false; {problem})"
+                )
         if opts.engine == "gymnasium":
             gymnasium_id(cfg.env)
             check_gymnasium(cfg.env)

@@ -12,8 +12,8 @@ says where the time goes:
   the same actions: the per-env loop, the observation copies and the autoreset;
 * ``vec``: `VecEnv` stepped under one jit (``lax.scan``) with random actions: the pool
   reached through ``jax.pure_callback``, what training's collection pays;
-* ``train``: PPO training (`coherent_jax.learn`, ``explore=action``), env steps per second
-  of training time (collection and updates; compilation and evaluation apart).
+* ``train``: PPO training (``python -m coherent_jax.train``, ``explore=action``), env steps
+  per second of training time (collection and updates; compilation and evaluation apart).
 
 The ratio ``train / sync`` is the one the goal is stated in (>= 0.8). Rows of one env are
 timed in one process, one after the other; on a shared machine compare them side by side.
@@ -22,7 +22,10 @@ timed in one process, one after the other; on a shared machine compare them side
 from __future__ import annotations
 
 import datetime
+import json
 import os
+import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Callable, Sequence
@@ -35,7 +38,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from coherent_jax import cli
-from coherent_jax.api import learn
 from coherent_jax.bench import measure
 from coherent_jax.config import make_config
 from coherent_jax.envs.gym_source import quietly
@@ -100,12 +102,13 @@ def _vec(env: VecEnv, steps: int) -> float:
 
 
 def _train(name: str, n: int, iterations: int) -> float:
+    """Training env steps/s of ``python -m coherent_jax.train`` (its summary), in a process of its own."""
     steps = make_config({"env": name, "num_envs": n}).steps_per_iteration * iterations
     with tempfile.TemporaryDirectory() as tmp:
-        run_dir = f"{tmp}/run"
-        overrides = {"env": name, "num_envs": n, "total_steps": steps, "run_dir": run_dir}
-        result = learn({**overrides, "progress": False})
-    return float(result.summary["train_env_steps_per_s"])
+        args = [f"env={name}", f"num_envs={n}", f"total_steps={steps}", f"run_dir={tmp}/run"]
+        subprocess.run([sys.executable, "-m", "coherent_jax.train", *args, "progress=false"], check=True)
+        summary = json.loads(Path(f"{tmp}/run/summary.json").read_text())
+    return float(summary["train_env_steps_per_s"])
 
 
 def run(items: Sequence[str], log: Callable[[str], None] = measure.print_log) -> dict[str, Any]:

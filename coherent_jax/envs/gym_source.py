@@ -211,3 +211,20 @@ def user_gym_env(name: str, obj: Any) -> GymSource:
     """The checked env of the user's ``MODULE:NAME`` whose attribute `obj` passed `gym_maker`: a
     class called with no arguments, or a factory; its episode length is its ``spec``'s, else 1000."""
     return check_gym_env(name, obj, None)
+
+
+def render_problem(source: GymSource) -> str | None:
+    """None if the env renders ``rgb_array`` frames (``video=true``), else why not (one line)."""
+    if not source.renders:
+        return "the env was not built with render_mode='rgb_array'"
+    try:
+        with quietly():
+            env = source.build()
+            env.reset(seed=0)
+            frame = np.asarray(env.render())
+            env.close()
+    except Exception as exc:
+        return f"its render() raised {first_line(exc)}"
+    if frame.ndim != 3 or frame.shape[-1] != 3:
+        return f"its render() returned shape {frame.shape}, not an RGB image"
+    return None

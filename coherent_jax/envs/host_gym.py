@@ -77,6 +77,10 @@ class HostPool:
         self.episode_length = int(episode_length)
         self.envs: list[Any] = []
         self.tick = 0
+        self._recording = False
+        # Frames of env 0's first episode (``env.render()``) while a list: a video's source.
+        self.frames: list[np.ndarray] | None = None
+        self.max_frames = 0
 
     def reset(self, seeds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Fresh episodes, env i seeded with ``seeds[i]``; (obs [..., n, obs_size], tick [..., n])."""
@@ -89,6 +93,8 @@ class HostPool:
                 self.envs = [self.source.make(self.episode_length) for _ in range(flat.size)]
         obs = np.stack([env.reset(seed=int(s))[0] for env, s in zip(self.envs, flat, strict=True)])
         self.tick = 0
+        self._recording = self.frames is not None
+        self._record()
         return obs.astype(np.float32).reshape(seeds.shape + obs.shape[1:]), np.zeros(seeds.shape, np.int32)
 
     def step(self, actions: np.ndarray, tick: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -111,6 +117,9 @@ class HostPool:
         for i, env in enumerate(self.envs):
             o, r, term, trunc, _ = env.step(flat[i])
             final[i], reward[i], terminated[i], truncated[i] = o, r, term, trunc and not term
+            if i == 0:
+                self._record()
+                self._recording = self._recording and not (term or trunc)
             obs[i] = env.reset()[0] if term or trunc else o
         self.tick += 1
 
@@ -125,6 +134,10 @@ class HostPool:
             shaped(final),
             np.full(lead, self.tick, np.int32),
         )
+
+    def _record(self) -> None:
+        if self._recording and len(self.frames) < self.max_frames:
+            self.frames.append(np.asarray(self.envs[0].render()))
 
     def snapshot(self) -> bytes:
         """The pool's state: every env pickled with its generator and MuJoCo state."""

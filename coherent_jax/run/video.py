@@ -24,6 +24,7 @@ import mujoco
 import numpy as np
 from PIL import Image
 
+from coherent_jax.envs.host_gym import host_pool
 from coherent_jax.envs.native import mujoco_model
 from coherent_jax.envs.vec_env import VecEnv
 
@@ -59,6 +60,8 @@ def recording_env(
 
     class RecordingVecEnv(VecEnv):
         def step(self, state, action):
+            if host_pool(self) is not None:  # a Gymnasium env renders itself on the host
+                return super().step(state, action)
             if hasattr(state.physics, "kin"):  # native MuJoCo physics
                 qpos = state.physics.kin.qpos
             else:
@@ -68,7 +71,11 @@ def recording_env(
             jax.debug.callback(recorder, qpos[0], outcome.done[0], ordered=True)
             return new_state, outcome
 
-    return RecordingVecEnv(task, num_envs, episode_length, physics, threads)
+    env = RecordingVecEnv(task, num_envs, episode_length, physics, threads)
+    pool = host_pool(env)
+    if pool is not None:  # env 0's first episode, rendered by the env itself (``rgb_array``)
+        pool.frames, pool.max_frames = [], recorder.max_frames
+    return env
 
 
 def mujoco_model_of(env: Any, task: str) -> Any:
