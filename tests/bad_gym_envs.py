@@ -1,4 +1,4 @@
-"""Gymnasium envs of a user's that coherent_jax refuses (tests/test_gym_envs.py)."""
+"""Gymnasium envs of a user's that coherent_jax refuses, and two it takes (tests/test_gym_envs.py)."""
 
 import gymnasium
 import numpy as np
@@ -45,3 +45,14 @@ class StepFails(_Base):
 
 def not_annotated():
     return _Base()
+
+
+class Good(_Base):
+    """A valid env, registered on import (``env=gym:bad_gym_envs:BadGymEnvsGood-v0``)."""
+
+
+def good_factory() -> gymnasium.Env:
+    return Good()
+
+
+gymnasium.register("BadGymEnvsGood-v0", entry_point=f"{__name__}:Good", max_episode_steps=30)

@@ -107,6 +107,24 @@ def test_refusal_from_the_command_line_exits_2_writing_nothing(tmp_path, name):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize(
+    "name,length",
+    [
+        ("gym:bad_gym_envs:BadGymEnvsGood-v0", 30),
+        ("bad_gym_envs:good_factory", 1000),
+        ("bad_gym_envs:Good", 1000),
+    ],
+)
+def test_registering_module_factory_and_class_are_taken(name, length, monkeypatch):
+    """``gym:MODULE:ID`` imports MODULE for its registration (episode length: the registered one);
+    an annotated factory and a class are called; none of them is an MJCF task."""
+    monkeypatch.syspath_prepend(str(ROOT / "tests"))
+    cfg = parse_overrides([f"env={name}"])
+    assert cfg.episode_length == length or cfg.episode_length == 0
+    env = VecEnv(name, 2)
+    assert (env.physics, env.observation_size, env.action_size, env.episode_length) == ("gym", 2, 1, length)
+
+
 def test_physics_mjx_is_refused_for_a_gymnasium_env():
     with pytest.raises(ConfigError, match="Gymnasium envs step on the host"):
         parse_overrides(["env=gym:Pendulum-v1", "physics=mjx"])

@@ -130,10 +130,18 @@ def _registered(name: str) -> tuple[Callable[[], Any], int]:
         hint = f" (close: {', '.join(sorted(close)[:6])})" if close else ""
         refuse(name, f"{gym_id!r} is not a registered Gymnasium id{hint}")
     length = gymnasium.spec(gym_id).max_episode_steps or DEFAULT_EPISODE_LENGTH
-    # Without the registered TimeLimit: `GymSource.make` adds the run's own.
-    build = functools.partial(
-        gymnasium.make, gym_id, max_episode_steps=None, disable_env_checker=True, render_mode="rgb_array"
-    )
+    # Without the registered TimeLimit: `GymSource.make` adds the run's own; rendering frames for
+    # video=true where the env's class declares it can.
+    spec = gymnasium.spec(gym_id)
+    try:
+        creator = gymnasium.envs.registration.load_env_creator(spec.entry_point)
+        modes = (getattr(creator, "metadata", None) or {}).get("render_modes", ())
+    except Exception:  # an entry point that does not load is refused when the env is built
+        modes = ()
+    render = {"render_mode": "rgb_array"} if "rgb_array" in modes else {}
+    quiet = {"max_episode_steps": None, "disable_env_checker": True}
+    build = functools.partial(gymnasium.make, gym_id, **quiet, **render)
+    build.__name__ = f"gymnasium.make({gym_id!r})"
     return build, int(length)
 
 
@@ -158,7 +166,8 @@ def check_gym_env(name: str, build: Callable[[], Any], episode_length: int | Non
     """Builds the env once and checks its spaces, ``reset`` and one ``step`` with a sample action;
     raises `TaskDefinitionError` in one line, quoting the env's own error. `episode_length` None:
     the env's ``spec.max_episode_steps``, else 1000."""
-    env = _try(name, f"{getattr(build, '__name__', 'building the env')}()", build)
+    what = getattr(build, "__name__", "building the env")
+    env = _try(name, what if what.endswith(")") else f"{what}()", build)
     if not isinstance(env, gymnasium.Env):
         refuse(name, f"building it returned a {type(env).__name__}, not a gymnasium.Env")
     _checked_space(name, "observation", env.observation_space)
