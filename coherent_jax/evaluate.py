@@ -160,13 +160,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                 f"invalid value for 'video': true with env={cfg.env} "
                 "(allowed: false; this task has no MuJoCo model to render)"
             )
-        if opts.video and check_task(cfg.env).backend == "jax-env":
-            from coherent_jax.envs.jax_env import jax_env  # lazy: JAX; a JAX env's video only
+        if opts.video and check_task(cfg.env).backend in ("jax-env", "gym"):
+            from coherent_jax.run.video import video_problem  # lazy: JAX, MuJoCo; these envs only
 
-            if jax_env(cfg.env).mj_model is None:
+            problem = video_problem(cfg.env)
+            if problem:
                 raise ConfigError(
-                    f"invalid value for 'video': true with env={cfg.env} "
-                    "(allowed: false; this JAX environment exposes no MuJoCo model, mj_model or sys.mj_model)"
+                    f"invalid value for 'video': true with env={cfg.env} (allowed: false; {problem})"
                 )
         if opts.engine == "gymnasium":
             gymnasium_id(cfg.env)

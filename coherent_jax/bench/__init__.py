@@ -14,13 +14,25 @@ and ``format_table(result)``.
 * `standard`: Gymnasium's tasks against their Brax re-creations and EnvPool;
 * `gradient`: each coherent loss's gradient against a float64 whole-episode reference;
 * `processes`: one training process with N devices against N processes of one device
-  (``distributed=true`` over loopback), each a fresh ``python -m coherent_jax.train``.
+  (``distributed=true`` over loopback), each a fresh ``python -m coherent_jax.train``;
+* `gym`: Gymnasium envs stepped on the host (``env=gym:ID``) against Gymnasium's own
+  ``SyncVectorEnv``, with where the time goes (the pool, the callback, training).
 
 `measure` holds what every suite records (times, memory, machine, JSON). Each suite's
 ``COST`` says how long it took at its defaults, and where (``--help`` prints it).
 """
 
-SUITES = ("throughput", "coherent", "sac", "strategies", "physics", "standard", "gradient", "processes")
+SUITES = (
+    "throughput",
+    "coherent",
+    "sac",
+    "strategies",
+    "physics",
+    "standard",
+    "gradient",
+    "processes",
+    "gym",
+)
 # Where each suite's ``COST`` (its wall time at its defaults) was measured; idle, it takes less.
 COST_MACHINE = "2026-12-06 on 2 cores of an Intel Xeon (avx512f) shared with other jobs (load average 3-12)"
 DEFAULT_SUITE = "throughput"  # what ``python -m coherent_jax.bench`` runs with no suite named

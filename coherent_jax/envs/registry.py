@@ -17,7 +17,9 @@ DeepMind Control Suite, Gymnasium's classic exploration tasks, a test task.
 * Gymnasium's ``MountainCarContinuous-v0`` and ``Pendulum-v1`` (``mountain_car_continuous``,
   ``pendulum``), step for step in pure JAX (`coherent_jax.envs.classic`).
 * A task of the user's own, ``env=MODULE:NAME``: an MJCF file and JAX formulas
-  (`coherent_jax.envs.user_task`), run like Gymnasium's tasks on native MuJoCo or MJX.
+  (`coherent_jax.envs.user_task`), run like Gymnasium's tasks on native MuJoCo or MJX; or
+  any Gymnasium env, ``env=gym:ID`` or the user's ``gymnasium.Env`` as ``env=MODULE:NAME``,
+  stepped on the host (`coherent_jax.envs.gym_source`, `coherent_jax.envs.host_gym`).
 """
 
 from __future__ import annotations
@@ -270,10 +272,12 @@ def resolve_physics(task: str, physics: str, backend: str | None = None) -> str:
     ``native`` and ``mjx`` are taken as given where the task has them: Gymnasium's tasks and
     the user's own (``MODULE:NAME``) run on native MuJoCo, or their own model on MJX
     (`coherent_jax.envs.mjx_physics`) except where MJX cannot run it (refused with the
-    reason); Brax's re-creations and Playground's tasks on MJX, or native MuJoCo for those
-    that have it. ``auto`` is `auto_physics` of the task and `backend` (default: JAX's, asked
-    only then): on an accelerator it never picks the host callback, and a task MJX cannot run
-    is refused there, naming ``physics=native``. Raises `PhysicsError` with a one-line message.
+    reason); a Gymnasium env (``gym:ID``, or the user's ``gymnasium.Env``) on ``gym``, its
+    own engine on the host, with ``auto`` or ``native``; Brax's re-creations and Playground's
+    tasks on MJX, or native MuJoCo for those that have it. ``auto`` is `auto_physics` of the
+    task and `backend` (default: JAX's, asked only then): on an accelerator it never picks the
+    host callback, and a task MJX cannot run is refused there, naming ``physics=native``.
+    Raises `PhysicsError` with a one-line message.
     """
     spec = check_task(task)
     if physics not in PHYSICS:
@@ -285,6 +289,10 @@ def resolve_physics(task: str, physics: str, backend: str | None = None) -> str:
                 "its own backend (allowed: auto)"
             )
         return spec.backend
+    if spec.backend == "gym":  # a Gymnasium env steps on the host, on its own engine
+        if physics == "mjx":
+            raise PhysicsError(f"physics=mjx does not support env {task!r}: Gymnasium envs step on the host")
+        return "gym"
     if spec.backend == "native":  # Gymnasium's tasks and the user's: they all have native MuJoCo
         if physics == "auto":
             backend = backend or _jax_backend()

@@ -8,8 +8,15 @@ name a task of the user's own (`coherent_jax.envs.user_task` loads it). The regi
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import importlib
+import importlib.util
+import os
 import re
+import sys
 from pathlib import Path
+from types import ModuleType
+from typing import NoReturn
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,13 +66,32 @@ class TaskDefinitionError(ValueError):
 # (`coherent_jax.envs.user_task`), imported only when the task is built or checked;
 # ``env=path/to/file.py:NAME``: the same, of the Python file at that path.
 _USER_TASK = re.compile(r"(?P<source>[A-Za-z_]\w*(\.[A-Za-z_]\w*)*|[^:]+\.py):(?P<name>[A-Za-z_]\w*)")
-USER_TASK_FORM = "MODULE:NAME or path/to/file.py:NAME (a task of your own, docs/tasks.md)"
+# ``env=gym:ID`` (a registered Gymnasium id) or ``env=gym:MODULE:ID`` (MODULE imported first for
+# its registrations): a Gymnasium env stepped on the host (`coherent_jax.envs.gym_source`).
+_GYM_ID = re.compile(r"gym:((?P<module>[A-Za-z_]\w*(\.[A-Za-z_]\w*)*):)?(?P<id>[A-Za-z_][\w./-]*)")
+USER_TASK_FORM = (
+    "MODULE:NAME or path/to/file.py:NAME (a task or gymnasium.Env of your own), "
+    "or gym:ID / gym:MODULE:ID (a registered Gymnasium env), docs/tasks.md"
+)
+
+
+def is_gym_id(name: str) -> bool:
+    """Whether `name` has the form ``gym:ID`` (``gym:Pendulum-v1``) or ``gym:MODULE:ID``."""
+    return isinstance(name, str) and _GYM_ID.fullmatch(name) is not None
+
+
+def gym_id_parts(name: str) -> tuple[str, str]:
+    """(module to import first or "", Gymnasium id) of ``gym:[MODULE:]ID``."""
+    match = _GYM_ID.fullmatch(name)
+    if match is None:
+        raise TaskDefinitionError(f"task {name!r}: not of the form gym:ID or gym:MODULE:ID")
+    return match.group("module") or "", match.group("id")
 
 
 def is_user_task(name: str) -> bool:
-    """Whether `name` has the form ``MODULE:NAME`` (``examples.reacher_task:reacher``) or
-    ``FILE.py:NAME`` (``examples/reacher_task.py:reacher``)."""
-    return isinstance(name, str) and _USER_TASK.fullmatch(name) is not None
+    """Whether `name` is an env of the user's own: ``MODULE:NAME`` (``examples.reacher_task:reacher``),
+    ``FILE.py:NAME`` (``examples/reacher_task.py:reacher``) or a Gymnasium id ``gym:[MODULE:]ID``."""
+    return isinstance(name, str) and (_USER_TASK.fullmatch(name) is not None or is_gym_id(name))
 
 
 def user_task_parts(name: str) -> tuple[str, str, bool]:
@@ -79,7 +105,55 @@ def user_task_parts(name: str) -> tuple[str, str, bool]:
 
 def task_label(name: str) -> str:
     """`name` as a file name can hold it: a file's task by the file's stem (``reacher_task:reacher``)."""
-    if not is_user_task(name):
+    if not is_user_task(name) or is_gym_id(name):
         return name
     source, attr, is_file = user_task_parts(name)
     return f"{Path(source).stem}:{attr}" if is_file else name
+
+
+def first_line(exc: BaseException) -> str:
+    """``Type: first line of the message`` of an exception, for one-line refusals."""
+    text = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[0] if text else ''}".rstrip(": ")
+
+
+def refuse(name: str, problem: str) -> NoReturn:
+    """Raises `TaskDefinitionError` naming the task ``name`` and the problem."""
+    raise TaskDefinitionError(f"task {name!r}: {problem}")
+
+
+def import_module(name: str, module_name: str) -> ModuleType:
+    """The importable module ``module_name`` of task ``name``; any error of it refuses the task."""
+    try:
+        return importlib.import_module(module_name)
+    except Exception as exc:  # any error of the user's module is a bad task definition
+        refuse(name, f"cannot import module {module_name!r} ({first_line(exc)}; is it on PYTHONPATH?)")
+
+
+def import_file(name: str, path: str) -> ModuleType:
+    """The Python file at `path` (from the working directory), imported once per process as a
+    module of its own (named after its absolute path, so two files of one name do not clash)."""
+    full = os.path.abspath(path)
+    if not os.path.isfile(full):
+        refuse(name, f"file {path!r} not found (from {os.getcwd()})")
+    module_name = "coherent_jax_task_" + hashlib.sha1(full.encode()).hexdigest()[:16]
+    if module_name in sys.modules:
+        return sys.modules[module_name]
+    spec = importlib.util.spec_from_file_location(module_name, full)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[module_name] = module  # dataclasses of the file look their module up there
+    try:
+        spec.loader.exec_module(module)
+    except Exception as exc:
+        del sys.modules[module_name]
+        refuse(name, f"cannot import file {path!r} ({first_line(exc)})")
+    return module
+
+
+def user_attribute(name: str) -> object:
+    """The attribute ``NAME`` of ``MODULE:NAME`` or ``path/to/file.py:NAME``, imported (not called)."""
+    source, attr, is_file = user_task_parts(name)
+    module = import_file(name, source) if is_file else import_module(name, source)
+    if not hasattr(module, attr):
+        refuse(name, f"{'file' if is_file else 'module'} {source!r} has no attribute {attr!r}")
+    return getattr(module, attr)

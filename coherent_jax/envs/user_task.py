@@ -1,5 +1,7 @@
 """Tasks of the user's own: an MJCF file and JAX formulas, named ``env=MODULE:NAME`` or
-``env=path/to/file.py:NAME``.
+``env=path/to/file.py:NAME``; the same names may give a Gymnasium env instead, as may
+``env=gym:ID`` (`resolve_user_attribute` decides the kind, `coherent_jax.envs.gym_source`
+checks Gymnasium's).
 
 A user task is a `MjcfTask`: an MJCF file, the `Kinematics` fields its formulas read,
 and its observation, reward and termination as pure JAX functions of those fields,
@@ -22,15 +24,11 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import hashlib
-import importlib
-import importlib.util
 import inspect
 import os
-import sys
 import typing
 from collections.abc import Callable
-from typing import Any, NamedTuple, NoReturn
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -38,12 +36,16 @@ import mujoco
 import numpy as np
 
 from coherent_jax.envs import jax_env
+from coherent_jax.envs.gym_source import GYM_RULE, GymSource, gym_maker, registered_gym_env, user_gym_env
 from coherent_jax.envs.quiet import quiet_stdio
 from coherent_jax.envs.spec import (
     USER_TASK_FORM,
-    TaskDefinitionError,
     TaskSpec,
+    first_line,
+    is_gym_id,
     is_user_task,
+    refuse,
+    user_attribute,
     user_task_parts,
 )
 from coherent_jax.envs.task import (
@@ -93,15 +95,12 @@ class MjcfTask:
 
 
 class LoadedTask(NamedTuple):
-    """A checked user task: its registry entry and the `NativeTask` the engines run."""
+    """A checked user task: its registry entry, and the `NativeTask` the engines run (an MJCF
+    task) or the `GymSource` the host steps (a Gymnasium env)."""
 
     spec: TaskSpec
-    native: NativeTask
-
-
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip().splitlines()
-    return f"{type(exc).__name__}: {text[0] if text else ''}".rstrip(": ")
+    native: NativeTask | None
+    gym: GymSource | None = None
 
 
 # What ``NAME`` may be, said in every refusal of another kind of attribute.
@@ -111,23 +110,34 @@ TASK_RULE = (
 )
 
 
-def _definition(name: str) -> MjcfTask:
-    """The `MjcfTask` that ``MODULE:NAME`` (or ``FILE.py:NAME``) names: imported, looked up, and
-    called only if it is declared to make a task (`task_maker`)."""
-    fail = functools.partial(_fail, name)
+def resolve_user_attribute(name: str) -> tuple[str, Any]:
+    """What ``env=name`` names, by kind, one branch per kind: (``"gymnasium"``, `GymSource`) for
+    ``gym:[MODULE:]ID`` or a ``gymnasium.Env`` maker; (``"mjcf"``, `MjcfTask`) for a task or a
+    maker of one (`task_maker`); (``"jax-env"``, the attribute) for a JAX env with Brax's
+    interface (`coherent_jax.envs.jax_env.is_brax_env`). Only what is declared to make one of
+    these is ever called."""
+    if is_gym_id(name):
+        return "gymnasium", registered_gym_env(name)
+    obj = user_attribute(name)
     attr = user_task_parts(name)[1]
-    task = user_attribute(name)
-    if isinstance(task, MjcfTask):
-        return task
-    problem = task_maker(task)
-    if problem is not None:
-        fail(f"{attr} is {problem}, not {TASK_RULE}")
+    if isinstance(obj, MjcfTask):
+        return "mjcf", obj
+    if jax_env.is_brax_env(obj):  # a JAX env with Brax's interface (coherent_jax.envs.jax_env)
+        return "jax-env", obj
+    if task_maker(obj) is None:
+        return "mjcf", _made_task(name, attr, obj)
+    if gym_maker(obj) is None:
+        return "gymnasium", user_gym_env(name, obj)
+    _fail(name, f"{attr} is {task_maker(obj)}, not {TASK_RULE}, or {GYM_RULE}")
+
+
+def _made_task(name: str, attr: str, maker: Callable[[], Any]) -> MjcfTask:
     try:
-        task = task()
+        task = maker()
     except Exception as exc:
-        fail(f"{attr}() raised {_first_line(exc)}")
+        _fail(name, f"{attr}() raised {first_line(exc)}")
     if not isinstance(task, MjcfTask):
-        fail(f"{attr}() returned a {type(task).__name__}, not an MjcfTask")
+        _fail(name, f"{attr}() returned a {type(task).__name__}, not an MjcfTask")
     return task
 
 
@@ -156,45 +166,7 @@ def task_maker(obj: Any) -> str | None:
     return None
 
 
-def _import_module(name: str, module_name: str) -> Any:
-    try:
-        return importlib.import_module(module_name)
-    except Exception as exc:  # any error of the user's module is a bad task definition
-        _fail(name, f"cannot import module {module_name!r} ({_first_line(exc)}; is it on PYTHONPATH?)")
-
-
-def _import_file(name: str, path: str) -> Any:
-    """The Python file at `path` (from the working directory), imported once per process as a
-    module of its own (named after its absolute path, so two files of one name do not clash)."""
-    full = os.path.abspath(path)
-    if not os.path.isfile(full):
-        _fail(name, f"file {path!r} not found (from {os.getcwd()})")
-    module_name = "coherent_jax_task_" + hashlib.sha1(full.encode()).hexdigest()[:16]
-    if module_name in sys.modules:
-        return sys.modules[module_name]
-    spec = importlib.util.spec_from_file_location(module_name, full)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[module_name] = module  # dataclasses of the file look their module up there
-    try:
-        spec.loader.exec_module(module)
-    except Exception as exc:
-        del sys.modules[module_name]
-        _fail(name, f"cannot import file {path!r} ({_first_line(exc)})")
-    return module
-
-
-def user_attribute(name: str) -> Any:
-    """The attribute ``NAME`` of task ``MODULE:NAME`` (or ``FILE.py:NAME``): its module or file
-    imported once per process, the attribute looked up, nothing called."""
-    source, attr, is_file = user_task_parts(name)
-    module = _import_file(name, source) if is_file else _import_module(name, source)
-    if not hasattr(module, attr):
-        _fail(name, f"{'file' if is_file else 'module'} {source!r} has no attribute {attr!r}")
-    return getattr(module, attr)
-
-
-def _fail(name: str, problem: str) -> NoReturn:
-    raise TaskDefinitionError(f"task {name!r}: {problem}")
+_fail = refuse
 
 
 @functools.cache
@@ -277,7 +249,7 @@ def _run(name: str, what: str, fn: Callable, *args, pair: bool = False) -> Any:
     try:
         out = jax.jit(jax.vmap(fn))(*args)
     except Exception as exc:
-        _fail(name, f"{what} fails under jax.jit/vmap ({_first_line(exc)})")
+        _fail(name, f"{what} fails under jax.jit/vmap ({first_line(exc)})")
     if pair and isinstance(out, tuple) and all(isinstance(x, jax.Array) for x in out):
         return tuple(np.asarray(x)[0] for x in out)
     if not isinstance(out, jax.Array):
@@ -337,12 +309,18 @@ def load_user_task(name: str) -> LoadedTask:
     Raises `TaskDefinitionError` naming the task and the problem."""
     if not is_user_task(name):
         _fail(name, f"not of the form {USER_TASK_FORM}")
-    # A JAX environment with Brax's interface is a kind of its own, with no NativeTask
-    # (coherent_jax.envs.jax_env; VecEnv steps it as it steps Brax's envs).
-    attribute = user_attribute(name)
-    if jax_env.is_brax_env(attribute):
-        return LoadedTask(jax_env.load_jax_env(name, attribute).spec, None)
-    task = _definition(name)
+    kind, task = resolve_user_attribute(name)
+    if kind == "jax-env":  # no NativeTask: VecEnv steps it as it steps Brax's envs
+        return LoadedTask(jax_env.load_jax_env(name, task).spec, None)
+    if kind == "gymnasium":
+        spec = TaskSpec(
+            "",
+            None,
+            episode_length=task.episode_length,
+            description=f"a Gymnasium env of your own ({name}), stepped on the host",
+            backend="gym",
+        )
+        return LoadedTask(spec, None, task)
     fields = _checked_settings(name, task)
     loaded = _checked_model(name, task)
     native = _native_task(task, fields, os.path.abspath(os.fspath(task.mjcf)))

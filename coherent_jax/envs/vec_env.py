@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from coherent_jax.envs.host_gym import GymPhysics, GymState
 from coherent_jax.envs.make import env_sizes, make_brax_env
 from coherent_jax.envs.mjx_physics import MjxPhysics
 from coherent_jax.envs.native import NativePhysics, mujoco_model, native_task
@@ -29,6 +30,7 @@ from coherent_jax.envs.registry import (
     check_task,
     resolve_physics,
 )
+from coherent_jax.envs.user_task import load_user_task
 from coherent_jax.sweep_axis import any_point
 
 
@@ -93,7 +95,9 @@ class VecEnv:
     ``MODULE:NAME``), ``mjx`` (Brax's or Playground's MJX env, vmapped; for Gymnasium's
     and the user's tasks their own model and formulas on MJX, `MjxPhysics`) or ``auto`` (native on CPU
     where the task has it, else MJX); ``physics_threads`` is native MuJoCo's thread
-    count (0 = every core). ``episode_length`` defaults to the task's own time limit.
+    count (0 = every core). A Gymnasium env (``gym:ID``, or the user's ``gymnasium.Env``) runs on
+    ``gym``: a pool of copies on the host that reset themselves (`coherent_jax.envs.host_gym`).
+    ``episode_length`` defaults to the task's own time limit.
     """
 
     def __init__(
@@ -112,7 +116,11 @@ class VecEnv:
         self.episode_length = int(episode_length or spec.episode_length)
         # "mjx", "native" (MuJoCo's C engine through a callback) or the task's own pipeline.
         self.physics = resolve_physics(task, physics)
-        if self.physics == "native" or spec.backend == "native":
+        if self.physics == "gym":  # a Gymnasium env: a pool of copies on the host, reset there
+            self.env = GymPhysics(load_user_task(task).gym, self.episode_length)
+            self.observation_size, self.action_size = self.env.observation_size, self.env.action_size
+            self._batch_reset, self._batch_step = self.env.reset, self.env.step
+        elif self.physics == "native" or spec.backend == "native":
             # Native tasks' models on MuJoCo's C engine or on MJX: both take the whole batch
             # in one call; Brax envs are vmapped.
             if self.physics == "native":
@@ -155,13 +163,16 @@ class VecEnv:
         terminated = physics.done > 0.5
         step = state.step + 1
         truncated = jnp.logical_and(step >= self.episode_length, ~terminated)
+        host_resets = isinstance(physics, GymState)  # the host reset the envs whose episode ended
+        if host_resets:  # the env may truncate on its own too
+            truncated = jnp.logical_or(truncated, physics.truncated)
         done = jnp.logical_or(terminated, truncated)
         ep_return = state.episode_return + reward
         outcome = StepOutcome(
             reward=reward,
             terminated=terminated,
             truncated=truncated,
-            final_obs=physics.obs,
+            final_obs=physics.final_obs if host_resets else physics.obs,
             episode_return=jnp.where(done, ep_return, 0.0),
         )
 
@@ -171,7 +182,8 @@ class VecEnv:
             fresh = self._reset_physics(reset_key)
             return jax.tree.map(lambda f, p: _select(done, f, p), fresh, phys)
 
-        physics = jax.lax.cond(any_point(jnp.any(done)), with_resets, lambda p: p, physics)
+        if not host_resets:
+            physics = jax.lax.cond(any_point(jnp.any(done)), with_resets, lambda p: p, physics)
         new_state = EnvState(
             physics=physics,
             obs=physics.obs,

@@ -18,6 +18,7 @@ import numpy as np
 from coherent_jax.agents.rollout import evaluation_metrics
 from coherent_jax.config.checks import gymnasium_id
 from coherent_jax.envs.action_map import ActionMap
+from coherent_jax.envs.host_gym import host_pool
 from coherent_jax.envs.native import NATIVE_TASKS
 from coherent_jax.envs.quiet import quiet_stdio
 from coherent_jax.envs.registry import CLASSIC_IDS
@@ -131,9 +132,12 @@ def evaluate_run(run_dir: Path, opts: Any, mirror_wandb: bool = True) -> dict[st
         )
     if opts.video:
         jax.effects_barrier()
-        frames = video.render_frames(
-            video.mujoco_model_of(eval_env, cfg.env), recorder.qpos, opts.width, opts.height
-        )
+        pool = host_pool(eval_env)
+        if pool is not None:  # a Gymnasium env's own frames, at its own size
+            frames = pool.frames
+        else:
+            model = video.mujoco_model_of(eval_env, cfg.env)
+            frames = video.render_frames(model, recorder.qpos, opts.width, opts.height)
         stem = "final" if origin["iteration"] is None else f"it{origin['iteration']}"
         name = f"eval-{stem}-s{opts.seed}{default_suffix()}"
         path = Path(opts.video_path) if opts.video_path else run_dir / "videos" / name

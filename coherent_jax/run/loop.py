@@ -49,6 +49,7 @@ from tqdm.auto import tqdm
 
 from coherent_jax.agents.trainer import Trainer
 from coherent_jax.config import limits
+from coherent_jax.envs.host_gym import host_pool
 from coherent_jax.run import callbacks, collective, sharding
 from coherent_jax.run.collective import to_host
 from coherent_jax.run.divergence import DivergenceError, PointView, check_finite
@@ -151,6 +152,9 @@ def start_session(job: Job, resume: Checkpoint | None, t_start: float) -> Sessio
             state, shardings = sharding.shard_state(state, num_devices, cfg.num_envs)
         loop, start = resume.loop, resume.iteration
         key = jnp.asarray(loop.eval_key, dtype=jnp.uint32)
+        pool = host_pool(getattr(trainer, "env", None))
+        if pool is not None and resume.host is not None:  # a Gymnasium env: its copies on the host
+            pool.restore(resume.host)
     return Session(
         job=job,
         num_devices=num_devices,
@@ -321,7 +325,10 @@ def save_checkpoint(run: Session) -> None:
     state_bytes = state_to_bytes(run.state)  # every process: the state is gathered from all
     if not job.run_dir:
         return
-    blob = encode_checkpoint(job.cfg, run.done, run.done * job.cfg.steps_per_iteration, loop, state_bytes)
+    pool = host_pool(getattr(job.trainer, "env", None))  # a Gymnasium env's copies on the host
+    host = None if pool is None else pool.snapshot()
+    steps = run.done * job.cfg.steps_per_iteration
+    blob = encode_checkpoint(job.cfg, run.done, steps, loop, state_bytes, host)
     atomic_write(job.run_dir / CHECKPOINT, blob)
 
 

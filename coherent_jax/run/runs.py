@@ -9,7 +9,13 @@ It is a msgpack map (flax serialisation, never pickle) of
   steps and the run loop's own state (evaluation PRNG key, timers, last metrics);
 * ``state``: the leaves of the trainer's whole state pytree
   (`coherent_jax.run.state_bytes.state_to_bytes`);
-* ``sha256``: digest of ``meta`` and ``state``, so truncation or corruption is
+* ``host``, only in a run of a Gymnasium env (``env=gym:ID`` or the user's ``gymnasium.Env``):
+  the state of the envs on the host, which the trainer's state cannot hold
+  (`coherent_jax.envs.host_gym.HostPool.snapshot`: each env pickled with its random
+  generator, and a MuJoCo env's full ``MjData`` physics state and solver warm start), so a
+  resumed run steps on bit for bit. It is the one pickled entry: it is read only when the
+  run's own checkpoint is resumed, after the digest has been verified;
+* ``sha256``: digest of ``meta``, ``state`` (and ``host``), so truncation or corruption is
   detected before anything is restored.
 
 The fingerprint is a hash of every config field that changes what a run computes
@@ -188,6 +194,7 @@ class Checkpoint:
     fingerprint: str
     loop: LoopState
     state_bytes: bytes
+    host: bytes | None = None
 
 
 def _json_safe(x: Any) -> Any:
@@ -204,9 +211,14 @@ def _from_json(x: Any) -> Any:
 
 
 def encode_checkpoint(
-    cfg: Config, iteration: int, env_steps: int, loop: LoopState, state_bytes: bytes
+    cfg: Config,
+    iteration: int,
+    env_steps: int,
+    loop: LoopState,
+    state_bytes: bytes,
+    host: bytes | None = None,
 ) -> bytes:
-    """The bytes of ``checkpoint.msgpack`` (see the module docstring)."""
+    """The bytes of ``checkpoint.msgpack`` (see the module docstring); ``host``, the host envs' state."""
     loop_dict = dataclasses.asdict(loop)
     loop_dict["last_return"] = _json_safe(loop.last_return)
     loop_dict["last_eval"] = {k: _json_safe(v) for k, v in loop.last_eval.items()}
@@ -220,8 +232,11 @@ def encode_checkpoint(
         },
         sort_keys=True,
     ).encode()
-    digest = hashlib.sha256(meta + state_bytes).hexdigest()
-    return msgpack.packb({"meta": meta, "state": state_bytes, "sha256": digest}, use_bin_type=True)
+    digest = hashlib.sha256(meta + state_bytes + (host or b"")).hexdigest()
+    record = {"meta": meta, "state": state_bytes, "sha256": digest}
+    if host is not None:
+        record["host"] = host
+    return msgpack.packb(record, use_bin_type=True)
 
 
 def decode_checkpoint(path: Path, cfg: Config) -> Checkpoint:
@@ -236,13 +251,14 @@ def decode_checkpoint(path: Path, cfg: Config) -> Checkpoint:
     try:
         record = msgpack.unpackb(raw, raw=False)
         meta_bytes, state_bytes, digest = record["meta"], record["state"], record["sha256"]
+        host = record.get("host")
     except Exception:  # noqa: BLE001 - any decoding failure means the same thing
         raise CheckpointError(
             f"corrupted or truncated checkpoint {str(path)!r} ({len(raw)} bytes): not a checkpoint record"
         ) from None
-    if not isinstance(meta_bytes, bytes) or not isinstance(state_bytes, bytes):
+    if not all(isinstance(b, bytes) for b in (meta_bytes, state_bytes, host or b"")):
         raise CheckpointError(f"corrupted checkpoint {str(path)!r}: malformed record")
-    if hashlib.sha256(meta_bytes + state_bytes).hexdigest() != digest:
+    if hashlib.sha256(meta_bytes + state_bytes + (host or b"")).hexdigest() != digest:
         raise CheckpointError(f"corrupted checkpoint {str(path)!r}: sha256 mismatch")
     meta = json.loads(meta_bytes)
     if meta.get("format") != FORMAT:
@@ -264,6 +280,7 @@ def decode_checkpoint(path: Path, cfg: Config) -> Checkpoint:
         fingerprint=meta["fingerprint"],
         loop=LoopState(**loop),
         state_bytes=state_bytes,
+        host=host,
     )
 
 

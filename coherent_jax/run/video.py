@@ -24,8 +24,12 @@ import mujoco
 import numpy as np
 from PIL import Image
 
-from coherent_jax.envs.jax_env import BraxInterfaceEnv
+from coherent_jax.envs.gym_source import render_problem
+from coherent_jax.envs.host_gym import host_pool
+from coherent_jax.envs.jax_env import BraxInterfaceEnv, jax_env
 from coherent_jax.envs.native import mujoco_model
+from coherent_jax.envs.registry import check_task
+from coherent_jax.envs.user_task import load_user_task
 from coherent_jax.envs.vec_env import VecEnv
 
 # Camera as Gymnasium's locomotion tasks set it: from the side, a little above.
@@ -48,6 +52,18 @@ class Recorder:
         self.ended = self.ended or bool(done)
 
 
+def video_problem(task: str) -> str | None:
+    """Why a run of `task` cannot be filmed, or None: a JAX env of the user's that exposes no
+    MuJoCo model, or a Gymnasium env that cannot render ``rgb_array``
+    (`coherent_jax.envs.gym_source.render_problem`). Other tasks are checked by their kind."""
+    backend = check_task(task).backend
+    if backend == "jax-env" and jax_env(task).mj_model is None:
+        return "this JAX environment exposes no MuJoCo model, mj_model or sys.mj_model"
+    if backend == "gym":
+        return render_problem(load_user_task(task).gym)
+    return None
+
+
 def recording_env(
     task: str,
     num_envs: int,
@@ -60,6 +76,8 @@ def recording_env(
 
     class RecordingVecEnv(VecEnv):
         def step(self, state, action):
+            if host_pool(self) is not None:  # a Gymnasium env renders itself on the host
+                return super().step(state, action)
             if hasattr(state.physics, "kin"):  # native MuJoCo physics
                 qpos = state.physics.kin.qpos
             elif isinstance(self.env, BraxInterfaceEnv):  # a JAX env of the user's
@@ -71,7 +89,11 @@ def recording_env(
             jax.debug.callback(recorder, qpos[0], outcome.done[0], ordered=True)
             return new_state, outcome
 
-    return RecordingVecEnv(task, num_envs, episode_length, physics, threads)
+    env = RecordingVecEnv(task, num_envs, episode_length, physics, threads)
+    pool = host_pool(env)
+    if pool is not None:  # env 0's first episode, rendered by the env itself (``rgb_array``)
+        pool.frames, pool.max_frames = [], recorder.max_frames
+    return env
 
 
 def mujoco_model_of(env: Any, task: str) -> Any:

@@ -1,0 +1,58 @@
+"""Gymnasium envs of a user's that coherent_jax refuses, and two it takes (tests/test_gym_envs.py)."""
+
+import gymnasium
+import numpy as np
+from gymnasium import spaces
+
+
+class _Base(gymnasium.Env):
+    observation_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
+    action_space = spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        return np.zeros(2, np.float32), {}
+
+    def step(self, action):
+        return np.zeros(2, np.float32), 0.0, False, False, {}
+
+
+class DictObs(_Base):
+    observation_space = spaces.Dict({"x": spaces.Box(-1.0, 1.0, (2,), np.float32)})
+
+
+class TupleAct(_Base):
+    action_space = spaces.Tuple((spaces.Box(-1.0, 1.0, (1,), np.float32),))
+
+
+class ImageObs(_Base):
+    observation_space = spaces.Box(0, 255, (4, 4), np.uint8)
+
+
+class Unbounded(_Base):
+    action_space = spaces.Box(-np.inf, np.inf, (1,), np.float32)
+
+
+class ResetFails(_Base):
+    def reset(self, *, seed=None, options=None):
+        raise ValueError("the reset is broken")
+
+
+class StepFails(_Base):
+    def step(self, action):
+        raise KeyError("no such joint")
+
+
+def not_annotated():
+    return _Base()
+
+
+class Good(_Base):
+    """A valid env, registered on import (``env=gym:bad_gym_envs:BadGymEnvsGood-v0``)."""
+
+
+def good_factory() -> gymnasium.Env:
+    return Good()
+
+
+gymnasium.register("BadGymEnvsGood-v0", entry_point=f"{__name__}:Good", max_episode_steps=30)

@@ -1,0 +1,214 @@
+"""Gymnasium envs (``env=gym:ID``, a user's ``gymnasium.Env``) stepped on the host: the returns
+are those of the env stepped by hand, refusals are one line with nothing written, the pool's
+state survives a snapshot bit for bit, and a user's env is learned from the command line."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import gymnasium
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import ROOT, child_env
+
+from coherent_jax.config import ConfigError, parse_overrides
+from coherent_jax.envs.host_gym import env_seeds
+from coherent_jax.envs.vec_env import VecEnv
+
+EXAMPLE = "examples/train_gym_env.py:TargetLine"
+
+
+def _rollout(env: VecEnv, key, actions):
+    """Reset from `key` and step through `actions` [T, n, a] under one jit; outcomes stacked."""
+
+    def run(key):
+        state = env.reset(key)
+
+        def body(s, a):
+            s, out = env.step(s, a)
+            return s, out
+
+        return jax.lax.scan(body, state, actions)
+
+    return jax.jit(run)(key)
+
+
+def test_pendulum_returns_equal_the_env_stepped_by_hand_across_autoresets():
+    n, length, steps = 3, 40, 130  # three episodes and a part per env
+    env = VecEnv("gym:Pendulum-v1", n, episode_length=length)
+    assert (env.physics, env.observation_size, env.action_size, env.dt) == ("gym", 3, 1, 0.05)
+    actions = jax.random.uniform(jax.random.PRNGKey(1), (steps, n, 1), minval=-1.5, maxval=1.5)
+    key = jax.random.PRNGKey(7)
+    _, out = _rollout(env, key, actions)
+    # The seeds VecEnv.reset draws: its reset key split over the envs (vec_env.VecEnv.reset).
+    seeds = np.asarray(env_seeds(jax.random.split(jax.random.split(key)[1], n)))
+    clipped = np.clip(np.asarray(actions), -1.0, 1.0)
+    for i in range(n):
+        by_hand = gymnasium.make("Pendulum-v1", max_episode_steps=length)
+        obs, _ = by_hand.reset(seed=int(seeds[i]))
+        returns, ret, ends = [], np.float32(0), []
+        for t in range(steps):
+            obs, r, term, trunc, _ = by_hand.step(np.float32(2.0) * clipped[t, i].astype(np.float32))
+            ret = np.float32(ret + np.float32(r))
+            assert np.asarray(out.final_obs)[t, i] == pytest.approx(obs.astype(np.float32), abs=0)
+            if term or trunc:
+                returns.append(ret)
+                ends.append(t)
+                ret = np.float32(0)
+                obs, _ = by_hand.reset()
+        done = np.asarray(out.done)[:, i]
+        assert np.flatnonzero(done).tolist() == ends == [39, 79, 119]
+        assert np.asarray(out.truncated)[:, i].tolist() == done.tolist()  # Pendulum never terminates
+        np.testing.assert_array_equal(np.asarray(out.episode_return)[done, i], np.array(returns, np.float32))
+
+
+# (definition, words of the one-line refusal)
+BAD = [
+    ("gym:CartPole-v1", "action space is Discrete (allowed: a flat Box)"),
+    ("gym:No-Such-Env-v0", "'No-Such-Env-v0' is not a registered Gymnasium id"),
+    ("bad_gym_envs:DictObs", "observation space is Dict (allowed: a flat Box)"),
+    ("bad_gym_envs:TupleAct", "action space is Tuple (allowed: a flat Box)"),
+    ("bad_gym_envs:ImageObs", "observation space has shape (4, 4)"),
+    ("bad_gym_envs:Unbounded", "action bounds [[-inf], [inf]] are not finite"),
+    ("bad_gym_envs:ResetFails", "reset(seed=0) raised ValueError: the reset is broken"),
+    ("bad_gym_envs:StepFails", "step(sample action) raised KeyError: 'no such joint'"),
+    ("bad_gym_envs:not_annotated", "annotated '-> gymnasium.Env'"),
+]
+
+
+@pytest.mark.parametrize("name,problem", BAD, ids=[b[0].split(":")[-1] for b in BAD])
+def test_refused_env_is_named_with_its_problem(name, problem, monkeypatch):
+    monkeypatch.syspath_prepend(str(ROOT / "tests"))
+    with pytest.raises(ConfigError) as err:
+        parse_overrides([f"env={name}"])
+    message = str(err.value)
+    assert "\n" not in message and name in message and problem in message, message
+
+
+def _cli(args, cwd, timeout=900):
+    env = child_env()
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT / "tests"), env["PYTHONPATH"]])
+    return subprocess.run(
+        [sys.executable, *args], cwd=cwd, capture_output=True, text=True, env=env, timeout=timeout
+    )
+
+
+@pytest.mark.parametrize("name", ["gym:CartPole-v1", "bad_gym_envs:StepFails"])
+def test_refusal_from_the_command_line_exits_2_writing_nothing(tmp_path, name):
+    proc = _cli(["-m", "coherent_jax.train", f"env={name}", f"run_dir={tmp_path / 'run'}"], tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and name in lines[0], proc.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    "name,length",
+    [
+        ("gym:bad_gym_envs:BadGymEnvsGood-v0", 30),
+        ("bad_gym_envs:good_factory", 1000),
+        ("bad_gym_envs:Good", 1000),
+    ],
+)
+def test_registering_module_factory_and_class_are_taken(name, length, monkeypatch):
+    """``gym:MODULE:ID`` imports MODULE for its registration (episode length: the registered one);
+    an annotated factory and a class are called; none of them is an MJCF task."""
+    monkeypatch.syspath_prepend(str(ROOT / "tests"))
+    cfg = parse_overrides([f"env={name}"])
+    assert cfg.episode_length == length or cfg.episode_length == 0
+    env = VecEnv(name, 2)
+    assert (env.physics, env.observation_size, env.action_size, env.episode_length) == ("gym", 2, 1, length)
+
+
+def test_physics_mjx_is_refused_for_a_gymnasium_env():
+    with pytest.raises(ConfigError, match="Gymnasium envs step on the host"):
+        parse_overrides(["env=gym:Pendulum-v1", "physics=mjx"])
+
+
+def test_halfcheetah_pool_snapshot_resumes_bit_for_bit():
+    """A pool restored from its snapshot steps on exactly as the original (MuJoCo state, the
+    generator of later resets and the time limit's count all carried)."""
+    n, length = 2, 7  # resets inside the second half
+    env = VecEnv("gym:HalfCheetah-v5", n, episode_length=length)
+    pool = env.env.pool
+    actions = np.random.default_rng(0).uniform(-1, 1, (20, n, 6)).astype(np.float32)
+    pool.reset(np.array([3, 4]))
+    for t in range(5):
+        pool.step(actions[t], np.full(n, t))
+    blob = pool.snapshot()
+    first = [pool.step(actions[t], np.full(n, t)) for t in range(5, 20)]
+    pool.restore(blob)
+    again = [pool.step(actions[t], np.full(n, t)) for t in range(5, 20)]
+    for a, b in zip(first, again, strict=True):
+        for x, y in zip(a, b, strict=True):
+            np.testing.assert_array_equal(x, y)
+    with pytest.raises(RuntimeError, match="out of step"):
+        pool.step(actions[0], np.full(n, 3))
+
+
+def test_sweep_over_seeds_shares_one_pool_with_a_row_per_point():
+    env = VecEnv("gym:Pendulum-v1", 2, episode_length=10)
+    actions = jnp.zeros((12, 2, 1))
+    keys = jax.random.split(jax.random.PRNGKey(0), 3)
+    _, swept = jax.jit(jax.vmap(lambda k: _rollout(env, k, actions)))(keys)
+    assert len(env.env.pool.envs) == 6
+    for p in range(3):
+        _, alone = _rollout(VecEnv("gym:Pendulum-v1", 2, episode_length=10), keys[p], actions)
+        np.testing.assert_array_equal(np.asarray(swept.reward)[p], np.asarray(alone.reward))
+
+
+@pytest.mark.slow
+def test_user_env_is_learned_from_the_command_line(tmp_path):
+    """The example's 1-D target reaching: a policy that does not move returns -33, the optimum -3.0."""
+    run = tmp_path / "run"
+    args = [f"env={ROOT / EXAMPLE.split(':')[0]}:TargetLine", "episode_length=50", "total_steps=100000"]
+    proc = _cli(["-m", "coherent_jax.train", *args, "num_envs=16", f"run_dir={run}"], tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["final_eval_return"] > -8.0, summary
+
+
+@pytest.mark.slow
+def test_sigkill_then_resume_equals_an_uninterrupted_run(tmp_path):
+    common = [
+        "env=gym:Pendulum-v1",
+        "num_envs=8",
+        "total_steps=20480",
+        "checkpoint_every=2",
+        "progress=false",
+    ]
+    whole = _cli(["-m", "coherent_jax.train", *common, f"run_dir={tmp_path / 'whole'}"], tmp_path)
+    assert whole.returncode == 0, whole.stderr
+    env = child_env()
+    cut = subprocess.Popen(
+        [sys.executable, "-m", "coherent_jax.train", *common, f"run_dir={tmp_path / 'cut'}"],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    while cut.poll() is None and not (tmp_path / "cut" / "checkpoint.msgpack").exists():
+        time.sleep(0.05)
+    cut.send_signal(signal.SIGKILL)
+    assert cut.wait() == -signal.SIGKILL  # killed, not finished
+    assert not (tmp_path / "cut" / "summary.json").exists()
+    resumed = _cli(["-m", "coherent_jax.train", f"resume={tmp_path / 'cut'}"], tmp_path)
+    assert resumed.returncode == 0, resumed.stderr
+    assert (tmp_path / "whole" / "params.msgpack").read_bytes() == (
+        tmp_path / "cut" / "params.msgpack"
+    ).read_bytes()
+
+    def rows(run):
+        lines = (tmp_path / run / "metrics.jsonl").read_text().splitlines()
+        return [
+            {k: v for k, v in json.loads(x).items() if not k.endswith("_s") and "per_s" not in k}
+            for x in lines
+        ]
+
+    whole_rows, cut_rows = rows("whole"), rows("cut")
+    assert len(whole_rows) == 40 and whole_rows == cut_rows
