@@ -5,8 +5,6 @@ checks is removed or stops holding.
 """
 
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -124,7 +122,7 @@ def test_row10_sweep_point_matches_its_single_run_to_rounding_not_bits():
 
 
 # ---------------------------------------------------------------- row 14: committed results at HEAD
-def test_row14_verify_names_the_first_differing_iteration_and_report_marks_the_cell(tmp_path):
+def test_row14_verify_names_the_first_differing_iteration_and_report_marks_the_cell(tmp_path, capsys):
     """`reproduce.py SUITE --verify` compares every committed value bit for bit and names
     the first iteration that differs; RESULTS.md's table marks that cell with a dagger;
     the committed verify.json and docs/development.md say what changed bits and when."""
@@ -151,19 +149,9 @@ def test_row14_verify_names_the_first_differing_iteration_and_report_marks_the_c
     assert rows == {f"| hopper/ppo/coherent {verify.MARK}", "| hopper/ppo/action"}
     assert verify.FOOTNOTE in table
 
-    out = subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "experiments" / "reproduce.py"),
-            "thesis",
-            "--verify",
-            "--iterations",
-            "0",
-        ],
-        capture_output=True,
-        text=True,
-    )
-    assert out.returncode == 2 and "'--iterations': 0" in out.stderr
+    # The command line's main, in this process (the script exits with its return value).
+    assert reproduce.main(["thesis", "--verify", "--iterations", "0"]) == 2
+    assert "'--iterations': 0" in capsys.readouterr().err
 
     entries = verify.load(ROOT / "experiments" / "results")
     assert len(entries) >= 4
