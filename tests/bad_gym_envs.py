@@ -1,4 +1,5 @@
-"""Gymnasium envs of a user's that coherent_jax refuses, and two it takes (tests/test_gym_envs.py)."""
+"""Gymnasium envs of a user's that coherent_jax refuses, and three it takes (tests/test_gym_envs.py,
+tests/test_gym_policy.py)."""
 
 import gymnasium
 import numpy as np
@@ -49,6 +50,12 @@ def not_annotated():
 
 class Good(_Base):
     """A valid env, registered on import (``env=gym:bad_gym_envs:BadGymEnvsGood-v0``)."""
+
+
+class Skewed(_Base):
+    """A valid env whose Box is neither [-1, 1] nor symmetric (tests/test_gym_policy.py)."""
+
+    action_space = spaces.Box(np.array([-3.0, 0.0], np.float32), np.array([1.0, 0.5], np.float32))
 
 
 def good_factory() -> gymnasium.Env:

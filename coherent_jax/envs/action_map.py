@@ -2,7 +2,8 @@
 
 Every policy of this package acts in [-1, 1]^p; `VecEnv.step` clips the action there and
 the task maps it onto its own action space. Training (`coherent_jax.envs.task.control`,
-`coherent_jax.envs.classic`), ``evaluate engine=gymnasium`` and a shipped policy
+`coherent_jax.envs.classic`, a Gymnasium env's host pool in `coherent_jax.envs.host_gym`),
+``evaluate engine=gymnasium`` and a shipped policy
 (`coherent_jax.policy`) all map through this module, so the three cannot disagree:
 
     a_env = clip(a, -1, 1)                                  identity ([-1, 1] spaces)
@@ -81,8 +82,9 @@ class ActionMap(NamedTuple):
     @classmethod
     def of_physics(cls, env: Any, action_size: int) -> ActionMap:
         """The map of a `coherent_jax.envs.vec_env.VecEnv`'s ``env``: a native/MJX task's
-        (``spec``, ``ctrl_range``), a classic task's ([-max_action, max_action]), a user
-        Gymnasium env's (its ``action_map``), else [-1, 1] (Brax's own envs act there)."""
+        (``spec``, ``ctrl_range``), a classic task's ([-max_action, max_action]), a
+        Gymnasium env's (``gym:ID`` or a user's: its ``action_map``, the map onto its Box),
+        else [-1, 1] (Brax's own envs act there)."""
         if isinstance(getattr(env, "action_map", None), ActionMap):
             return env.action_map
         spec, ctrl_range = getattr(env, "spec", None), getattr(env, "ctrl_range", None)

@@ -44,7 +44,7 @@ import numpy as np
 from flax import struct
 from jax.experimental.buffer_callback import buffer_callback
 
-from coherent_jax.envs.action_map import to_bounds
+from coherent_jax.envs.action_map import ActionMap
 from coherent_jax.envs.gym_source import GymSource, quietly
 
 
@@ -214,6 +214,8 @@ class GymPhysics:
         self.observation_size = source.observation_size
         self.action_size = source.action_size
         self.dt = source.dt
+        # The map onto the env's Box (Gymnasium's eq. A); a shipped policy reads it from here.
+        self.action_map = ActionMap.of_box(source)
 
     def reset(self, keys: jax.Array) -> GymState:
         seeds = env_seeds(keys)
@@ -228,7 +230,7 @@ class GymPhysics:
 
     def step(self, state: GymState, action: jax.Array) -> GymState:
         n = action.shape[0]
-        env_action = to_bounds(action, self.source.low, self.source.high)
+        env_action = self.action_map.unclipped(action)
         shapes = (
             jax.ShapeDtypeStruct((n, self.observation_size), jnp.float32),
             jax.ShapeDtypeStruct((n,), jnp.float32),
