@@ -142,16 +142,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
     try:
         run_dir, opts = parse_eval_args(argv)
-        if not run_dir.is_dir():
-            raise ConfigError(
-                f"invalid run directory {str(run_dir)!r}: not a directory (allowed: a run directory)"
-            )
-        if rundir.is_sweep(run_dir):
-            points = ", ".join(str(p) for p in rundir.sweep_points(run_dir)) or "none yet"
-            raise ConfigError(
-                f"invalid run directory {str(run_dir)!r}: this is a sweep; "
-                f"evaluate one of its points: {points}"
-            )
+        rundir.check_one_run(run_dir, "evaluate")
         cfg = load_config(run_dir)
         if (run_dir / CHECKPOINT).is_file() or not (run_dir / PARAMS).is_file():
             decode_checkpoint(run_dir / CHECKPOINT, cfg)  # refuses a missing or broken one

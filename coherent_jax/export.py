@@ -59,15 +59,7 @@ def parse_export_args(argv: Sequence[str]) -> tuple[Path, dict]:
 
 def check_input(run_dir: Path, opts: dict) -> Path:
     """The output path, after every check that needs no JAX; raises `ConfigError` in one line."""
-    if not run_dir.is_dir():
-        raise ConfigError(
-            f"invalid run directory {str(run_dir)!r}: not a directory (allowed: a run directory)"
-        )
-    if rundir.is_sweep(run_dir):
-        points = ", ".join(str(p) for p in rundir.sweep_points(run_dir)) or "none yet"
-        raise ConfigError(
-            f"invalid run directory {str(run_dir)!r}: this is a sweep; export one of its points: {points}"
-        )
+    rundir.check_one_run(run_dir, "export")
     load_config(run_dir)
     if not (run_dir / CHECKPOINT).is_file() and not (run_dir / PARAMS).is_file():
         raise ConfigError(

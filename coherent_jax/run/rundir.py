@@ -35,6 +35,20 @@ def sweep_points(directory: Path) -> list[Path]:
     return sorted(p for p in Path(directory).iterdir() if p.is_dir() and (p / CONFIG).is_file())
 
 
+def check_one_run(run_dir: Path, verb: str) -> None:
+    """Refuses, in one line, a `run_dir` that is not a directory or is a sweep (naming its
+    points, one of which the command can `verb`)."""
+    if not run_dir.is_dir():
+        raise ConfigError(
+            f"invalid run directory {str(run_dir)!r}: not a directory (allowed: a run directory)"
+        )
+    if is_sweep(run_dir):
+        points = ", ".join(str(p) for p in sweep_points(run_dir)) or "none yet"
+        raise ConfigError(
+            f"invalid run directory {str(run_dir)!r}: this is a sweep; {verb} one of its points: {points}"
+        )
+
+
 def refuse_sweep_for_train(directory: Path) -> None:
     """Raises `ConfigError` when ``train resume=`` is given a sweep's root or one of its points."""
     directory = Path(directory)
