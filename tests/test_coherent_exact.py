@@ -293,7 +293,7 @@ def _check_segment_against_reference(strategy, hp, params, carry_start, data, se
 
         def reference(prm):
             mu, w_std = prm["mu"], jnp.exp(prm["log_w_std"])
-            std = jnp.asarray(hp["action_std"], jnp.float64)
+            std = jnp.asarray(hp.action_std, jnp.float64)
             logps = []
             for e in range(first.shape[1]):
                 x = strategy.layer.features(prm, obs[:, e])

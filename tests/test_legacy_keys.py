@@ -75,7 +75,7 @@ def test_every_old_psne_key_gives_the_config_and_the_hyperparameters_of_the_new_
     new = parse_overrides([*COHERENT_SAC, *(f"coherent_sac.{k}={v}" for k, v in NEW.items())])
     assert old == new and old.coherent_sac == CoherentSACOptions(0.3, 0.2, 1.05)
     explore = SACTrainer(new).init_hparams().explore
-    assert {k: float(explore[k]) for k in ("sigma", "sigma_delta", "sigma_alpha")} == pytest.approx(
+    assert {k: float(getattr(explore, k)) for k in ("sigma", "sigma_delta", "sigma_alpha")} == pytest.approx(
         {"sigma": 0.3, "sigma_delta": 0.2, "sigma_alpha": 1.05}
     )
 

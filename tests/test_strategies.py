@@ -460,10 +460,10 @@ def test_sac_psne_fixed_per_episode_and_sigma_rule():
     keys = np.asarray(keys)
     assert [t for t in range(1, 12) if not np.array_equal(keys[t], keys[t - 1])] == [5, 10]
     new_hp, metrics = behaviour.adapt(jax.random.PRNGKey(3), actor, actor_params, hp, obs)
-    assert float(new_hp["sigma"]) == pytest.approx(0.45) and float(metrics["policy_distance"]) > 0
-    hp_small = {**hp, "sigma_delta": jnp.asarray(1e-9)}
+    assert float(new_hp.sigma) == pytest.approx(0.45) and float(metrics["policy_distance"]) > 0
+    hp_small = hp.replace(sigma_delta=jnp.asarray(1e-9))
     new_hp, _ = behaviour.adapt(jax.random.PRNGKey(3), actor, actor_params, hp_small, obs)
-    assert float(new_hp["sigma"]) == pytest.approx(0.2)
+    assert float(new_hp.sigma) == pytest.approx(0.2)
 
 
 def test_registry_matches_the_jax_free_names_and_every_refusal_has_a_reason():
@@ -511,3 +511,37 @@ def test_the_names_the_config_validates_load_without_jax():
     )
     proc = subprocess.run([sys.executable, "-c", code], env=child_env(), capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
+
+
+# Each strategy's hyperparameters as they were stored before each had its own dataclass: a
+# string-keyed dict, whose leaves flatten in sorted key order. A checkpoint stores the train
+# state's leaves in order, so the dataclasses must give these paths in this order for the
+# checkpoints written then to resume (bit for bit).
+HPARAMS_BEFORE = {
+    ("ppo", "coherent"): ["action_std", "beta"],
+    ("ppo", "coherent", "coherent.learn_action_std=true"): ["beta"],
+    ("ppo", "coherent", "coherent.integration=mc"): ["action_std", "beta"],
+    ("ppo", "coherent", "coherent.integration=mc", "coherent.layers=all"): ["action_std", "beta"],
+    ("ppo", "psne"): ["sigma_alpha", "sigma_delta"],
+    ("sac", "coherent"): ["beta", "sigma", "sigma_alpha", "sigma_delta"],
+    ("sac", "psne"): ["sigma", "sigma_alpha", "sigma_delta"],
+    **{("ppo", e): [] for e in ("action", "noisynet", "gsde", "pink", "lattice")},
+    **{("sac", e): [] for e in ("action", "gsde", "pink", "lattice")},
+}
+
+
+@pytest.mark.parametrize("case", sorted(HPARAMS_BEFORE), ids="-".join)
+def test_hyperparameters_are_a_typed_pytree_with_the_leaves_of_before(case):
+    import dataclasses
+
+    algo, explore, *rest = case
+    args = [f"explore={explore}", *rest]
+    made = build_behaviour(*args) if algo == "sac" else build(f"algo={algo}", *args)[0]
+    hp = made.init_hparams()
+    assert dataclasses.is_dataclass(hp) and hasattr(hp, "replace"), type(hp)  # a flax.struct.dataclass
+    paths = jax.tree_util.tree_flatten_with_path(hp)[0]
+    assert all(isinstance(k, jax.tree_util.GetAttrKey) for path, _ in paths for k in path)
+    assert [jax.tree_util.keystr(p, simple=True, separator=".") for p, _ in paths] == HPARAMS_BEFORE[case]
+    # The same leaves, in the same order, as the dict of before (``jax.tree`` sorts a dict's keys).
+    before = {name: getattr(hp, name) for name in reversed(HPARAMS_BEFORE[case])}
+    assert [id(x) for x in jax.tree.leaves(before)] == [id(x) for x in jax.tree.leaves(hp)]

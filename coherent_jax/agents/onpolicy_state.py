@@ -32,7 +32,7 @@ class HParams:
     target_kl: jax.Array
     vf_coef: jax.Array
     ent_coef: jax.Array
-    explore: dict[str, jax.Array]
+    explore: Any  # the strategy's own hyperparameters (a flax.struct.dataclass)
     vf_lr: jax.Array | None = None
 
 

@@ -55,7 +55,7 @@ class SACHParams:
     tau: jax.Array
     temperature: jax.Array
     target_entropy: jax.Array
-    explore: dict[str, jax.Array]
+    explore: Any  # the strategy's own hyperparameters (a flax.struct.dataclass)
 
 
 @struct.dataclass

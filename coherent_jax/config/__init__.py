@@ -58,7 +58,7 @@ from coherent_jax.config.schema import (
     SWEEPABLE,
     Config,
     get_value,
-    hparam_name,
+    hparam_path,
     sweepable,
     with_values,
 )
@@ -99,7 +99,7 @@ __all__ = [
     "from_stored",
     "get_value",
     "help_text",
-    "hparam_name",
+    "hparam_path",
     "modern_items",
     "modern_key",
     "override_items",

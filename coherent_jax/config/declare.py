@@ -26,7 +26,9 @@ class Sweepable:
     Attributes:
       reads: the (algos, explores) pairs whose train state holds it; a sweep axis
         for any other pair would run identical points and is refused.
-      hparam: its name in the state's hyperparameters when that is not the key's last part.
+      hparam: its typed path in the trainer's hyperparameters, field names joined by dots
+        (e.g. ``explore.beta``: the strategy's own dataclass), when that is not the key's
+        last part (a field of the trainer's own).
     """
 
     reads: tuple[tuple[tuple[str, ...], tuple[str, ...]], ...]

@@ -118,7 +118,7 @@ class CoherentOptions(Group):
         "unroll_length steps under coherent.gradient=exact (the default) and at episode starts only "
         "under gradient=episode or stored, integration=mc and algo=sac (docs/coherent.md)",
         check=UNIT,
-        sweep=sweep((ALGOS, ("coherent",))),
+        sweep=sweep((ALGOS, ("coherent",)), hparam="explore.beta"),
     )
     w_std_init: float = field(
         0.1,
@@ -189,16 +189,19 @@ class CoherentSACOptions(Group):
         "initial scale sigma of the chain around the actor's mean head, W_t = W + sigma z_t "
         "(w_std = sigma; 0 gives plain SAC's actions)",
         check=NON_NEGATIVE,
-        sweep=sweep(COHERENT_SAC, hparam="sigma"),
+        sweep=sweep(COHERENT_SAC, hparam="explore.sigma"),
     )
     sigma_delta: float = field(
-        0.1, "distance threshold delta of the sigma rule (4.51)", check=POSITIVE, sweep=sweep(COHERENT_SAC)
+        0.1,
+        "distance threshold delta of the sigma rule (4.51)",
+        check=POSITIVE,
+        sweep=sweep(COHERENT_SAC, hparam="explore.sigma_delta"),
     )
     sigma_alpha: float = field(
         1.01,
         "scaling factor alpha > 1 of the sigma rule (4.51)",
         check=SIGMA_ALPHA,
-        sweep=sweep(COHERENT_SAC),
+        sweep=sweep(COHERENT_SAC, hparam="explore.sigma_alpha"),
     )
 
 
@@ -210,19 +213,19 @@ class PsneOptions(Group):
         0.1,
         "initial parameter-noise scale sigma",
         check=NON_NEGATIVE,
-        sweep=sweep(SIGMA_RULE[0], hparam="sigma"),
+        sweep=sweep(SIGMA_RULE[0], hparam="explore.sigma"),
     )
     sigma_delta: float = field(
         0.1,
         "distance threshold delta of the sigma rule (4.51)",
         check=POSITIVE,
-        sweep=sweep(*SIGMA_RULE),
+        sweep=sweep(*SIGMA_RULE, hparam="explore.sigma_delta"),
     )
     sigma_alpha: float = field(
         1.01,
         "scaling factor alpha > 1 of the sigma rule (4.51)",
         check=SIGMA_ALPHA,
-        sweep=sweep(*SIGMA_RULE),
+        sweep=sweep(*SIGMA_RULE, hparam="explore.sigma_alpha"),
     )
 
 

@@ -235,9 +235,10 @@ def sweepable(key: str) -> Sweepable | None:
     return None if field is None else field.metadata.get("sweep")
 
 
-def hparam_name(key: str) -> str:
-    """The train state's name of sweepable `key` (its last part unless declared)."""
-    return sweepable(key).hparam or key.rsplit(".", 1)[-1]
+def hparam_path(key: str) -> tuple[str, ...]:
+    """The field path of sweepable `key` in the trainer's hyperparameters (its last part
+    unless declared), e.g. ``("explore", "beta")`` for ``coherent.beta``."""
+    return tuple((sweepable(key).hparam or key.rsplit(".", 1)[-1]).split("."))
 
 
 def get_value(cfg: Config, key: str) -> Any:

@@ -19,6 +19,7 @@ import dataclasses
 import chex
 import jax
 import jax.numpy as jnp
+from flax import struct
 
 
 def policy_distance(actions: jax.Array, perturbed_actions: jax.Array) -> jax.Array:
@@ -31,6 +32,22 @@ def policy_distance(actions: jax.Array, perturbed_actions: jax.Array) -> jax.Arr
 def adapt_sigma(sigma: jax.Array, distance: jax.Array, delta: jax.Array, alpha: jax.Array) -> jax.Array:
     """Eq. (4.51): alpha * sigma if distance < delta, else sigma / alpha."""
     return jnp.where(distance < delta, sigma * alpha, sigma / alpha)
+
+
+@struct.dataclass
+class SigmaHParams:
+    """The sweepable scalars of (4.51) in the train state (fields in sorted order, so the
+    flattened leaves are those of the string-keyed dict this replaced).
+
+    Attributes:
+      sigma: the current noise scale sigma_k, or None where it is per-env state (the carry).
+      sigma_alpha: the factor alpha.
+      sigma_delta: the threshold delta.
+    """
+
+    sigma: jax.Array | None
+    sigma_alpha: jax.Array
+    sigma_delta: jax.Array
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,8 +63,8 @@ class SigmaRule:
         """The rule of a settings group that holds it: ``cfg.psne`` or ``cfg.coherent_sac``."""
         return cls(float(options.sigma_init), float(options.sigma_delta), float(options.sigma_alpha))
 
-    def hparams(self, with_sigma: bool = True) -> dict[str, jax.Array]:
+    def hparams(self, with_sigma: bool = True) -> SigmaHParams:
         """Sweepable scalars: delta, alpha and (where it is not per-env state) sigma itself."""
         f = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
-        sigma = {"sigma": f(self.sigma_init)} if with_sigma else {}
-        return {**sigma, "sigma_delta": f(self.sigma_delta), "sigma_alpha": f(self.sigma_alpha)}
+        sigma = f(self.sigma_init) if with_sigma else None
+        return SigmaHParams(sigma=sigma, sigma_alpha=f(self.sigma_alpha), sigma_delta=f(self.sigma_delta))

@@ -27,6 +27,7 @@ from typing import Any, NamedTuple
 import chex
 import jax
 import jax.numpy as jnp
+from flax import struct
 
 from coherent_jax.networks import HEAD_GAIN, SquashedGaussianActor, squash
 
@@ -111,6 +112,16 @@ class Segment(NamedTuple):
 SEGMENT_AXES = Segment(obs=1, action=1, first=1, carry0=0, extras=1)
 
 
+@struct.dataclass
+class NoHParams:
+    """The hyperparameters of a strategy that has none a sweep may vary (no leaves).
+
+    A strategy with some declares its own ``flax.struct.dataclass``: one field per
+    scalar, in sorted order, read as attributes; a sweep addresses a field by its path
+    in the trainer's hyperparameters (e.g. ``explore.beta``, `config.Sweepable`).
+    """
+
+
 class SegmentLogProb(NamedTuple):
     """Per-step log-probabilities and entropies of a stored segment, each [T]."""
 
@@ -137,9 +148,10 @@ class OnPolicyStrategy(abc.ABC):
     def init(self, key: jax.Array, obs_size: int) -> Params:
         """Trainable policy parameters (trunk and head)."""
 
-    def init_hparams(self) -> dict[str, jax.Array]:
-        """Non-trainable scalars (e.g. beta) that a vmapped sweep may vary."""
-        return {}
+    def init_hparams(self) -> Any:
+        """Non-trainable scalars (e.g. beta) that a vmapped sweep may vary: a
+        ``flax.struct.dataclass`` of arrays (`NoHParams` when there are none)."""
+        return NoHParams()
 
     def init_carry(self, key: jax.Array, params: Params, hparams: Any, num_envs: int) -> Carry:
         """Per-env state at the start of training (leading axis num_envs)."""
@@ -233,9 +245,10 @@ class OffPolicyBehaviour:
         del cfg, action_size
         return cls()
 
-    def init_hparams(self) -> dict[str, jax.Array]:
-        """Sweepable scalars of the behaviour (e.g. beta and sigma)."""
-        return {}
+    def init_hparams(self) -> Any:
+        """Sweepable scalars of the behaviour (e.g. beta and sigma): a ``flax.struct.dataclass``
+        of arrays (`NoHParams` when there are none)."""
+        return NoHParams()
 
     def init_carry(
         self,

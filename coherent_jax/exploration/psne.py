@@ -36,7 +36,7 @@ import jax.numpy as jnp
 from flax import traverse_util
 
 from coherent_jax.exploration.action import gaussian_entropy, gaussian_log_prob
-from coherent_jax.exploration.adaptive import SigmaRule, adapt_sigma, policy_distance
+from coherent_jax.exploration.adaptive import SigmaHParams, SigmaRule, adapt_sigma, policy_distance
 from coherent_jax.exploration.base import ActOutput, OffPolicyBehaviour, OnPolicyStrategy, SegmentLogProb
 from coherent_jax.networks import MeanHead, squash
 from coherent_jax.sweep_axis import all_points, any_point
@@ -122,7 +122,7 @@ class ParameterNoise(OnPolicyStrategy):
             "log_std": jnp.full((self.action_size,), math.log(self.init_std), jnp.float32),
         }
 
-    def init_hparams(self):
+    def init_hparams(self) -> SigmaHParams:
         return self.rule.hparams(with_sigma=False)  # sigma is per-env state (the carry)
 
     def init_carry(self, key, params, hparams, num_envs):
@@ -180,7 +180,7 @@ class ParameterNoise(OnPolicyStrategy):
         distance = policy_distance(
             mean.reshape(-1, mean.shape[-1]), jnp.swapaxes(perturbed, 0, 1).reshape(-1, mean.shape[-1])
         )
-        sigma = adapt_sigma(carry.sigma, distance, hparams["sigma_delta"], hparams["sigma_alpha"])
+        sigma = adapt_sigma(carry.sigma, distance, hparams.sigma_delta, hparams.sigma_alpha)
         return carry._replace(sigma=sigma)
 
     def log_prob(self, params, hparams, segment):
@@ -278,7 +278,7 @@ class PsneBehaviour(OffPolicyBehaviour):
     def from_config(cls, cfg, action_size: int):
         return cls(SigmaRule.from_options(cfg.psne))
 
-    def init_hparams(self):
+    def init_hparams(self) -> SigmaHParams:
         return self.rule.hparams()
 
     def init_carry(self, key, actor, actor_params, hparams, num_envs):
@@ -290,7 +290,7 @@ class PsneBehaviour(OffPolicyBehaviour):
         keys = episode_keys(k_ep, carry, first)
 
         def one(k, o):
-            return actor.dist(_perturb_actor(actor_params, k, hparams["sigma"]), o[None])
+            return actor.dist(_perturb_actor(actor_params, k, hparams.sigma), o[None])
 
         dist = jax.tree.map(lambda v: v[:, 0], jax.vmap(one)(keys, obs))
         action, _ = squash(k_a, dist)
@@ -299,7 +299,7 @@ class PsneBehaviour(OffPolicyBehaviour):
     def adapt(self, key, actor, actor_params, hparams, obs):
         chex.assert_rank(obs, 2)
         mean = actor.mode(actor_params, obs)
-        perturbed = actor.mode(_perturb_actor(actor_params, key, hparams["sigma"]), obs)
+        perturbed = actor.mode(_perturb_actor(actor_params, key, hparams.sigma), obs)
         distance = policy_distance(mean, perturbed)
-        sigma = adapt_sigma(hparams["sigma"], distance, hparams["sigma_delta"], hparams["sigma_alpha"])
-        return {**hparams, "sigma": sigma}, {"sigma": hparams["sigma"], "policy_distance": distance}
+        sigma = adapt_sigma(hparams.sigma, distance, hparams.sigma_delta, hparams.sigma_alpha)
+        return hparams.replace(sigma=sigma), {"sigma": hparams.sigma, "policy_distance": distance}

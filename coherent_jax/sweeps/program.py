@@ -15,7 +15,7 @@ import jax.numpy as jnp
 
 from coherent_jax.agents import make_trainer
 from coherent_jax.agents.trainer import Trainer
-from coherent_jax.config import Config, hparam_name
+from coherent_jax.config import Config, hparam_path
 from coherent_jax.envs.vec_env import VecEnv
 from coherent_jax.run import collective, launch, sharding, tracking
 from coherent_jax.run.loop import drive, platform, write_params
@@ -31,25 +31,26 @@ from coherent_jax.sweeps.table import aggregate, format_table, to_csv
 def point_hparams(base_hparams: Any, point: Point) -> Any:
     """`base_hparams` (the shared trainer's ``init_hparams()``) with the point's axis values.
 
-    Each axis key's value goes to the leaf its `config.Sweepable` names (the key's own
-    name unless declared otherwise), as the float32 array a trainer built for the
-    point would hold; no trainer is built per point.
+    Each axis key's value goes to the leaf at the typed path its `config.Sweepable`
+    declares (`config.hparam_path`: the field names from the trainer's hyperparameters
+    down, e.g. ``explore.beta``), as the float32 array a trainer built for the point
+    would hold; no trainer is built per point.
     """
-    wanted = {hparam_name(k): v for k, v in point.values.items()}
+    wanted = {hparam_path(k): v for k, v in point.values.items()}
     found = set()
 
     def put(path, leaf):
-        last = path[-1]
-        name = getattr(last, "name", getattr(last, "key", None))
-        if name in wanted:
-            found.add(name)
-            return jnp.asarray(wanted[name], leaf.dtype)
+        fields = tuple(getattr(k, "name", None) for k in path)  # GetAttrKey: a dataclass field
+        if fields in wanted:
+            found.add(fields)
+            return jnp.asarray(wanted[fields], leaf.dtype)
         return leaf
 
     hparams = jax.tree_util.tree_map_with_path(put, base_hparams)
     missing = set(wanted) - found
     if missing:  # the declaration and the trainer's hyperparameters disagree
-        raise RuntimeError(f"sweepable keys {sorted(missing)} are not in the train state's hyperparameters")
+        names = sorted(".".join(p) for p in missing)
+        raise RuntimeError(f"sweepable paths {names} are not in the train state's hyperparameters")
     return hparams
 
 

@@ -15,6 +15,7 @@ import math
 import chex
 import jax
 import jax.numpy as jnp
+from flax import struct
 
 from coherent_jax.exploration.base import OnPolicyStrategy
 from coherent_jax.networks import MLP, augment
@@ -22,6 +23,39 @@ from coherent_jax.networks import MLP, augment
 #: largest w_std / action_std per action dimension that the strategies run with (see
 #: `LastLayer.weights`)
 MAX_W_STD_RATIO = 10.0
+
+
+@struct.dataclass
+class CoherentHParams:
+    """The on-policy chain's sweepable scalars in the train state (fields in sorted order,
+    so the flattened leaves are those of the string-keyed dict this replaced).
+
+    Attributes:
+      action_std: [p] the fixed action noise Lambda_a^-1/2, or None when it is learned
+        (then it is the trainable ``log_action_std`` and no leaf here).
+      beta: the chain's mixing coefficient in [0, 1].
+    """
+
+    action_std: jax.Array | None
+    beta: jax.Array
+
+
+@struct.dataclass
+class CoherentSACHParams:
+    """Coherent-SAC's sweepable scalars: the chain's beta and the sigma rule of (4.51)
+    (fields in sorted order, the leaves of the string-keyed dict this replaced).
+
+    Attributes:
+      beta: the chain's mixing coefficient in [0, 1].
+      sigma: the current scale of the weight noise sigma_k.
+      sigma_alpha: the rule's factor alpha.
+      sigma_delta: the rule's threshold delta.
+    """
+
+    beta: jax.Array
+    sigma: jax.Array
+    sigma_alpha: jax.Array
+    sigma_delta: jax.Array
 
 
 class ChainStrategy(OnPolicyStrategy):
@@ -50,11 +84,9 @@ class ChainStrategy(OnPolicyStrategy):
             "learn_action_std": cfg.coherent.learn_action_std,
         }
 
-    def init_hparams(self):
-        hp = {"beta": jnp.asarray(self.beta, jnp.float32)}
-        if not self.learn_action_std:
-            hp["action_std"] = jnp.full((self.action_size,), self.action_std, jnp.float32)
-        return hp
+    def init_hparams(self) -> CoherentHParams:
+        fixed = None if self.learn_action_std else jnp.full((self.action_size,), self.action_std, jnp.float32)
+        return CoherentHParams(action_std=fixed, beta=jnp.asarray(self.beta, jnp.float32))
 
     def _action_std_params(self) -> dict:
         """The trainable action noise: ``log_action_std`` [p] when learned, else nothing."""
@@ -65,7 +97,7 @@ class ChainStrategy(OnPolicyStrategy):
     def _action_std(self, params, hparams):
         if self.learn_action_std:
             return jnp.exp(params["log_action_std"])
-        return hparams["action_std"]
+        return hparams.action_std
 
     def _chain_metrics(self, w_std: chex.Array, action_std: chex.Array, hparams) -> dict[str, jax.Array]:
         """The logged scalars: the mean weight spread ``w_std`` (a scalar), the mean action
@@ -73,7 +105,7 @@ class ChainStrategy(OnPolicyStrategy):
         return {
             "w_std": w_std,
             "action_std": jnp.mean(action_std),
-            "beta": jnp.asarray(hparams["beta"]),
+            "beta": jnp.asarray(hparams.beta),
         }
 
 

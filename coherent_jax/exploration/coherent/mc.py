@@ -81,7 +81,7 @@ class CoherentMC(ChainStrategy):
         chex.assert_rank([obs, first], [2, 1])
         k_z, k_a = jax.random.split(key)
         mu, w_std, action_std = self._head(params, hparams)
-        z = chain_step(k_z, carry, first, hparams["beta"])
+        z = chain_step(k_z, carry, first, hparams.beta)
         x = self.layer.features(params, obs)
         mean = jnp.einsum("npk,nk->np", mu + w_std * z, augment(x))
         action = mean + action_std * jax.random.normal(k_a, mean.shape, mean.dtype)
@@ -173,7 +173,7 @@ class CoherentAllLayers(ChainStrategy):
         keys = jax.random.split(key, len(leaves) + 1)
         z = jax.tree.unflatten(
             treedef,
-            [chain_step(k, leaf, first, hparams["beta"]) for k, leaf in zip(keys[1:], leaves, strict=True)],
+            [chain_step(k, leaf, first, hparams.beta) for k, leaf in zip(keys[1:], leaves, strict=True)],
         )
         mean = self._sampled_mean(params, z, obs)
         action_std = self._action_std(params, hparams)

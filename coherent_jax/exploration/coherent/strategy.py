@@ -28,7 +28,7 @@ from coherent_jax.exploration.coherent.filter import (
     segment_marginals,
 )
 from coherent_jax.exploration.coherent.joint import segment_marginals_joint
-from coherent_jax.exploration.coherent.layer import ChainStrategy, LastLayer
+from coherent_jax.exploration.coherent.layer import ChainStrategy, CoherentSACHParams, LastLayer
 from coherent_jax.networks import augment, squash
 from coherent_jax.sweep_axis import least_point
 
@@ -207,8 +207,8 @@ class CoherentExploration(ChainStrategy):
         return self.layer.weights(params, self._action_std(params, hparams))
 
     def _chain(self, params, hparams) -> ChainParams:
-        """The chain's parameters: the last layer's (`_head`) and ``hparams["beta"]``."""
-        return chain_params(*self._head(params, hparams), hparams["beta"])
+        """The chain's parameters: the last layer's (`_head`) and ``hparams.beta``."""
+        return chain_params(*self._head(params, hparams), hparams.beta)
 
     @property
     def _keeps_belief(self) -> bool:
@@ -397,8 +397,14 @@ class CoherentBehaviour(OffPolicyBehaviour):
     def from_config(cls, cfg, action_size: int):
         return cls(cfg.coherent.beta, SigmaRule.from_options(cfg.coherent_sac))
 
-    def init_hparams(self):
-        return {"beta": jnp.asarray(self.beta, jnp.float32), **self.rule.hparams()}
+    def init_hparams(self) -> CoherentSACHParams:
+        rule = self.rule.hparams()
+        return CoherentSACHParams(
+            beta=jnp.asarray(self.beta, jnp.float32),
+            sigma=rule.sigma,
+            sigma_alpha=rule.sigma_alpha,
+            sigma_delta=rule.sigma_delta,
+        )
 
     def init_carry(self, key, actor, actor_params, hparams, num_envs):
         # z_0 ~ N(0, I) for every env; `first` at the first step redraws it anyway.
@@ -409,12 +415,12 @@ class CoherentBehaviour(OffPolicyBehaviour):
         chex.assert_shape(carry, (obs.shape[0],) + actor_params["mu"].shape)
         # ``key`` draws xi exactly as plain SAC does, so sigma = 0 reproduces its actions.
         k_z, k_a = jax.random.fold_in(key, 1), key
-        z = chain_step(k_z, carry, first, hparams["beta"])
+        z = chain_step(k_z, carry, first, hparams.beta)
         x = actor.features(actor_params, obs)
         # (mu + sigma z_t) xh = mu xh + sigma z_t xh: the first term is the unperturbed
         # actor's, computed the same way, so sigma = 0 gives its actions bit for bit.
         dist = actor.dist_from_features(actor_params, x)
-        dist = dist._replace(mean=dist.mean + hparams["sigma"] * jnp.einsum("npk,nk->np", z, augment(x)))
+        dist = dist._replace(mean=dist.mean + hparams.sigma * jnp.einsum("npk,nk->np", z, augment(x)))
         action, _ = squash(k_a, dist)
         return action, z
 
@@ -425,8 +431,8 @@ class CoherentBehaviour(OffPolicyBehaviour):
         z = jax.random.normal(key, actor_params["mu"].shape, actor_params["mu"].dtype)
         pre = actor.dist_from_features(actor_params, x).mean
         mean = jnp.tanh(pre)
-        perturbed = jnp.tanh(pre + hparams["sigma"] * jnp.einsum("pk,nk->np", z, augment(x)))
+        perturbed = jnp.tanh(pre + hparams.sigma * jnp.einsum("pk,nk->np", z, augment(x)))
         distance = policy_distance(mean, perturbed)
-        sigma = adapt_sigma(hparams["sigma"], distance, hparams["sigma_delta"], hparams["sigma_alpha"])
-        metrics = {"sigma": hparams["sigma"], "policy_distance": distance, "beta": hparams["beta"]}
-        return {**hparams, "sigma": sigma}, metrics
+        sigma = adapt_sigma(hparams.sigma, distance, hparams.sigma_delta, hparams.sigma_alpha)
+        metrics = {"sigma": hparams.sigma, "policy_distance": distance, "beta": hparams.beta}
+        return hparams.replace(sigma=sigma), metrics
