@@ -212,3 +212,24 @@ def test_sigkill_then_resume_equals_an_uninterrupted_run(tmp_path):
 
     whole_rows, cut_rows = rows("whole"), rows("cut")
     assert len(whole_rows) == 40 and whole_rows == cut_rows
+
+
+def test_a_gymnasium_env_runs_on_one_device_of_several(tmp_path):
+    """Its copies step in one host pool: num_devices=2 is refused in one line before anything
+    is written (it used to deadlock in a cross-device all-gather), and the default
+    num_devices=0 ("all") means one device for it, all of them for an in-jit task."""
+    env = child_env()
+    env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2").strip()
+    run_dir = tmp_path / "run"
+    cmd = [sys.executable, "-m", "coherent_jax.train", "env=gym:Pendulum-v1", "num_devices=2"]
+    r = subprocess.run([*cmd, f"run_dir={run_dir}"], env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "'num_devices': 2" in lines[0] and "allowed: 1" in lines[0], r.stderr
+    assert not run_dir.exists()
+    probe = (
+        "import jax; from coherent_jax.run.sharding import resolve_num_devices as n; "
+        "print(jax.device_count(), n(0, 'gym:Pendulum-v1'), n(0, 'pointmass'), n(0))"
+    )
+    r = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, timeout=300)
+    assert r.stdout.split() == ["2", "1", "2", "2"], r.stderr

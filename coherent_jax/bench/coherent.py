@@ -109,7 +109,7 @@ def parse(items: Sequence[str]) -> cli.Parsed:
 def _bench_training(cfg: Config, iterations: int, log, remat_row: bool = True) -> tuple[dict, dict]:
     """Compiles and times the PPO iteration for both strategies (and compiles the filter
     form with remat for its memory, with ``remat_row``); returns (results, trainers)."""
-    num_devices = sharding.resolve_num_devices(cfg.num_devices)
+    num_devices = sharding.resolve_num_devices(cfg.num_devices, cfg.env)
     shape = f"{cfg.env}, {cfg.num_envs} envs x {cfg.unroll_length} steps, {num_devices} device(s)"
     # One env object for all trainers (building an MJX model takes seconds); no
     # evaluation runs here, so it also stands in for the evaluation env.

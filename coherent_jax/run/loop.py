@@ -113,7 +113,7 @@ def start_session(job: Job, resume: Checkpoint | None, t_start: float) -> Sessio
     evaluation key continue where the checkpoint left them.
     """
     cfg, trainer, n = job.cfg, job.trainer, job.num_points
-    available = sharding.resolve_num_devices(cfg.num_devices)
+    available = sharding.resolve_num_devices(cfg.num_devices, cfg.env)
     keys = [run_keys(s) for s in job.seeds]
     if job.points:
         num_devices = sharding.point_device_count(n, available)

@@ -30,6 +30,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from coherent_jax.agents.trainer import Trainer
 from coherent_jax.config import ConfigError
+from coherent_jax.envs.registry import check_task
 from coherent_jax.run import collective
 from coherent_jax.run.collective import place
 from coherent_jax.sweep_axis import POINT_AXIS, vmap_points
@@ -39,11 +40,12 @@ ENV_AXIS = "envs"
 PER_ENV_FIELDS = ("env_state", "carry", "reward_norm")
 
 
-def resolve_num_devices(requested: int) -> int:
-    """``requested`` devices (0 = all); raises `ConfigError` if there are fewer."""
+def resolve_num_devices(requested: int, env: str | None = None) -> int:
+    """``requested`` devices (0 = all; for a Gymnasium `env`, whose copies step in one host pool,
+    0 = one: `check_host_pool`); raises `ConfigError` if there are fewer."""
     available = jax.device_count()
     if requested == 0:
-        return available
+        return 1 if env is not None and check_task(env).backend == "gym" else available
     if requested > available:
         raise ConfigError(
             f"invalid value for 'num_devices': {requested} (allowed: 0 = all, or 1 to {available}, "
@@ -188,11 +190,29 @@ def check_devices(cfg: Any, split_envs: bool = True) -> bool:
     Returns whether this process writes the outputs (process 0 of a distributed run).
     """
     maybe_initialize_distributed(cfg.distributed)
-    num_devices = resolve_num_devices(cfg.num_devices)
+    num_devices = resolve_num_devices(cfg.num_devices, cfg.env)
+    check_host_pool(cfg.env, cfg.num_devices, num_devices, cfg.distributed)
     if split_envs:
         check_env_split(cfg.num_envs, num_devices)
         collective.check_device_split(num_devices)
     return collective.is_writer()
+
+
+def check_host_pool(env: str, requested: int, num_devices: int, distributed: bool) -> None:
+    """A Gymnasium env's copies live in one pool of this process and step in one host call per
+    iteration (`coherent_jax.envs.host_gym`): one device, one process. Refused in one line."""
+    if check_task(env).backend != "gym":
+        return
+    if distributed:
+        raise ConfigError(
+            f"invalid value for 'distributed': true with env={env} "
+            "(allowed: false; a Gymnasium env's copies step in one pool of one process)"
+        )
+    if num_devices > 1:
+        raise ConfigError(
+            f"invalid value for 'num_devices': {requested} ({num_devices} devices) with env={env} "
+            "(allowed: 1; a Gymnasium env's copies step in one host pool, on one device)"
+        )
 
 
 def maybe_initialize_distributed(enabled: bool) -> None:

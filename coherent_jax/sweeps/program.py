@@ -202,5 +202,5 @@ def check_sweep(plan: SweepPlan) -> bool:
 
 def check_point_split(cfg: Config, plan: SweepPlan) -> None:
     """Several processes: the points must spread over every device of every process."""
-    available = sharding.resolve_num_devices(cfg.num_devices)
+    available = sharding.resolve_num_devices(cfg.num_devices, cfg.env)
     collective.check_device_split(sharding.point_device_count(len(plan.points), available))
