@@ -20,6 +20,7 @@ from references import reference_log_marginals, sample_actions
 from coherent_jax.agents import losses
 from coherent_jax.agents.rollout import EpisodeHistory, Transition
 from coherent_jax.exploration.base import Segment
+from coherent_jax.exploration.coherent.layer import CoherentHParams
 from coherent_jax.exploration.coherent.strategy import (
     CoherentExploration,
     episode_history_length,
@@ -105,7 +106,7 @@ def test_episode_gradient_equals_the_whole_episode_reference_after_an_update(x64
     episode and into padding): log-probabilities and the gradient of sum_t A_t log p equal
     the one-chain-per-episode reference at parameters one gradient step away."""
     strat = make("episode", beta)
-    hp = {"beta": jnp.asarray(beta)}
+    hp = CoherentHParams(action_std=None, beta=jnp.asarray(beta))
     assert strat.history_length == 48
     params0 = params64(strat, 0)
     obs, a, first = trajectory(strat, params0, beta, 1, [20, 48])
@@ -148,7 +149,7 @@ def test_the_trainers_loss_reads_each_segment_with_its_own_history(x64):
     whole-episode reference."""
     beta = 0.05
     strat = make("episode", beta, episode_length=24, unroll=8)
-    hp = {"beta": jnp.asarray(beta)}
+    hp = CoherentHParams(action_std=None, beta=jnp.asarray(beta))
     h = strat.history_length
     assert h == 24
     params = params64(strat, 3)
@@ -199,7 +200,9 @@ def test_a_sweep_skips_blocks_once_for_all_its_points():
     params = strat.init(jax.random.PRNGKey(0), OBS)
     width = strat.history_length + 16
     segment = Segment(jnp.zeros((width, 2, OBS)), jnp.zeros((width, 2, P)), jnp.zeros((width, 2), bool))
-    points = jax.tree.map(lambda v: jnp.stack([v, v]), ({"beta": jnp.asarray(0.1)}, segment))
+    points = jax.tree.map(
+        lambda v: jnp.stack([v, v]), (CoherentHParams(action_std=None, beta=jnp.asarray(0.1)), segment)
+    )
 
     def log_prob(hp, seg):
         return strat.batch_log_prob(params, hp, seg).log_prob
@@ -221,7 +224,7 @@ def test_exact_without_episode_restart_is_the_thesis_buffer(x64, beta):
     """``coherent.episode_restart=false`` (the protocol's chain): a 32-step segment with an
     env reset at step 12 is scored as ONE chain from the segment's first step, values and
     gradients; with the switch on, as two."""
-    hp = {"beta": jnp.asarray(beta)}
+    hp = CoherentHParams(action_std=None, beta=jnp.asarray(beta))
     through = make("exact", beta, episode_restart=False)
     restarting = make("exact", beta)
     params = params64(through, 6)
@@ -250,7 +253,7 @@ def test_exact_without_episode_restart_is_the_thesis_buffer(x64, beta):
 def _lag_correlations(strategy, beta, num_envs=4000, unroll=8, reset_at=4):
     """Collection over two segments with an env reset at step ``reset_at`` of the first;
     the sample correlation of the chain's standardised draws z_t, z_t+1 at every t."""
-    hp = {"beta": jnp.asarray(beta, jnp.float32)}
+    hp = CoherentHParams(action_std=None, beta=jnp.asarray(beta, jnp.float32))
     params = strategy.init(jax.random.PRNGKey(0), OBS)
     carry = strategy.init_carry(jax.random.PRNGKey(1), params, hp, num_envs)
     obs = jnp.zeros((num_envs, OBS))

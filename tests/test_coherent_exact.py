@@ -376,7 +376,7 @@ def test_float32_loss_stays_finite_and_accurate_at_extreme_weight_to_noise_ratio
     first = jnp.zeros(128, bool).at[0].set(True)
     log_prob = jax.jit(lambda prm, h, o, a: strategy.log_prob(prm, h, Segment(o, a, first, carry)).log_prob)
     for beta in (0.0, 0.01, 1.0):
-        hp32 = {**hp, "beta": jnp.asarray(beta, jnp.float32)}
+        hp32 = hp.replace(beta=jnp.asarray(beta, jnp.float32))
         logp32 = log_prob(params, hp32, jnp.asarray(obs, jnp.float32), jnp.asarray(actions, jnp.float32))
         with x64_enabled():
             as64 = lambda v: jnp.asarray(v, jnp.float64)  # noqa: E731

@@ -116,7 +116,7 @@ def test_beta_is_a_sweepable_array():
 
     def init(beta):
         hp = trainer.init_hparams()
-        hp = hp.replace(explore={**hp.explore, "beta": beta})
+        hp = hp.replace(explore=hp.explore.replace(beta=beta))
         return trainer.init(jax.random.PRNGKey(0), hp)
 
     states = jax.vmap(init)(betas)

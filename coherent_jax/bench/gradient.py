@@ -54,6 +54,7 @@ from coherent_jax.exploration.coherent import exact as E
 from coherent_jax.exploration.coherent import filter as F
 from coherent_jax.exploration.coherent import joint as J
 from coherent_jax.exploration.coherent import strategy as C
+from coherent_jax.exploration.coherent.layer import CoherentHParams
 
 MODES = ("stored", "exact", "episode")
 #: which reference each mode is exact for: ``episode`` the whole-episode chain, ``segment``
@@ -192,7 +193,7 @@ class _Forms:
         first = jnp.concatenate([jnp.ones(pad, bool), jnp.zeros(obs.shape[0], bool)])
         w_obs = jnp.concatenate([jnp.zeros((pad, obs.shape[1]), obs.dtype), obs])
         w_a = jnp.concatenate([jnp.zeros((pad, p), a.dtype), a])
-        hp = {"beta": beta, "action_std": self.heads(params)[2]}
+        hp = CoherentHParams(action_std=self.heads(params)[2], beta=beta)
         return strat.log_prob(params, hp, Segment(w_obs, w_a, first.at[pad].set(True))).log_prob[-seg:]
 
     def exact_mode(self, params, obs, a, beta, params0):
