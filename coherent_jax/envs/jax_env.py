@@ -32,12 +32,12 @@ from __future__ import annotations
 
 import inspect
 import typing
-from typing import Any, NamedTuple, NoReturn
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 
-from coherent_jax.envs.spec import TaskDefinitionError, TaskSpec
+from coherent_jax.envs.spec import TaskSpec, first_line, refuse
 
 # The registry's backend of this kind of task (`coherent_jax.envs.registry.resolve_physics`).
 JAX_ENV_BACKEND = "jax-env"
@@ -125,15 +125,6 @@ class BraxInterfaceEnv:
         return physics.qpos if hasattr(physics, "qpos") else physics.q
 
 
-def _fail(name: str, problem: str) -> NoReturn:
-    raise TaskDefinitionError(f"task {name!r}: {problem}")
-
-
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip().splitlines()
-    return f"{type(exc).__name__}: {text[0] if text else ''}".rstrip(": ")
-
-
 def _built(name: str, obj: Any) -> Any:
     """The env `obj` names: itself, or what its class or factory builds."""
     if not (inspect.isclass(obj) or inspect.isfunction(obj)):
@@ -142,9 +133,9 @@ def _built(name: str, obj: Any) -> Any:
     try:
         env = obj()
     except Exception as exc:
-        _fail(name, f"{what} raised {_first_line(exc)}")
+        refuse(name, f"{what} raised {first_line(exc)}")
     if not _is_interface_class(type(env)):
-        _fail(name, f"{what} returned a {type(env).__name__}, not {JAX_ENV_RULE}")
+        refuse(name, f"{what} returned a {type(env).__name__}, not {JAX_ENV_RULE}")
     return env
 
 
@@ -158,15 +149,15 @@ def _checked_trace(name: str, env: Any) -> int:
     try:
         first = jax.eval_shape(jax.vmap(env.reset), keys)
     except Exception as exc:
-        _fail(name, f"reset fails under jax.vmap ({_first_line(exc)}){hint}")
+        refuse(name, f"reset fails under jax.vmap ({first_line(exc)}){hint}")
     obs_size = _checked_state(name, "after a reset", first)
     try:
         actions = jnp.zeros((2, int(env.action_size)), jnp.float32)
         after = jax.eval_shape(jax.vmap(env.step), first, actions)
     except Exception as exc:
-        _fail(name, f"step fails under jax.vmap ({_first_line(exc)}){hint}")
+        refuse(name, f"step fails under jax.vmap ({first_line(exc)}){hint}")
     if _checked_state(name, "after a step", after) != obs_size:
-        _fail(name, f"the observation changes size from {obs_size} after a step")
+        refuse(name, f"the observation changes size from {obs_size} after a step")
     return obs_size
 
 
@@ -175,24 +166,24 @@ def _checked_state(name: str, when: str, state: Any) -> int:
     and non-scalar rewards or dones."""
     for field in ("obs", "reward", "done"):
         if not hasattr(state, field):
-            _fail(name, f"the state {when} has no '{field}' (Brax's interface: obs, reward, done)")
+            refuse(name, f"the state {when} has no '{field}' (Brax's interface: obs, reward, done)")
     obs = state.obs
     if isinstance(obs, typing.Mapping):
-        _fail(
+        refuse(
             name,
             f"observations are a dict ({', '.join(map(str, obs))}) {when}; "
             "allowed: one flat vector of floats (flatten it in the env)",
         )
     if not hasattr(obs, "shape") or len(obs.shape) != 2 or obs.shape[1] < 1:
         shape = tuple(obs.shape[1:]) if hasattr(obs, "shape") else type(obs).__name__
-        _fail(name, f"the observation {when} has shape {shape} per env; allowed: a vector [obs_size]")
+        refuse(name, f"the observation {when} has shape {shape} per env; allowed: a vector [obs_size]")
     if not jnp.issubdtype(obs.dtype, jnp.floating):
-        _fail(name, f"the observation {when} is {obs.dtype}; allowed: floats")
+        refuse(name, f"the observation {when} is {obs.dtype}; allowed: floats")
     for field in ("reward", "done"):
         value = getattr(state, field)
         if getattr(value, "shape", None) != (2,):
             shape = tuple(value.shape[1:]) if hasattr(value, "shape") else type(value).__name__
-            _fail(name, f"{field} {when} has shape {shape} per env; allowed: a scalar")
+            refuse(name, f"{field} {when} has shape {shape} per env; allowed: a scalar")
     return int(obs.shape[1])
 
 
@@ -218,9 +209,9 @@ def load_jax_env(name: str, obj: Any) -> LoadedJaxEnv:
     try:
         action_size = env.action_size
     except Exception as exc:
-        _fail(name, f"action_size raised {_first_line(exc)}")
+        refuse(name, f"action_size raised {first_line(exc)}")
     if isinstance(action_size, bool) or not isinstance(action_size, int) or action_size < 1:
-        _fail(name, f"action_size is {action_size!r}; allowed: an integer >= 1")
+        refuse(name, f"action_size is {action_size!r}; allowed: an integer >= 1")
     obs_size = _checked_trace(name, env)
     spec = TaskSpec(
         "",
@@ -237,5 +228,5 @@ def jax_env(name: str) -> BraxInterfaceEnv:
     """The env of task ``name``, loaded by the registry's check of it
     (`coherent_jax.envs.registry.check_task`, which calls it first)."""
     if name not in _LOADED:
-        _fail(name, "not loaded as a JAX environment (check_task loads it)")
+        refuse(name, "not loaded as a JAX environment (check_task loads it)")
     return _LOADED[name].env
