@@ -31,7 +31,7 @@ import yaml
 
 from coherent_jax.config import FIELDS, Config, ConfigError, parse_overrides
 from coherent_jax.config.checks import unknown_key
-from coherent_jax.config.legacy import modern_items, run_pair
+from coherent_jax.config.parse import modern_items, run_pair
 
 
 @dataclasses.dataclass(frozen=True)

@@ -56,9 +56,9 @@ def test_flat_key_of_before_sets_its_group_key_with_a_note(old, capsys):
         str(not default).lower() if isinstance(default, bool) else str(round(default * 0.5 + 0.01, 4))
     )
     extra = ["ppo.vf_lr=0.001"] if old == "vf_iters" else ["ppo.vf_iters=2"] if old == "vf_lr" else []
-    from coherent_jax.config import legacy
+    from coherent_jax.config import parse
 
-    legacy._NOTED.discard(old)
+    parse._NOTED.discard(old)
     flat = parse_overrides([*extra, f"{old}={text}"])
     err = capsys.readouterr().err
     assert f"'{old}'" in err and f"'{new}'" in err and len(err.strip().splitlines()) == 1, err

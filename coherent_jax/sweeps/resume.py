@@ -23,7 +23,7 @@ from coherent_jax.config import (
     get_value,
     parse_overrides,
 )
-from coherent_jax.config.legacy import modern_items, modern_key
+from coherent_jax.config.parse import modern_items, modern_key
 from coherent_jax.run import rundir
 from coherent_jax.run.runs import METRICS, Checkpoint, load_config, resume_config
 
