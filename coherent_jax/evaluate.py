@@ -35,8 +35,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from coherent_jax import cli
-from coherent_jax.config import ConfigError
+from coherent_jax.config import ConfigError, cli
 from coherent_jax.config.checks import gymnasium_id
 from coherent_jax.config.schema import MAX_SEED, SEED_ALLOWED
 from coherent_jax.envs.registry import CLASSIC_IDS, check_task

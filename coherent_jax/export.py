@@ -21,8 +21,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from coherent_jax import cli
-from coherent_jax.config import ConfigError
+from coherent_jax.config import ConfigError, cli
 from coherent_jax.config.schema import MAX_SEED, SEED_ALLOWED
 from coherent_jax.exit_codes import EXIT_BAD_INPUT
 from coherent_jax.run import rundir

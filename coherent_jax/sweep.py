@@ -48,12 +48,12 @@ from typing import Any
 
 import yaml
 
-from coherent_jax import cli
 from coherent_jax.config import (
     FIELDS,
     SWEEPABLE,
     Config,
     ConfigError,
+    cli,
     get_value,
     help_text,
     parse_overrides,
@@ -111,7 +111,7 @@ def parse_sweep(argv: Sequence[str]) -> SweepPlan:
 
     The axes (a sweepable key or ``seed`` given a list) are taken out first; the rest,
     the sweep's own keys (`SWEEP_KEYS`) and single training-config values, go through
-    the command-line parser shared by every entry point (`coherent_jax.cli`).
+    the command-line parser shared by every entry point (`coherent_jax.config.cli`).
     """
     fields = FIELDS
     scalars: list[str] = []

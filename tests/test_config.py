@@ -68,7 +68,7 @@ def test_flat_key_of_before_sets_its_group_key_with_a_note(old, capsys):
 
 
 def test_flat_and_grouped_key_together_are_refused_as_one_key_given_twice():
-    from coherent_jax import cli
+    from coherent_jax.config import cli
 
     with pytest.raises(ConfigError, match="duplicated key 'coherent.beta'"):
         cli.parse_command(["beta=0.1", "coherent.beta=0.2"], {}, command="train")

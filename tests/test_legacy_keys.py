@@ -81,7 +81,7 @@ def test_every_old_psne_key_gives_the_config_and_the_hyperparameters_of_the_new_
 
 
 def test_old_psne_keys_work_from_the_api_the_command_line_and_a_sweep(capsys):
-    from coherent_jax import cli
+    from coherent_jax.config import cli
     from coherent_jax.sweep import parse_sweep
 
     want = parse_overrides([*COHERENT_SAC, "coherent_sac.sigma_delta=0.2"])
@@ -198,4 +198,4 @@ def test_every_key_of_before_maps_through_the_one_module():
             if helper in LEGACY_HELPERS:
                 assert module == "coherent_jax.config.parse", (path, name)
                 users.append(path.name)
-    assert {"cli.py", "sweep.py", "resume.py", "runs.py", "cells.py", "verify.py"} <= set(users)
+    assert {"sweep.py", "resume.py", "runs.py", "cells.py", "verify.py"} <= set(users)

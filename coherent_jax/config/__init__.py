@@ -11,6 +11,8 @@ from the declarations plus a few named cross-field checks (`coherent_jax.config.
 Overrides are parsed, and stored configs read, by `coherent_jax.config.parse`; the keys
 of before (the flat ``clip_eps``, Coherent-SAC's ``psne.*``) and what they are now
 (``ppo.clip_eps``, ``coherent_sac.*``) are `coherent_jax.config.parse`'s, all of them.
+The ``key=value`` parser every command shares, its own keys beside the config's, is
+`coherent_jax.config.cli`.
 
 Shape-determining settings (``num_envs``, ``unroll_length``, network sizes, ...) are
 static Python values; the sweepable scalars (`SWEEPABLE`) become arrays inside the

@@ -15,11 +15,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from coherent_jax import cli
 from coherent_jax.config import (
     SWEEPABLE,
     Config,
     ConfigError,
+    cli,
     get_value,
     parse_overrides,
 )
