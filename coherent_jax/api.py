@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from coherent_jax.config import Config, ConfigError, override_items
-from coherent_jax.config.legacy import overrides_of
+from coherent_jax.config.parse import overrides_of
 from coherent_jax.policy import TrainedPolicy, load_policy
 from coherent_jax.run.callbacks import Callback
 from coherent_jax.run.callbacks import checked as checked_callbacks

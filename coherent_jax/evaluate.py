@@ -35,9 +35,9 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from coherent_jax import cli
-from coherent_jax.config import ConfigError, limits
+from coherent_jax.config import ConfigError, cli
 from coherent_jax.config.checks import gymnasium_id
+from coherent_jax.config.schema import MAX_SEED, SEED_ALLOWED
 from coherent_jax.envs.registry import CLASSIC_IDS, check_task
 from coherent_jax.exit_codes import EXIT_BAD_INPUT
 from coherent_jax.run import rundir, tracking, video_path
@@ -57,9 +57,7 @@ KEYS: dict[str, cli.Key] = {
         "jax: our engine alone; gymnasium: also gymnasium.make(<the task's Gymnasium id>), side by side",
     ),
     "video": cli.Key(False, cli.boolean, "true or false", "render the first episode (MuJoCo tasks only)"),
-    "seed": cli.Key(
-        0, cli.int_between(0, limits.MAX_SEED), limits.SEED_ALLOWED, "PRNG seed of the evaluation episodes"
-    ),
+    "seed": cli.Key(0, cli.int_between(0, MAX_SEED), SEED_ALLOWED, "PRNG seed of the evaluation episodes"),
     "video_path": cli.Key(
         "",
         video_path.check_path,

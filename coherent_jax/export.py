@@ -21,8 +21,8 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from coherent_jax import cli
-from coherent_jax.config import ConfigError, limits
+from coherent_jax.config import ConfigError, cli
+from coherent_jax.config.schema import MAX_SEED, SEED_ALLOWED
 from coherent_jax.exit_codes import EXIT_BAD_INPUT
 from coherent_jax.run import rundir
 from coherent_jax.run.runs import CHECKPOINT, PARAMS, CheckpointError, load_config
@@ -38,9 +38,7 @@ KEYS: dict[str, cli.Key] = {
     ),
     "force": cli.Key(False, cli.boolean, "true or false", "replace an existing output"),
     "episodes": cli.Key(10, cli.int_at_least(1), "an integer >= 1", "format=hub: evaluation episodes"),
-    "seed": cli.Key(
-        0, cli.int_between(0, limits.MAX_SEED), limits.SEED_ALLOWED, "format=hub: evaluation seed"
-    ),
+    "seed": cli.Key(0, cli.int_between(0, MAX_SEED), SEED_ALLOWED, "format=hub: evaluation seed"),
 }
 _SETTING = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*=")
 USAGE = "usage: python -m coherent_jax.export RUN_DIR [format=onnx|stablehlo|hub] [out=PATH] [force=true]"

@@ -36,8 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from coherent_jax import cli
-from coherent_jax.config import ConfigError, to_dict
+from coherent_jax.config import ConfigError, cli, to_dict
 from coherent_jax.exit_codes import EXIT_BAD_INPUT
 from coherent_jax.run.rundir import is_sweep, sweep_points
 from coherent_jax.run.runs import CONFIG, METRICS, load_config, read_metrics

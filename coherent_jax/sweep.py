@@ -48,21 +48,21 @@ from typing import Any
 
 import yaml
 
-from coherent_jax import cli
 from coherent_jax.config import (
     FIELDS,
     SWEEPABLE,
     Config,
     ConfigError,
+    cli,
     get_value,
     help_text,
-    limits,
     parse_overrides,
     sweepable,
     validate,
     with_values,
 )
-from coherent_jax.config.legacy import modern_items
+from coherent_jax.config.parse import modern_items
+from coherent_jax.config.schema import MAX_SEED
 from coherent_jax.envs.registry import task_label
 from coherent_jax.run import launch, multihost, rundir
 from coherent_jax.run.runs import (
@@ -111,7 +111,7 @@ def parse_sweep(argv: Sequence[str]) -> SweepPlan:
 
     The axes (a sweepable key or ``seed`` given a list) are taken out first; the rest,
     the sweep's own keys (`SWEEP_KEYS`) and single training-config values, go through
-    the command-line parser shared by every entry point (`coherent_jax.cli`).
+    the command-line parser shared by every entry point (`coherent_jax.config.cli`).
     """
     fields = FIELDS
     scalars: list[str] = []
@@ -150,10 +150,10 @@ def parse_sweep(argv: Sequence[str]) -> SweepPlan:
     }
     if seed_items is None:
         seeds = [base.seed + i for i in range(num_seeds or 1)]
-        if seeds[-1] > limits.MAX_SEED:
+        if seeds[-1] > MAX_SEED:
             raise ConfigError(
                 f"invalid value for 'seeds': {num_seeds} with seed={base.seed} (allowed: at most "
-                f"{limits.MAX_SEED - base.seed + 1}, so that seed + seeds - 1 <= {limits.MAX_SEED}: "
+                f"{MAX_SEED - base.seed + 1}, so that seed + seeds - 1 <= {MAX_SEED}: "
                 "the PRNG key is derived from the seed's 32 bits)"
             )
     else:

@@ -37,7 +37,7 @@ from typing import Any
 import curves
 from cells import Cell, cell_dir, cell_state
 
-from coherent_jax.config.legacy import modern_items
+from coherent_jax.config.parse import modern_items
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = "verify.json"  # beside the suites, in the results directory

@@ -2,8 +2,7 @@
 
 import pytest
 
-from coherent_jax import cli
-from coherent_jax.config import ConfigError
+from coherent_jax.config import ConfigError, cli
 
 KEYS = {
     "iterations": cli.Key(5, cli.int_at_least(1), "an integer >= 1", "timed iterations"),

@@ -56,9 +56,9 @@ def test_flat_key_of_before_sets_its_group_key_with_a_note(old, capsys):
         str(not default).lower() if isinstance(default, bool) else str(round(default * 0.5 + 0.01, 4))
     )
     extra = ["ppo.vf_lr=0.001"] if old == "vf_iters" else ["ppo.vf_iters=2"] if old == "vf_lr" else []
-    from coherent_jax.config import legacy
+    from coherent_jax.config import parse
 
-    legacy._NOTED.discard(old)
+    parse._NOTED.discard(old)
     flat = parse_overrides([*extra, f"{old}={text}"])
     err = capsys.readouterr().err
     assert f"'{old}'" in err and f"'{new}'" in err and len(err.strip().splitlines()) == 1, err
@@ -68,7 +68,7 @@ def test_flat_key_of_before_sets_its_group_key_with_a_note(old, capsys):
 
 
 def test_flat_and_grouped_key_together_are_refused_as_one_key_given_twice():
-    from coherent_jax import cli
+    from coherent_jax.config import cli
 
     with pytest.raises(ConfigError, match="duplicated key 'coherent.beta'"):
         cli.parse_command(["beta=0.1", "coherent.beta=0.2"], {}, command="train")

@@ -160,7 +160,7 @@ def imports_of(path: Path, source: str | None = None) -> set[str]:
 def test_layer_check_sees_function_level_and_relative_imports():
     source = (
         "from . import task\nfrom .spec import TaskSpec\nimport json\n\n"
-        "def f():\n    from coherent_jax.run import launch\n    import coherent_jax.cli\n"
+        "def f():\n    from coherent_jax.run import launch\n    import coherent_jax.train\n"
         "    from coherent_jax.config import Config\n"
     )
     found = imports_of(ROOT / PACKAGE / "envs" / "quiet.py", source)
@@ -168,13 +168,14 @@ def test_layer_check_sees_function_level_and_relative_imports():
         "coherent_jax.envs.task",
         "coherent_jax.envs.spec",
         "coherent_jax.run.launch",
-        "coherent_jax.cli",
+        "coherent_jax.train",
         "coherent_jax.config",
     }
     assert unit_of("coherent_jax.run.launch") == "run/"
     assert unit_of("coherent_jax.exploration.coherent.filter") == "exploration/coherent/"
     assert unit_of("coherent_jax.exploration") == "exploration/"
-    assert unit_of("coherent_jax.cli") == "cli.py"
+    assert unit_of("coherent_jax.train") == "train.py"
+    assert unit_of("coherent_jax.config.cli") == "config/"
     assert unit_of("coherent_jax") == "__init__.py"
 
 

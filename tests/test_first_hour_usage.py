@@ -18,7 +18,8 @@ import pytest
 from helpers import ROOT, child_env
 
 from coherent_jax import evaluate, plot, sweep
-from coherent_jax.config import limits, parse_overrides
+from coherent_jax.config import parse_overrides
+from coherent_jax.config.checks import rounding_note
 from coherent_jax.run.loop import eval_text
 from coherent_jax.sweeps.table import aggregate, format_table
 
@@ -169,9 +170,9 @@ def test_row7_progress_says_what_it_shows():
     assert eval_text({}) == "-"
     assert eval_text({"eval/episode_return": [1.0, 2.0]}) == "1.5"
 
-    note = limits.rounding_note(parse_overrides(["total_steps=50000"]))
+    note = rounding_note(parse_overrides(["total_steps=50000"]))
     assert "total_steps=50000" in note and "53,248 env steps" in note and "13 iterations" in note
-    assert limits.rounding_note(parse_overrides(["total_steps=40960"])) is None  # 10 x 64 x 64
+    assert rounding_note(parse_overrides(["total_steps=40960"])) is None  # 10 x 64 x 64
 
     plan = sweep.parse_sweep([*TINY_SWEEP, "seeds=2", "lr=[1e-3,3e-4]"])
     summaries = [

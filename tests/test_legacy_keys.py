@@ -1,5 +1,5 @@
 """The keys of before: Coherent-SAC's psne.* (now coherent_sac.*) and the flat keys, all in
-`coherent_jax.config.legacy`; old stored configs keep their fingerprints and resume."""
+`coherent_jax.config.parse`; old stored configs keep their fingerprints and resume."""
 
 import ast
 from pathlib import Path
@@ -14,8 +14,8 @@ from coherent_jax.config import (
     PsneOptions,
     from_stored,
     get_value,
-    legacy,
     make_config,
+    parse,
     parse_overrides,
     to_dict,
 )
@@ -48,7 +48,7 @@ TINY = {
 
 @pytest.fixture(autouse=True)
 def _fresh_notes():
-    legacy._NOTED.clear()  # each test sees its notes, whatever ran before it
+    parse._NOTED.clear()  # each test sees its notes, whatever ran before it
     yield
 
 
@@ -81,7 +81,7 @@ def test_every_old_psne_key_gives_the_config_and_the_hyperparameters_of_the_new_
 
 
 def test_old_psne_keys_work_from_the_api_the_command_line_and_a_sweep(capsys):
-    from coherent_jax import cli
+    from coherent_jax.config import cli
     from coherent_jax.sweep import parse_sweep
 
     want = parse_overrides([*COHERENT_SAC, "coherent_sac.sigma_delta=0.2"])
@@ -138,7 +138,7 @@ def test_a_coherent_sac_config_stored_before_its_group_loads_with_its_fingerprin
     assert loaded == cfg and loaded.psne == PsneOptions()
     assert config_fingerprint(loaded) == config_fingerprint(cfg) == FINGERPRINT_BEFORE
     # The flat layout of before the groups too (every committed result's config.yaml).
-    flat = legacy.flat_dict(cfg)
+    flat = parse.flat_dict(cfg)
     assert {k: flat[k] for k in NEW} == {k: float(v) for k, v in NEW.items()} and "coherent_sac" not in flat
     assert from_stored(flat) == cfg
     # A config written now, with its group, is read as it is (psne's values stay psne's).
@@ -181,14 +181,14 @@ LEGACY_HELPERS = (
 
 
 def test_every_key_of_before_maps_through_the_one_module():
-    """The tables are `legacy`'s and name keys that exist; no field declares an old key of
+    """The tables are `parse`'s and name keys that exist; no field declares an old key of
     its own; every module outside `config/` that renames an old key imports it from there."""
-    assert legacy.LEGACY_KEYS and all(new in FIELDS for new in legacy.LEGACY_KEYS.values())
-    assert not set(legacy.LEGACY_KEYS) & set(FIELDS)  # an old key is no key now
-    assert all(k in FIELDS and v in FIELDS for k, v in legacy.COHERENT_SAC_KEYS.items())
+    assert parse.LEGACY_KEYS and all(new in FIELDS for new in parse.LEGACY_KEYS.values())
+    assert not set(parse.LEGACY_KEYS) & set(FIELDS)  # an old key is no key now
+    assert all(k in FIELDS and v in FIELDS for k, v in parse.COHERENT_SAC_KEYS.items())
     assert all(len(f.metadata) and "old" not in f.metadata for f in FIELDS.values())
-    for old, new in legacy.LEGACY_KEYS.items():
-        assert legacy.modern_key(old, note=False) == new
+    for old, new in parse.LEGACY_KEYS.items():
+        assert parse.modern_key(old, note=False) == new
     users = []
     for path in [*ROOT.glob("coherent_jax/**/*.py"), *ROOT.glob("experiments/*.py")]:
         if "config" in path.relative_to(ROOT).parts[:2]:
@@ -196,6 +196,6 @@ def test_every_key_of_before_maps_through_the_one_module():
         for name in _imported_names(path):
             module, _, helper = name.partition(":")
             if helper in LEGACY_HELPERS:
-                assert module == "coherent_jax.config.legacy", (path, name)
+                assert module == "coherent_jax.config.parse", (path, name)
                 users.append(path.name)
-    assert {"cli.py", "sweep.py", "resume.py", "runs.py", "cells.py", "verify.py"} <= set(users)
+    assert {"sweep.py", "resume.py", "runs.py", "cells.py", "verify.py"} <= set(users)

@@ -28,7 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "presets.md"
 
 # The values docs/presets.md documents, with their Spinning Up sources there. Written out
-# here, not read from coherent_jax.config.presets, so that a change to either shows.
+# here, not read from coherent_jax.config.schema, so that a change to either shows.
 _ON_POLICY = {
     "num_envs": 4,
     "unroll_length": 1000,

@@ -1,7 +1,7 @@
 """Benchmarks: ``python -m coherent_jax.bench [SUITE] [key=value ...]``.
 
 One module per suite, each with the same shape: ``KEYS`` (its own settings, as
-`coherent_jax.cli.Key`s), ``parse(items)`` (every check, before any work),
+`coherent_jax.config.cli.Key`s), ``parse(items)`` (every check, before any work),
 ``run(items, log)`` (measures, writes its JSON atomically, returns the results)
 and ``format_table(result)``.
 

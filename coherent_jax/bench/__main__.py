@@ -7,9 +7,8 @@ import sys
 from collections.abc import Sequence
 from types import ModuleType
 
-from coherent_jax import cli
 from coherent_jax.bench import COST_MACHINE, DEFAULT_SUITE, IGNORED, SUITES
-from coherent_jax.config import ConfigError
+from coherent_jax.config import ConfigError, cli
 from coherent_jax.exit_codes import EXIT_BAD_INPUT
 
 

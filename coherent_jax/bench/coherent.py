@@ -39,12 +39,11 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from coherent_jax import cli
 from coherent_jax.agents.onpolicy import OnPolicyTrainer
 from coherent_jax.bench import IGNORED, measure
 from coherent_jax.bench.chains import CHAINS, bench_chains, chain_config, format_chains
 from coherent_jax.bench.filter_cost import bench_filter
-from coherent_jax.config import Config, to_dict, validate, with_values
+from coherent_jax.config import Config, cli, to_dict, validate, with_values
 from coherent_jax.envs.vec_env import VecEnv
 from coherent_jax.exploration.base import Segment
 from coherent_jax.run import sharding

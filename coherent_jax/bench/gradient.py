@@ -46,8 +46,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from coherent_jax import cli
 from coherent_jax.bench import measure
+from coherent_jax.config import cli
 from coherent_jax.exploration.base import Segment
 from coherent_jax.exploration.chain import ChainParams, chain_params
 from coherent_jax.exploration.coherent import exact as E

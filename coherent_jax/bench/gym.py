@@ -37,9 +37,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from coherent_jax import cli
 from coherent_jax.bench import measure
-from coherent_jax.config import make_config
+from coherent_jax.config import cli, make_config
 from coherent_jax.envs.gym_source import quietly
 from coherent_jax.envs.vec_env import VecEnv
 

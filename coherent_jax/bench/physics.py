@@ -52,9 +52,8 @@ import mujoco
 import numpy as np
 from mujoco import batch
 
-from coherent_jax import cli
 from coherent_jax.bench import measure
-from coherent_jax.config import ConfigError
+from coherent_jax.config import ConfigError, cli
 from coherent_jax.envs.native import mujoco_model
 from coherent_jax.envs.registry import DEFAULT_THREADS, NATIVE_TASKS, check_task
 from coherent_jax.envs.vec_env import VecEnv

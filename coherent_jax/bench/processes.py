@@ -33,8 +33,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from coherent_jax import cli
 from coherent_jax.bench import measure
+from coherent_jax.config import cli
 from coherent_jax.run.runs import atomic_write
 
 DEFAULTS = [

@@ -29,10 +29,9 @@ from typing import Any
 
 import jax
 
-from coherent_jax import cli
 from coherent_jax.agents.sac import SACTrainer
 from coherent_jax.bench import IGNORED, measure
-from coherent_jax.config import Config, to_dict, validate, with_values
+from coherent_jax.config import Config, cli, to_dict, validate, with_values
 from coherent_jax.envs.vec_env import VecEnv
 
 # How long the suite takes at its defaults (`python -m coherent_jax.bench --help` prints it).

@@ -24,8 +24,8 @@ from typing import Any
 import jax
 import mujoco
 
-from coherent_jax import cli
 from coherent_jax.bench import measure, physics
+from coherent_jax.config import cli
 from coherent_jax.envs.registry import SHORT_NAMES, resolve_physics
 
 # How long the suite takes at its defaults (`python -m coherent_jax.bench --help` prints it).

@@ -23,10 +23,9 @@ from typing import Any
 
 import jax
 
-from coherent_jax import cli
 from coherent_jax.agents import make_trainer
 from coherent_jax.bench import IGNORED, measure
-from coherent_jax.config import Config, ConfigError, to_dict, validate, with_values
+from coherent_jax.config import Config, ConfigError, cli, to_dict, validate, with_values
 from coherent_jax.envs.vec_env import VecEnv
 from coherent_jax.strategies import EXPLORES, SUPPORTED_ALGOS
 

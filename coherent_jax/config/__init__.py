@@ -5,11 +5,14 @@ settings every run reads at the top level, an algorithm's or a strategy's own in
 group (``ppo.*``, ``sac.*``, ``coherent.*``, ``coherent_sac.*``, ``noisynet.*``, ``psne.*``,
 ``gsde.*``, ``pink.*``, ``lattice.*``; `coherent_jax.config.groups`). Every field declares
 its help, its range or choices and, for a sweepable scalar, a `Sweepable` saying which (algo, explore) pairs
-hold it in the train state (`coherent_jax.config.declare`); validation is derived from
-these declarations plus a few named cross-field checks (`coherent_jax.config.checks`).
+hold it in the train state (`coherent_jax.config.groups`); the defaults of an algorithm and
+the presets are layered over `Config`'s (`coherent_jax.config.schema`); validation is derived
+from the declarations plus a few named cross-field checks (`coherent_jax.config.checks`).
 Overrides are parsed, and stored configs read, by `coherent_jax.config.parse`; the keys
 of before (the flat ``clip_eps``, Coherent-SAC's ``psne.*``) and what they are now
-(``ppo.clip_eps``, ``coherent_sac.*``) are `coherent_jax.config.legacy`'s, all of them.
+(``ppo.clip_eps``, ``coherent_sac.*``) are `coherent_jax.config.parse`'s, all of them.
+The ``key=value`` parser every command shares, its own keys beside the config's, is
+`coherent_jax.config.cli`.
 
 Shape-determining settings (``num_envs``, ``unroll_length``, network sizes, ...) are
 static Python values; the sweepable scalars (`SWEEPABLE`) become arrays inside the
@@ -17,7 +20,6 @@ train state so that `jax.vmap` can run a grid of them as one program.
 """
 
 from coherent_jax.config.checks import CROSS_CHECKS, ConfigError, validate
-from coherent_jax.config.declare import Sweepable
 from coherent_jax.config.groups import (
     COHERENT_GRADIENT,
     COHERENT_INFERENCE,
@@ -32,23 +34,22 @@ from coherent_jax.config.groups import (
     PPOOptions,
     PsneOptions,
     SACOptions,
+    Sweepable,
 )
-from coherent_jax.config.legacy import (
+from coherent_jax.config.parse import (
     COHERENT_SAC_KEYS,
     LEGACY_KEYS,
     flat_dict,
-    modern_items,
-    modern_key,
-    overrides_of,
-    upgrade_stored,
-)
-from coherent_jax.config.parse import (
     from_stored,
     help_text,
     make_config,
+    modern_items,
+    modern_key,
     override_items,
+    overrides_of,
     parse_overrides,
     to_dict,
+    upgrade_stored,
 )
 from coherent_jax.config.schema import (
     ACTIVATIONS,

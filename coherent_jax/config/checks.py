@@ -1,6 +1,6 @@
 """Validation: the declared ranges and choices of every field, then the few cross-field checks.
 
-Each declared check comes from the field's metadata (`coherent_jax.config.declare`);
+Each declared check comes from the field's metadata (`coherent_jax.config.groups`);
 what cannot be declared on one field (a value that depends on another: a divisor of
 ``num_envs``, a pair of settings a strategy refuses) is one named function below. The
 first problem raises `ConfigError`, one line naming the key and what is allowed. No JAX.
@@ -9,6 +9,15 @@ The refusals every entry point shares are here too, so that they read the same
 everywhere: an unknown key (`unknown_key`: the key, up to three close ones, a pointer to
 ``--help``), a sweep's item given to a single run (`sweep_item`), and the warning of a
 SAC run too short to leave its warm-up (`warmup_warning`).
+
+What the program's integer counters can hold is checked with the config too: the train
+state counts env steps in int32 (``state.env_steps``, the replay buffer's position), so
+every count a run reaches must stay within `INT32_MAX`: the env steps of the whole run,
+rounded up to whole iterations (``iterations * num_envs * unroll_length``), SAC's warm-up
+and the replay ring's write position. `counter_problem` is called by `validate`, so every
+entry point refuses such a config before anything is written; `rounding_note` is what a
+run says at its start when ``total_steps`` is rounded up to whole iterations. (The seeds'
+range is `coherent_jax.config.schema.MAX_SEED`.)
 """
 
 from __future__ import annotations
@@ -18,9 +27,7 @@ import difflib
 from collections.abc import Iterable
 from typing import Any
 
-from coherent_jax.config import limits
-from coherent_jax.config.presets import NO_PRESET
-from coherent_jax.config.schema import ENV_ALLOWED, FIELDS, SWEEPABLE, Config, get_value
+from coherent_jax.config.schema import ENV_ALLOWED, FIELDS, NO_PRESET, SWEEPABLE, Config, get_value
 from coherent_jax.envs.registry import (
     NATIVE_TASKS,
     TASKS,
@@ -102,6 +109,61 @@ def warmup_warning(cfg: Config) -> str | None:
     )
 
 
+# ------------------------------------------------------------------ what the int32 counters hold
+INT32_MAX = 2**31 - 1
+
+
+def counter_problem(cfg: Any) -> tuple[str, Any, str] | None:
+    """(key, value, allowed) of the first setting whose counts overflow int32, or None.
+
+    `cfg` is a `coherent_jax.config.Config` whose ranges were checked (positive sizes).
+    """
+    per_iteration = cfg.num_envs * cfg.unroll_length
+    if per_iteration > INT32_MAX:
+        return (
+            "num_envs",
+            cfg.num_envs,
+            f"num_envs * unroll_length <= {INT32_MAX}, the int32 env-step counter "
+            f"(here {cfg.num_envs} * {cfg.unroll_length} = {per_iteration})",
+        )
+    total = cfg.num_iterations * per_iteration
+    if total > INT32_MAX:
+        return (
+            "total_steps",
+            cfg.total_steps,
+            f"at most {INT32_MAX} env steps, the int32 env-step counter, once rounded up to whole "
+            f"iterations of num_envs * unroll_length = {per_iteration} (here {total})",
+        )
+    if cfg.algo == "sac":
+        if cfg.sac.warmup_steps > INT32_MAX:
+            return ("warmup_steps", cfg.sac.warmup_steps, f"an integer in [0, {INT32_MAX}] (int32 counter)")
+        if cfg.sac.buffer_size + per_iteration > INT32_MAX:
+            return (
+                "buffer_size",
+                cfg.sac.buffer_size,
+                f"buffer_size + num_envs * unroll_length <= {INT32_MAX}, the replay ring's int32 "
+                f"write position (here {cfg.sac.buffer_size} + {per_iteration})",
+            )
+    return None
+
+
+def rounding_note(cfg: Any) -> str | None:
+    """The line a run prints at its start when ``total_steps`` is not a whole number of
+    iterations: training runs whole iterations of ``num_envs * unroll_length`` env steps,
+    so it stops at the next multiple (``total_steps=50000`` at 64 envs x 64 steps runs
+    13 iterations, 53,248 steps). None when nothing is rounded."""
+    per_iteration = cfg.steps_per_iteration
+    total = cfg.num_iterations * per_iteration
+    if total == cfg.total_steps:
+        return None
+    return (
+        f"total_steps={cfg.total_steps} is rounded up to whole iterations of num_envs * unroll_length"
+        f" = {cfg.num_envs} * {cfg.unroll_length} = {per_iteration:,} env steps: "
+        f"{cfg.num_iterations:,} iterations, {total:,} env steps"
+    )
+
+
+# ------------------------------------------------------------------ validation
 def _declared(cfg: Config) -> None:
     """Every field's declared choices and range, in declaration order."""
     for key, field in FIELDS.items():
@@ -127,7 +189,7 @@ def validate(cfg: Config) -> Config:
     cfg = dataclasses.replace(cfg, preset="") if cfg.preset in NO_PRESET else cfg
     for rule in CROSS_CHECKS:
         rule(cfg)
-    overflow = limits.counter_problem(cfg)
+    overflow = counter_problem(cfg)
     if overflow is not None:
         check(False, *overflow)
     return cfg

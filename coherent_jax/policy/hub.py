@@ -24,7 +24,7 @@ import yaml
 
 import coherent_jax
 from coherent_jax.config import Config, make_config, override_items
-from coherent_jax.config.legacy import overrides_of
+from coherent_jax.config.parse import overrides_of
 from coherent_jax.envs.registry import check_task
 from coherent_jax.policy.agent import META_FILE, POLICY_FILE, TrainedPolicy, load_policy
 from coherent_jax.policy.formats import write_onnx

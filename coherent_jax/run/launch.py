@@ -37,8 +37,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from coherent_jax import cli
-from coherent_jax.config import Config, ConfigError
+from coherent_jax.config import Config, ConfigError, cli
 from coherent_jax.config.checks import warmup_warning
 from coherent_jax.envs.quiet import quiet_imports
 from coherent_jax.exit_codes import EXIT_BAD_INPUT, EXIT_DIVERGED, EXIT_OK, signal_status

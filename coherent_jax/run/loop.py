@@ -48,7 +48,7 @@ from flax import serialization
 from tqdm.auto import tqdm
 
 from coherent_jax.agents.trainer import Trainer
-from coherent_jax.config import limits
+from coherent_jax.config.checks import rounding_note
 from coherent_jax.envs.host_gym import host_pool
 from coherent_jax.run import callbacks, collective, sharding
 from coherent_jax.run.collective import to_host
@@ -126,7 +126,7 @@ def start_session(job: Job, resume: Checkpoint | None, t_start: float) -> Sessio
     # The engine `physics=auto` resolved to (trainers keep their training env in `.env`).
     physics = getattr(getattr(trainer, "env", None), "physics", cfg.physics)
     devices_note = f" on {num_devices} devices" if num_devices > 1 else ""
-    note = limits.rounding_note(cfg)
+    note = rounding_note(cfg)
     if note:
         print(f"{PREFIX} {note}" + (" per point" if job.points else ""), flush=True)
     print(f"{PREFIX} {job.label} physics={physics}: compiling{devices_note} ...", flush=True)

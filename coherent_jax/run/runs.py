@@ -44,7 +44,7 @@ from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from coherent_jax.config import Config, ConfigError, from_stored, parse_overrides, to_dict, validate
-from coherent_jax.config.legacy import flat_dict, modern_key
+from coherent_jax.config.parse import flat_dict, modern_key
 from coherent_jax.run.provenance import provenance
 
 PREFIX = "[coherent_jax]"  # starts every line the command-line programs print
@@ -90,7 +90,7 @@ def atomic_write(path: Path, data: bytes) -> None:
 
 def fingerprint_fields(cfg: Config, resumable: tuple[str, ...] = RESUMABLE_KEYS) -> dict[str, Any]:
     """The config fields a checkpoint must agree with (all but `RESUMABLE_KEYS`), in the flat
-    layout of before the config's groups (`config.legacy.flat_dict`): a checkpoint written
+    layout of before the config's groups (`config.parse.flat_dict`): a checkpoint written
     then, under the keys of before, has the same fingerprint now."""
     return {k: v for k, v in flat_dict(cfg).items() if k not in resumable}
 

@@ -15,8 +15,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from coherent_jax import cli
-from coherent_jax.config import Config, parse_overrides
+from coherent_jax.config import Config, cli, parse_overrides
 from coherent_jax.envs.registry import task_label
 from coherent_jax.run import callbacks as hooks
 from coherent_jax.run import launch, rundir, tracking

@@ -6,7 +6,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-from coherent_jax import cli
+from coherent_jax.config import cli
 
 FORMATS = (".mp4", ".gif")
 

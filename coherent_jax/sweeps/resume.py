@@ -15,15 +15,15 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from coherent_jax import cli
 from coherent_jax.config import (
     SWEEPABLE,
     Config,
     ConfigError,
+    cli,
     get_value,
     parse_overrides,
 )
-from coherent_jax.config.legacy import modern_items, modern_key
+from coherent_jax.config.parse import modern_items, modern_key
 from coherent_jax.run import rundir
 from coherent_jax.run.runs import METRICS, Checkpoint, load_config, resume_config
 

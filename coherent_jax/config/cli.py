@@ -29,9 +29,9 @@ from typing import Any, NamedTuple
 
 import yaml
 
-from coherent_jax.config import FIELDS, Config, ConfigError, parse_overrides
-from coherent_jax.config.checks import unknown_key
-from coherent_jax.config.legacy import modern_items, run_pair
+from coherent_jax.config.checks import ConfigError, unknown_key
+from coherent_jax.config.parse import modern_items, parse_overrides, run_pair
+from coherent_jax.config.schema import FIELDS, Config
 
 
 @dataclasses.dataclass(frozen=True)
