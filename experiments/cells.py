@@ -45,7 +45,7 @@ TASK_RATE = {
 # A2C/PPO iteration time relative to action noise. SAC's strategies cost about the same
 # as its action noise (HalfCheetah, one seed: coherent 0.93x, psne 1.05x): its updates
 # dominate, and they do not depend on the strategy.
-# Lattice: `python -m coherent_jax.bench strategies env=halfcheetah` (2026-12-04, idle
+# Lattice: `python -m benchmarks strategies env=halfcheetah` (2026-12-04, idle
 # machine) measured 2.02x, beside gSDE's 1.28x (docs/benchmarks.md).
 STRATEGY_COST = {"coherent": 2.5, "noisynet": 1.5, "psne": 2.2, "gsde": 1.3, "pink": 1.1, "lattice": 2.0}
 # coherent.gradient=episode re-infers each segment's episode prefix in the loss: 22x the

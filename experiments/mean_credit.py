@@ -1,7 +1,7 @@
 """How much gradient each step of a long chain gives the policy's mean weights.
 
-    python experiments/mean_credit.py [OUT.json] [--steps 1000] [--betas 0,0.01,0.1,1]
-                                      [--episodes 3] [--seed 0]
+    PYTHONPATH=. python experiments/mean_credit.py [OUT.json] [--steps 1000] [--betas 0,0.01,0.1,1]
+                                                  [--episodes 3] [--seed 0]
 
 The on-policy loss weights every step's marginal score d log p(a_t | a_<t, s_<=t) / d mu
 (eqs. 4.37 and 4.49) by its advantage. Along one chain of T steps this prints the root
@@ -27,8 +27,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from coherent_jax.bench.gradient import sample_episode
-from coherent_jax.bench.measure import write_json_atomic
+from benchmarks.gradient import sample_episode
+from benchmarks.measure import write_json_atomic
 from coherent_jax.exploration.chain import ChainParams
 from coherent_jax.exploration.coherent.filter import log_marginals
 

@@ -1,6 +1,6 @@
 """Can the second CPU core speed up the thesis row? The long chain's loss over two devices.
 
-    python experiments/two_core_loss.py [OUT.json] [--envs 4] [--steps 1000] [--rounds 7]
+    PYTHONPATH=. python experiments/two_core_loss.py [OUT.json] [--envs 4] [--steps 1000] [--rounds 7]
 
 Under ``preset=thesis`` a Coherent-PPO policy step scores 4 chains of 1,000 steps
 (`coherent_exact.chained_marginals`, eqs. 4.37/4.49 chained by the posterior
@@ -46,7 +46,7 @@ import numpy as np  # noqa: E402
 from jax.sharding import Mesh, NamedSharding, SingleDeviceSharding  # noqa: E402
 from jax.sharding import PartitionSpec as P  # noqa: E402
 
-from coherent_jax.bench import measure  # noqa: E402
+from benchmarks import measure  # noqa: E402
 from coherent_jax.exploration.chain import ChainParams  # noqa: E402
 from coherent_jax.exploration.coherent.exact import chained_marginals  # noqa: E402
 from coherent_jax.exploration.coherent.filter import prior_belief  # noqa: E402

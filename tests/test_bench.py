@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 from helpers import child_env
 
-from coherent_jax.bench import coherent, throughput
-from coherent_jax.bench.dense import dense_log_marginals, sample_segments
+from benchmarks import coherent, throughput
+from coherent_jax.exploration.coherent.reference import dense_log_marginals, sample_segments
 
 TINY = [
     "env=pointmass",
@@ -93,7 +93,7 @@ def test_long_chain_rows_are_the_preset_and_the_episode_gradient():
     """The ``thesis`` row is ``preset=thesis`` on the suite's task and seed (its buffer
     scored from its start, the chain through env resets), the ``episode`` row the suite's
     own settings with the episode gradient; an unknown row is refused."""
-    from coherent_jax.bench.chains import chain_config, timed_iterations
+    from benchmarks.chains import chain_config, timed_iterations
     from coherent_jax.config import parse_overrides
 
     cfg = parse_overrides(["env=hopper", "seed=7", "num_envs=16"])
@@ -138,7 +138,7 @@ def test_dense_reference_checkpointed_equals_plain_and_block():
 def run_cli(args, cwd):
     env = child_env()
     return subprocess.run(
-        [sys.executable, "-m", "coherent_jax.bench", *args],
+        [sys.executable, "-m", "benchmarks", *args],
         cwd=cwd,
         capture_output=True,
         text=True,
@@ -170,7 +170,7 @@ def run_cli(args, cwd):
     ],
 )
 def test_bad_input_exits_2_and_writes_nothing(tmp_path, capsys, args, named):
-    from coherent_jax.bench.__main__ import main
+    from benchmarks.__main__ import main
 
     assert main([*args, f"out={tmp_path / 'r.json'}"]) == 2
     lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
@@ -180,7 +180,7 @@ def test_bad_input_exits_2_and_writes_nothing(tmp_path, capsys, args, named):
 
 
 def test_cli_entry_point_exits_2_and_writes_nothing(tmp_path):
-    """``python -m coherent_jax.bench`` itself (the cases above run its `main` in-process)."""
+    """``python -m benchmarks`` itself (the cases above run its `main` in-process)."""
     proc = run_cli(["coherent", "coherent.layers=every", f"out={tmp_path / 'r.json'}"], cwd=tmp_path)
     assert proc.returncode == 2, proc.stderr
     lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
@@ -244,7 +244,7 @@ def test_throughput_suite_writes_every_row(tmp_path):
 )
 def test_throughput_bad_input_exits_2_and_writes_nothing(tmp_path, capsys, args, named):
     """The same checks in-process (the subprocess test above covers the entry point)."""
-    from coherent_jax.bench.__main__ import main
+    from benchmarks.__main__ import main
 
     for argv in (["throughput", *args], args):  # the suite named, and the default
         assert main([*argv, f"out={tmp_path / 'r.json'}"]) == 2
@@ -257,7 +257,7 @@ def test_throughput_bad_input_exits_2_and_writes_nothing(tmp_path, capsys, args,
 @pytest.mark.parametrize("suite", ["throughput", "coherent", "sac", "strategies", "physics"])
 def test_every_suite_checks_its_output_path_first(tmp_path, capsys, suite):
     """A location that cannot be written is refused in one line before any work, not at the end."""
-    from coherent_jax.bench.__main__ import main
+    from benchmarks.__main__ import main
 
     (tmp_path / "a_file").write_text("keep")
     for bad in (tmp_path / "a_file" / "r.json", tmp_path, Path("/proc/r.json")):
@@ -281,7 +281,7 @@ def test_training_keys_pass_through_including_dotted_ones():
     with pytest.raises(ConfigError, match="'coherent.integration'"):
         coherent.parse(["coherent.integration=exact"])
     # The sac suite checks the config with Coherent-SAC too, before anything runs.
-    from coherent_jax.bench import sac
+    from benchmarks import sac
 
     with pytest.raises(ConfigError, match="'coherent.integration'"):
         sac.parse(["coherent.integration=analytic"])
@@ -291,7 +291,7 @@ def test_training_keys_pass_through_including_dotted_ones():
 def test_physics_mjx_ls50_sets_the_line_search_of_either_kind_of_mjx_task(task):
     """``bench physics``'s ``mjx_ls50`` rows: Gymnasium's tasks on MJX keep their model as
     ``model``, Brax's as ``sys``; both get the line-search iterations the row names."""
-    from coherent_jax.bench.physics import set_ls_iterations
+    from benchmarks.physics import set_ls_iterations
     from coherent_jax.envs.vec_env import VecEnv
 
     env = VecEnv(task, 2, physics="mjx")

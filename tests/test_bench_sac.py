@@ -5,7 +5,7 @@ import json
 import pytest
 from helpers import TINY_BENCH, TINY_BENCH_SAC
 
-from coherent_jax.bench import sac
+from benchmarks import sac
 from coherent_jax.config import ConfigError
 
 
@@ -19,7 +19,7 @@ from coherent_jax.config import ConfigError
     ],
 )
 def test_bad_settings_exit_2_and_write_nothing(tmp_path, capsys, args, key):
-    from coherent_jax.bench.__main__ import main
+    from benchmarks.__main__ import main
 
     assert main(["sac", *args, f"out={tmp_path / 'r.json'}"]) == 2
     err = capsys.readouterr().err

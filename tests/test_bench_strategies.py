@@ -5,7 +5,7 @@ import json
 import pytest
 from helpers import TINY_BENCH, TINY_BENCH_SAC
 
-from coherent_jax.bench import strategies
+from benchmarks import strategies
 from coherent_jax.strategies import SUPPORTED_ALGOS
 
 

@@ -389,10 +389,10 @@ def test_float32_loss_stays_finite_and_accurate_at_extreme_weight_to_noise_ratio
 
 @pytest.mark.slow
 def test_gradient_bench_passes_for_exact_forms_and_exposes_stored(tmp_path, capsys):
-    """`python -m coherent_jax.bench gradient` on small shapes: the exact and re-filtered forms
+    """`python -m benchmarks gradient` on small shapes: the exact and re-filtered forms
     meet the bound (exit 0), the stored form is visibly off once the segment has a history,
     and a bad setting is one line, exit 2, nothing written."""
-    from coherent_jax.bench.__main__ import main
+    from benchmarks.__main__ import main
 
     out = tmp_path / "gradient.json"
     small = ["q=8", "p=1", "obs_size=3", "segment=8", "w_std=0.3", "action_std=0.1", f"out={out}"]

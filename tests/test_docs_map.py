@@ -1,7 +1,8 @@
 """docs/development.md's module map and layers, and docs/walkthrough.md's names, against the code.
 
 * The map (the tables under "Architecture", one per folder, headed ``### `FOLDER/` ``) names
-  every module of ``coherent_jax/`` and ``experiments/`` and nothing that does not exist.
+  every module of ``coherent_jax/``, ``benchmarks/`` and ``experiments/`` and nothing that
+  does not exist.
 * The layers listed there hold for every import of the package, at module level and inside
   functions: a module imports from its own folder or from a layer below its own.
 * Every ``coherent_jax.x.y`` name the walk-through gives in backticks resolves (module, then
@@ -22,7 +23,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 DEVELOPMENT = ROOT / "docs" / "development.md"
 WALKTHROUGH = ROOT / "docs" / "walkthrough.md"
-MAPPED_TREES = ("coherent_jax", "experiments")  # every *.py below these must be in the map
+MAPPED_TREES = ("coherent_jax", "benchmarks", "experiments")  # every *.py below these must be in the map
 PACKAGE = "coherent_jax"
 
 

@@ -55,9 +55,9 @@ def test_row8_beta_is_stated_per_gradient_mode():
 
 
 def test_row8_every_bench_suite_states_its_cost():
-    """`python -m coherent_jax.bench --help` gives each suite a measured COST line."""
-    from coherent_jax.bench import SUITES
-    from coherent_jax.bench.__main__ import help_text
+    """`python -m benchmarks --help` gives each suite a measured COST line."""
+    from benchmarks import SUITES
+    from benchmarks.__main__ import help_text
 
     text = help_text()
     for name in SUITES:

@@ -1,5 +1,6 @@
 """The package's import structure: few imports inside functions, each with its reason on its
-line; no import cycle among the package's modules (imports inside functions counted); and
+line; no import cycle among the package's modules (imports inside functions counted); no
+import of the repository's folders beside it (benchmarks, experiments, examples, tests); and
 the start-up paths that must not load JAX (the commands' --help, bad input, dry runs)."""
 
 from __future__ import annotations
@@ -142,6 +143,39 @@ def test_no_import_cycle_among_the_package_modules():
     assert cycles(graph) == []
 
 
+# The repository's folders beside the package: they may import it, never the reverse (the
+# wheel ships only ``coherent_jax``).
+OUTSIDE = ("benchmarks", "experiments", "examples", "tests")
+
+
+def outside_imports(tree: ast.AST) -> set[str]:
+    """The modules of the repository's other folders (`OUTSIDE`) that `tree` imports, wherever
+    the import stands."""
+    found: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and not node.level:
+            names = [node.module or ""]
+        else:
+            continue
+        found.update(n for n in names if n.split(".")[0] in OUTSIDE)
+    return found
+
+
+def test_the_package_imports_nothing_beside_it():
+    assert outside_imports(ast.parse("def f():\n    from benchmarks.gradient import g\nimport tests\n")) == {
+        "benchmarks.gradient",
+        "tests",
+    }
+    found = [
+        f"{name} imports {target}"
+        for name, path in modules().items()
+        for target in sorted(outside_imports(ast.parse(path.read_text())))
+    ]
+    assert not found, "\n".join(found)
+
+
 def test_cycles_are_found():
     graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}, "e": set()}
     assert cycles(graph) == [["a", "b", "c"]]
@@ -166,7 +200,7 @@ def test_commands_start_refuse_and_dry_run_without_jax():
     code = (
         "import sys\n"
         "from coherent_jax import evaluate, sweep, train\n"
-        "from coherent_jax.bench.__main__ import main as bench\n"
+        "from benchmarks.__main__ import main as bench\n"
         "assert train.main(['--help']) == 0\n"
         "assert train.main(['env=nosuch']) == 2\n"
         "assert train.main(['lr=abc']) == 2\n"

@@ -168,7 +168,7 @@ def test_physics_choice_and_refusals():
 
 
 def test_bench_physics_bad_input_exits_2_and_writes_nothing(tmp_path, capsys):
-    from coherent_jax.bench.__main__ import main
+    from benchmarks.__main__ import main
 
     out = tmp_path / "physics.json"
     for bad, key in (
@@ -187,7 +187,7 @@ def test_bench_physics_measures_and_writes_json(tmp_path):
     """A tiny real run (native MuJoCo without JAX, so no compile): one row per variant and count."""
     import json
 
-    from coherent_jax.bench.__main__ import main
+    from benchmarks.__main__ import main
 
     out = tmp_path / "physics.json"
     args = ["env=inverted_pendulum", "envs=[2,4]", "variants=[native_raw]", "steps=5", "repeats=1"]
@@ -198,7 +198,7 @@ def test_bench_physics_measures_and_writes_json(tmp_path):
 
 
 def test_bench_standard_bad_input_exits_2_and_writes_nothing(tmp_path, capsys):
-    from coherent_jax.bench.__main__ import main
+    from benchmarks.__main__ import main
 
     out = tmp_path / "standard.json"
     for bad, key in (("tasks=[cheetah]", "'tasks'"), ("envs=[0]", "'envs'"), ("repeats=0", "'repeats'")):

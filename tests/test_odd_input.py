@@ -15,8 +15,8 @@ from pathlib import Path
 import pytest
 from helpers import child_env, commit_all, load_experiment
 
+from benchmarks.__main__ import main as bench_main
 from coherent_jax import evaluate, sweep, train
-from coherent_jax.bench.__main__ import main as bench_main
 from coherent_jax.config import ConfigError, help_text, parse_overrides, to_dict
 from coherent_jax.run import runlock
 from coherent_jax.run.runs import CHECKPOINT, LoopState, atomic_write, encode_checkpoint, resume_point

@@ -4,7 +4,7 @@ MuJoCo Playground's MJX ports of ball-in-cup and finger-turn are the contact-ric
 of the sparse suite. MuJoCo's C engine runs them faster on a CPU: in PPO with action
 noise (64 envs x 64 steps, the first 61,440 steps of a run) 19.2k env steps/s against
 11.9k on MJX for ball-in-cup, 25.3k against 17.3k for finger turn hard
-(``python -m coherent_jax.bench physics env=dmc-ball_in_cup`` times the physics alone).
+(``python -m benchmarks physics env=dmc-ball_in_cup`` times the physics alone).
 Each task here is Playground 0.2.0's, written as a `NativeTask`:
 
 * the ``MjModel`` Playground builds (its MJCF and assets, its timestep, the finger's

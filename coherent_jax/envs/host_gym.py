@@ -185,7 +185,7 @@ def host_call(fn: Callable[..., tuple[np.ndarray, ...]], shapes: tuple, *args: j
     """``fn(*args)`` on the host as NumPy arrays, from inside the jit: a pure callback whose arguments
     and results are XLA's own buffers read and written in place (``buffer_callback``), not copied
     into JAX arrays first as ``jax.pure_callback`` copies them (``device_put``, most of a call's
-    cost on CPU: ``python -m coherent_jax.bench gym``). Under vmap ``fn`` gets the batch's leading
+    cost on CPU: ``python -m benchmarks gym``). Under vmap ``fn`` gets the batch's leading
     axes."""
 
     def callback(ctx, out, *buffers):

@@ -242,7 +242,7 @@ def check_task(name: str) -> TaskSpec:
 # --- physics engines
 PHYSICS = ("auto", "mjx", "native")
 # MuJoCo threads per call (0 = every core). On the shared 2-core machine one thread
-# was as fast as two or faster in 2 of 3 runs of `python -m coherent_jax.bench physics`
+# was as fast as two or faster in 2 of 3 runs of `python -m benchmarks physics`
 # (loaded machine: 25k vs 15k env steps/s at 64 halfcheetah envs); on a quiet moment
 # two threads gave 41k vs 21k at 64 envs. A dedicated machine should try 0.
 DEFAULT_THREADS = 1
@@ -257,7 +257,7 @@ class PhysicsError(ValueError):
 
 def auto_physics(has_native: bool, backend: str) -> str:
     """What ``physics=auto`` picks for a MuJoCo task: native MuJoCo on a CPU when the task has it
-    (faster there, see ``python -m coherent_jax.bench physics``), else MJX.
+    (faster there, see ``python -m benchmarks physics``), else MJX.
 
     On an accelerator (any `backend` but ``cpu``) always MJX: native MuJoCo is stepped on
     the host through a callback, which would put a host round trip into every step of the

@@ -5,5 +5,7 @@ modes, `CoherentBehaviour` for SAC); `layer` what the on-policy ones share (the 
 settings and the perturbed last layer); `filter` the exact recursive inference (thesis
 eqs. 4.33-4.49); `joint` the same marginals from a segment's joint Gaussian; `exact` blocks
 of the joint form chained by differentiable beliefs; `mc` the Monte Carlo and all-layers
-ablations. The chain itself (eqs. 4.1-4.5) is `coherent_jax.exploration.chain`.
+ablations; `reference` the thesis's dense filter, a reference that training never runs (the
+benchmarks and the tests check the block filter against it). The chain itself (eqs.
+4.1-4.5) is `coherent_jax.exploration.chain`.
 """

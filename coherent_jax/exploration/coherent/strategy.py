@@ -142,7 +142,7 @@ class CoherentExploration(ChainStrategy):
       mid-episode starts from the belief stored when it was collected, a constant of
       the data mapped onto the current mu and w_std: the right values (the ratio is 1
       at the collection parameters) but not the thesis's gradient (see
-      ``python -m coherent_jax.bench gradient``). Kept for the ablation.
+      ``python -m benchmarks gradient``). Kept for the ablation.
 
     ``episode_restart=False`` lets the chain run across episode starts; only the
     segment starts of ``"exact"`` restart it then, which is Algorithm 5's buffer: w_0

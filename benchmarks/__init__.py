@@ -1,4 +1,8 @@
-"""Benchmarks: ``python -m coherent_jax.bench [SUITE] [key=value ...]``.
+"""Benchmarks: ``python -m benchmarks [SUITE] [key=value ...]``, from the repository's root.
+
+A folder of the repository beside the package, not part of the ``coherent_jax`` wheel:
+the suites import the package, and the package imports nothing of them. The ``bench``
+extra (``pip install -e ".[bench]"``) adds EnvPool for the ``standard`` suite.
 
 One module per suite, each with the same shape: ``KEYS`` (its own settings, as
 `coherent_jax.config.cli.Key`s), ``parse(items)`` (every check, before any work),
@@ -7,7 +11,8 @@ and ``format_table(result)``.
 
 * `throughput` (the default): raw env, our trainers and Brax's PPO, env steps/s;
 * `coherent`: what coherent exploration costs next to action noise (training, the
-  filter against the dense reference of `dense`, the loss's segment log-prob);
+  filter against the dense reference of
+  `coherent_jax.exploration.coherent.reference`, the loss's segment log-prob);
 * `sac`: SAC and Coherent-SAC iterations, collection and updates apart;
 * `strategies`: every exploration strategy's iteration of one algorithm, side by side;
 * `physics`: MJX settings against native MuJoCo, one subprocess per row;
@@ -35,7 +40,7 @@ SUITES = (
 )
 # Where each suite's ``COST`` (its wall time at its defaults) was measured; idle, it takes less.
 COST_MACHINE = "2026-12-06 on 2 cores of an Intel Xeon (avx512f) shared with other jobs (load average 3-12)"
-DEFAULT_SUITE = "throughput"  # what ``python -m coherent_jax.bench`` runs with no suite named
+DEFAULT_SUITE = "throughput"  # what ``python -m benchmarks`` runs with no suite named
 # Training keys the in-process suites do not read (they time iterations: they write no run
 # directory, checkpoint or TensorBoard file, and run no fixed budget): refused, not ignored.
 # A suite that starts training commands of its own names its own (``IGNORED_KEYS``).

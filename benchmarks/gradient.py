@@ -1,6 +1,6 @@
 """The ``gradient`` suite: how far each coherent loss's gradient is from the thesis's estimator.
 
-    python -m coherent_jax.bench gradient [betas=[0,0.01,0.1,1]] [histories=[0,64,256,900]]
+    python -m benchmarks gradient [betas=[0,0.01,0.1,1]] [histories=[0,64,256,900]]
         [segment=64] [q=64] [p=2] [obs_size=17] [w_std=0.1] [action_std=0.1] [seed=0]
         [dtype=float64] [out=bench_results/gradient.json]
 
@@ -46,7 +46,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from coherent_jax.bench import measure
+from benchmarks import measure
 from coherent_jax.config import cli
 from coherent_jax.exploration.base import Segment
 from coherent_jax.exploration.chain import ChainParams, chain_params
@@ -71,7 +71,7 @@ def _betas(text: str) -> list[float]:
     return values
 
 
-# How long the suite takes at its defaults (`python -m coherent_jax.bench --help` prints it).
+# How long the suite takes at its defaults (`python -m benchmarks --help` prints it).
 COST = "~100 s (97 s measured)"
 KEYS: dict[str, cli.Key] = {
     "betas": cli.Key([0.0, 0.01, 0.1, 1.0], _betas, "a list of numbers in [0, 1]", "chain coefficients"),

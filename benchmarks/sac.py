@@ -1,4 +1,4 @@
-"""SAC benchmark: ``python -m coherent_jax.bench sac [key=value ...]``.
+"""SAC benchmark: ``python -m benchmarks sac [key=value ...]``.
 
 Measures, in one process on one set of settings, the real jitted SAC iteration
 (`SACTrainer.iteration`: collect ``num_envs x unroll_length`` env steps into the
@@ -29,12 +29,12 @@ from typing import Any
 
 import jax
 
+from benchmarks import IGNORED, measure
 from coherent_jax.agents.sac import SACTrainer
-from coherent_jax.bench import IGNORED, measure
 from coherent_jax.config import Config, cli, to_dict, validate, with_values
 from coherent_jax.envs.vec_env import VecEnv
 
-# How long the suite takes at its defaults (`python -m coherent_jax.bench --help` prints it).
+# How long the suite takes at its defaults (`python -m benchmarks --help` prints it).
 COST = "~4 min (243 s measured)"
 KEYS: dict[str, cli.Key] = {
     "iterations": cli.Key(

@@ -1,4 +1,4 @@
-"""The ``throughput`` suite, the default: ``python -m coherent_jax.bench [throughput] [key=value ...]``.
+"""The ``throughput`` suite, the default: ``python -m benchmarks [throughput] [key=value ...]``.
 
 In one process on one task and one set of settings: the raw vectorized env rate
 (random actions), the training rate of PPO, Coherent-PPO, SAC and Coherent-SAC,
@@ -21,8 +21,8 @@ import jax
 import jax.numpy as jnp
 from flax import linen
 
+from benchmarks import IGNORED, measure
 from coherent_jax.agents import make_trainer
-from coherent_jax.bench import IGNORED, measure
 from coherent_jax.config import Config, cli, parse_overrides, to_dict
 from coherent_jax.envs.make import make_brax_env
 from coherent_jax.envs.registry import brax_counterpart
@@ -30,7 +30,7 @@ from coherent_jax.envs.vec_env import VecEnv
 
 # Rows besides the raw env; brax_ppo is Brax's own trainer.
 ROWS = ("ppo", "coherent_ppo", "sac", "coherent_sac", "brax_ppo")
-# How long the suite takes at its defaults (`python -m coherent_jax.bench --help` prints it).
+# How long the suite takes at its defaults (`python -m benchmarks --help` prints it).
 COST = "over 15 min (stopped at 900 s in round 2 of 9, the last with its ~75 s SAC rows)"
 KEYS: dict[str, cli.Key] = {
     "iterations": cli.Key(

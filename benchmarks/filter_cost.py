@@ -1,7 +1,7 @@
 """Section 2 of the ``coherent`` suite: the block filter against the thesis's dense recursion.
 
 `coherent_filter.log_marginals` (p independent (q+1)-dimensional Kalman filters,
-docs/design.md §3) against `dense.dense_log_marginals`, the recursion (4.33)-(4.49)
+docs/design.md §3) against `reference.dense_log_marginals`, the recursion (4.33)-(4.49)
 over the flattened p(q+1) weight vector: forward and forward+gradient times, and a
 check that both give the same log-probabilities and gradients.
 """
@@ -17,11 +17,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from coherent_jax.bench import measure
-from coherent_jax.bench.dense import dense_log_marginals, sample_segments
+from benchmarks import measure
 from coherent_jax.config import Config
 from coherent_jax.exploration.chain import ChainParams
 from coherent_jax.exploration.coherent.filter import log_marginals
+from coherent_jax.exploration.coherent.reference import dense_log_marginals, sample_segments
 
 _FILTER_AXES = (0, 0, 0, None, None, None, None)  # batched: x, a, first; shared: the parameters
 

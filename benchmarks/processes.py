@@ -1,4 +1,4 @@
-"""The ``processes`` suite: ``python -m coherent_jax.bench processes [key=value ...]``.
+"""The ``processes`` suite: ``python -m benchmarks processes [key=value ...]``.
 
 Processes against devices.
 
@@ -33,7 +33,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from coherent_jax.bench import measure
+from benchmarks import measure
 from coherent_jax.config import cli
 from coherent_jax.run.runs import atomic_write
 
@@ -48,7 +48,7 @@ DEFAULTS = [
     "tensorboard=false",
 ]
 WAIT_S = 3600  # bound on one launch
-# How long the suite takes at its defaults (`python -m coherent_jax.bench --help` prints it).
+# How long the suite takes at its defaults (`python -m benchmarks --help` prints it).
 COST = "~3 min (163 s measured)"
 KEYS = {
     "processes": cli.Key(2, cli.int_at_least(2), "an integer >= 2", "processes of one device each (N)"),

@@ -1,4 +1,4 @@
-"""``python -m coherent_jax.bench [SUITE] [key=value ...]``: parse, refuse bad input in one line, run."""
+"""``python -m benchmarks [SUITE] [key=value ...]``: parse, refuse bad input in one line, run."""
 
 from __future__ import annotations
 
@@ -7,20 +7,20 @@ import sys
 from collections.abc import Sequence
 from types import ModuleType
 
-from coherent_jax.bench import COST_MACHINE, DEFAULT_SUITE, IGNORED, SUITES
+from benchmarks import COST_MACHINE, DEFAULT_SUITE, IGNORED, SUITES
 from coherent_jax.config import ConfigError, cli
 from coherent_jax.exit_codes import EXIT_BAD_INPUT
 
 
 def suite_module(name: str) -> ModuleType:
-    """The module of suite ``name`` (`coherent_jax.bench.<name>`)."""
-    return importlib.import_module(f"coherent_jax.bench.{name}")
+    """The module of suite ``name`` (`benchmarks.<name>`)."""
+    return importlib.import_module(f"benchmarks.{name}")
 
 
 def help_text() -> str:
     """Every suite's cost at its defaults (`COST`, measured) and its own settings with their defaults."""
     lines = [
-        "usage: python -m coherent_jax.bench [SUITE] [key=value ...]",
+        "usage: python -m benchmarks [SUITE] [key=value ...]",
         f"suites: {', '.join(SUITES)} (default: {DEFAULT_SUITE})",
         f"COST: each suite's wall time at its defaults, measured {COST_MACHINE}",
     ]

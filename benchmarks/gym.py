@@ -1,6 +1,6 @@
 """The ``gym`` suite: Gymnasium envs stepped on the host, against Gymnasium's own vector env.
 
-    python -m coherent_jax.bench gym [envs=[gym:Pendulum-v1,gym:HalfCheetah-v5]] [num_envs=16]
+    python -m benchmarks gym [envs=[gym:Pendulum-v1,gym:HalfCheetah-v5]] [num_envs=16]
         [steps=2048] [iterations=8] [out=bench_results/gym.json]
 
 For each env, four rows of env steps per second at ``num_envs`` copies, so that the table
@@ -37,12 +37,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from coherent_jax.bench import measure
+from benchmarks import measure
 from coherent_jax.config import cli, make_config
 from coherent_jax.envs.gym_source import quietly
 from coherent_jax.envs.vec_env import VecEnv
 
-# How long the suite takes at its defaults (`python -m coherent_jax.bench --help` prints it).
+# How long the suite takes at its defaults (`python -m benchmarks --help` prints it).
 COST = "~3 min (2 envs x 4 rows, compilation included; measured 2026-12-06 under load)"
 KEYS: dict[str, cli.Key] = {
     "envs": cli.Key(

@@ -1,6 +1,6 @@
 """The ``standard`` suite: what fidelity to Gymnasium costs, next to EnvPool.
 
-    python -m coherent_jax.bench standard [tasks=[halfcheetah,hopper,...]] [envs=[64]]
+    python -m benchmarks standard [tasks=[halfcheetah,hopper,...]] [envs=[64]]
         [steps=...] [repeats=3] [out=bench_results/physics_standard.json]
 
 For each standard task (Gymnasium's v5 task on native MuJoCo), env count, and thread
@@ -8,7 +8,7 @@ count (1, then every core): our `VecEnv` of the Gymnasium task, EnvPool stepping
 same task with the same threads (``pip install -e ".[bench]"``), and the Brax
 re-creation (``brax-*``) on the physics ``physics=auto`` picks for it. The three are
 timed round-robin in one subprocess per (task, envs, threads), so that they share the
-machine's load (`coherent_jax.bench.physics` holds the measurement itself).
+machine's load (`benchmarks.physics` holds the measurement itself).
 A bad key or value is one line on stderr and exit status 2, before anything runs.
 """
 
@@ -24,11 +24,11 @@ from typing import Any
 import jax
 import mujoco
 
-from coherent_jax.bench import measure, physics
+from benchmarks import measure, physics
 from coherent_jax.config import cli
 from coherent_jax.envs.registry import SHORT_NAMES, resolve_physics
 
-# How long the suite takes at its defaults (`python -m coherent_jax.bench --help` prints it).
+# How long the suite takes at its defaults (`python -m benchmarks --help` prints it).
 COST = "~20 min (1,174 s measured: 5 tasks x 2 thread counts)"
 KEYS: dict[str, cli.Key] = {
     "tasks": cli.Key(

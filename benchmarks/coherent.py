@@ -1,4 +1,4 @@
-"""The ``coherent`` suite: ``python -m coherent_jax.bench coherent [key=value ...]``.
+"""The ``coherent`` suite: ``python -m benchmarks coherent [key=value ...]``.
 
 Measures, in one process and on one set of settings, what coherent exploration
 costs next to Gaussian action noise:
@@ -11,14 +11,14 @@ costs next to Gaussian action noise:
    of each compiled iteration comes from XLA's ``memory_analysis()``, also for
    ``remat=true``.
 2. *The filter alone.* `coherent_filter.log_marginals` (p independent (q+1)-dimensional
-   Kalman filters, docs/design.md §3) against `dense.dense_log_marginals`, the thesis's
+   Kalman filters, docs/design.md §3) against `reference.dense_log_marginals`, the thesis's
    recursion (4.33)-(4.49) over the flattened p(q+1) weight vector, forward and
    forward+gradient, with a check that both give the same log-probabilities.
 3. *The loss's segment log-prob.* ``strategy.log_prob`` as the trainer's loss
    calls it (vmapped over a minibatch of env segments, with its gradient), for
    coherent and for action noise.
 
-4. *Long chains* (`coherent_jax.bench.chains`): the same interleaved pair at
+4. *Long chains* (`benchmarks.chains`): the same interleaved pair at
    ``preset=thesis`` (4 envs x 1,000-step buffers) and with ``coherent.gradient=episode``
    (the episode prefix re-inferred in the loss); ``chains=none`` skips them.
 
@@ -39,17 +39,17 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from benchmarks import IGNORED, measure
+from benchmarks.chains import CHAINS, bench_chains, chain_config, format_chains
+from benchmarks.filter_cost import bench_filter
 from coherent_jax.agents.onpolicy import OnPolicyTrainer
-from coherent_jax.bench import IGNORED, measure
-from coherent_jax.bench.chains import CHAINS, bench_chains, chain_config, format_chains
-from coherent_jax.bench.filter_cost import bench_filter
 from coherent_jax.config import Config, cli, to_dict, validate, with_values
 from coherent_jax.envs.vec_env import VecEnv
 from coherent_jax.exploration.base import Segment
 from coherent_jax.run import sharding
 
 _count = cli.int_at_least(1)
-# How long the suite takes at its defaults (`python -m coherent_jax.bench --help` prints it).
+# How long the suite takes at its defaults (`python -m benchmarks --help` prints it).
 COST = "over 15 min (stopped at 900 s in its q=256 filter rows, before its long-chain rows)"
 KEYS: dict[str, cli.Key] = {
     "iterations": cli.Key(5, _count, "an integer >= 1", "timed PPO iterations per strategy"),
@@ -76,7 +76,7 @@ KEYS: dict[str, cli.Key] = {
         list(CHAINS),
         lambda text: [] if text.strip() in ("none", "[]") else cli.choice_list(CHAINS)(text),
         "a non-empty list of " + ", ".join(CHAINS) + ", or none",
-        "long-chain rows (bench/chains.py): preset=thesis, and coherent.gradient=episode",
+        "long-chain rows (benchmarks/chains.py): preset=thesis, and coherent.gradient=episode",
     ),
     "chain_iterations": cli.Key(
         3,

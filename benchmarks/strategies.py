@@ -1,4 +1,4 @@
-"""The ``strategies`` suite: ``python -m coherent_jax.bench strategies [key=value ...]``.
+"""The ``strategies`` suite: ``python -m benchmarks strategies [key=value ...]``.
 
 What each exploration strategy costs per iteration of the same algorithm, settings and
 task: the real jitted iteration (`coherent_jax.agents.make_trainer`, the program
@@ -23,8 +23,8 @@ from typing import Any
 
 import jax
 
+from benchmarks import IGNORED, measure
 from coherent_jax.agents import make_trainer
-from coherent_jax.bench import IGNORED, measure
 from coherent_jax.config import Config, ConfigError, cli, to_dict, validate, with_values
 from coherent_jax.envs.vec_env import VecEnv
 from coherent_jax.strategies import EXPLORES, SUPPORTED_ALGOS
@@ -37,7 +37,7 @@ def _strategy_list(text: str) -> list[str] | str:
     return _ALL if text.strip() == _ALL else cli.ordered_choice_list(EXPLORES)(text)
 
 
-# How long the suite takes at its defaults (`python -m coherent_jax.bench --help` prints it).
+# How long the suite takes at its defaults (`python -m benchmarks --help` prints it).
 COST = "~13 min (762 s measured; its seven compiles are most of it)"
 KEYS: dict[str, cli.Key] = {
     "strategies": cli.Key(

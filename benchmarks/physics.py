@@ -1,6 +1,6 @@
 """The ``physics`` suite: MJX settings against native MuJoCo on CPU, in one run.
 
-    python -m coherent_jax.bench physics [env=halfcheetah] [envs=[16,64,256]] [steps=...]
+    python -m benchmarks physics [env=halfcheetah] [envs=[16,64,256]] [steps=...]
         [variants=[...]] [repeats=3] [out=bench_results/physics.json]
 
 Every measurement steps `VecEnv` (the code path training uses: physics, time limit,
@@ -26,7 +26,7 @@ Variants (`VARIANTS`):
   Gymnasium task with `DEFAULT_THREADS` threads from a Python loop; ``envpool_all``: on
   every core. Only for Gymnasium's tasks.
 
-The ``standard`` suite (`coherent_jax.bench.standard`) times Gymnasium's tasks against
+The ``standard`` suite (`benchmarks.standard`) times Gymnasium's tasks against
 their Brax re-creations and EnvPool with this module's side-by-side worker.
 
 A bad key or value is one line on stderr and exit status 2, before anything runs.
@@ -52,7 +52,7 @@ import mujoco
 import numpy as np
 from mujoco import batch
 
-from coherent_jax.bench import measure
+from benchmarks import measure
 from coherent_jax.config import ConfigError, cli
 from coherent_jax.envs.native import mujoco_model
 from coherent_jax.envs.registry import DEFAULT_THREADS, NATIVE_TASKS, check_task
@@ -73,7 +73,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
 _GUESS = {"mjx": 3000, "native": 30000, "raw": 30000, "envpool": 20000, "generalized": 3000}
 
 
-# How long the suite takes at its defaults (`python -m coherent_jax.bench --help` prints it).
+# How long the suite takes at its defaults (`python -m benchmarks --help` prints it).
 COST = "~1 h (stopped at 1,800 s after 12 of 27 rows; MJX rows 188-393 s, native 15-38 s)"
 KEYS: dict[str, cli.Key] = {
     "env": cli.Key("halfcheetah", cli.choice(tuple(NATIVE_TASKS)), ", ".join(NATIVE_TASKS), "the task"),
@@ -287,7 +287,7 @@ def _spawn(spec: dict[str, Any], flags: str | None = None) -> dict[str, Any]:
     if flags:
         env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " " + flags).strip()
     proc = subprocess.run(
-        [sys.executable, "-m", "coherent_jax.bench.physics", "--worker", json.dumps(spec)],
+        [sys.executable, "-m", "benchmarks.physics", "--worker", json.dumps(spec)],
         env=env,
         capture_output=True,
         text=True,
@@ -354,5 +354,5 @@ def format_table(result: dict[str, Any]) -> str:
 
 if __name__ == "__main__":  # one measurement in a fresh process: ``--worker SPEC_JSON``
     if sys.argv[1:2] != ["--worker"] or len(sys.argv) != 3:
-        sys.exit("usage: python -m coherent_jax.bench.physics --worker SPEC_JSON (run by the physics suite)")
+        sys.exit("usage: python -m benchmarks.physics --worker SPEC_JSON (run by the physics suite)")
     print(json.dumps(_worker(json.loads(sys.argv[2]))), flush=True)

@@ -1,6 +1,10 @@
 """The thesis's dense filter (4.33)-(4.49) over the flattened last-layer weights, the
 reference the block filter is timed and checked against, and inputs drawn from the
-model for comparing the two."""
+model for comparing the two.
+
+Training never runs it: it is in the package because both the benchmarks' ``coherent``
+suite (``benchmarks/filter_cost.py`` times the block filter against it) and the tests
+(``tests/test_bench.py``) import it, and the package is what both may import."""
 
 from __future__ import annotations
 
