@@ -15,6 +15,7 @@ import ast
 import importlib
 import re
 import sys
+from collections.abc import Collection
 from pathlib import Path
 
 import pytest
@@ -100,28 +101,31 @@ def test_each_folder_has_its_own_table():
 # ------------------------------------------------------------------------------- layers
 def layers(text: str) -> list[list[str]]:
     """The numbered layers of "Architecture" / "Layers": each a list of units, a unit a
-    top-level module (``train.py``) or a folder (``run/``), relative to the package."""
+    top-level module (``train.py``), a folder (``run/``) or one module of a folder
+    (``policy/hub.py``), relative to the package."""
     block = _section(text, "Architecture").split("### Layers", 1)[1].split("\n### ", 1)[0]
     found = []
     for line in block.splitlines():
-        m = re.fullmatch(r"\s+(\d+)\.\s+(?:[a-z ]+:)?\s*(.+)", line)
+        m = re.fullmatch(r"\s+(\d+)\.\s+(?:[A-Za-z ]+:)?\s*(.+)", line)
         if m:
             assert int(m.group(1)) == len(found) + 1, line
             found.append(m.group(2).split())
     return found
 
 
-def unit_of(module: str) -> str:
-    """A module's unit in the layers: its top-level file or its folder (the deepest one listed)."""
+def unit_of(module: str, units: Collection[str] | None = None) -> str:
+    """A module's unit in the layers: its top-level file, else the most specific of ``units``
+    (by default the layers' own) that holds it: the module itself (``policy/hub.py``), its
+    folder, a folder above it; else its top folder."""
+    units = {u for layer in layers(DEVELOPMENT.read_text()) for u in layer} if units is None else units
     parts = module.split(".")[1:]
     path = ROOT / PACKAGE / Path(*parts) if parts else ROOT / PACKAGE
     if path.is_dir():  # a package: its __init__.py
         parts = [*parts, "__init__"]
     if len(parts) == 1:
         return parts[0] + ".py"
-    if parts[0] == "exploration" and len(parts) > 2 and parts[1] == "coherent":
-        return "exploration/coherent/"
-    return parts[0] + "/"
+    candidates = ["/".join(parts) + ".py"] + ["/".join(parts[:k]) + "/" for k in range(len(parts) - 1, 0, -1)]
+    return next((c for c in candidates if c in units), parts[0] + "/")
 
 
 def _module_name(path: Path) -> str:
@@ -172,6 +176,11 @@ def test_layer_check_sees_function_level_and_relative_imports():
         "coherent_jax.config",
     }
     assert unit_of("coherent_jax.run.launch") == "run/"
+    assert unit_of("coherent_jax.run.launch", {"run/", "run/evaluation.py"}) == "run/"
+    assert unit_of("coherent_jax.run.evaluation", {"run/", "run/evaluation.py"}) == "run/evaluation.py"
+    assert unit_of("coherent_jax.exploration.coherent", {"exploration/", "exploration/coherent/"}) == (
+        "exploration/coherent/"
+    )
     assert unit_of("coherent_jax.exploration.coherent.filter") == "exploration/coherent/"
     assert unit_of("coherent_jax.exploration") == "exploration/"
     assert unit_of("coherent_jax.cli") == "cli.py"
@@ -182,15 +191,15 @@ def test_imports_follow_the_layers():
     stated = layers(DEVELOPMENT.read_text())
     level = {unit: i for i, units in enumerate(stated) for unit in units}
     modules = sorted((ROOT / PACKAGE).rglob("*.py"))
-    units = {unit_of(_module_name(p)) for p in modules}
+    units = {unit_of(_module_name(p), level) for p in modules}
     assert units == set(level), f"units the layers miss: {sorted(units - set(level))}; " + (
         f"listed but absent: {sorted(set(level) - units)}"
     )
     upward = []
     for path in modules:
-        unit = unit_of(_module_name(path))
+        unit = unit_of(_module_name(path), level)
         for target in sorted(imports_of(path)):
-            other = unit_of(target)
+            other = unit_of(target, level)
             if other != unit and level[other] <= level[unit]:
                 upward.append(f"{path.relative_to(ROOT)} ({unit}) imports {target} ({other})")
     assert not upward, "imports against docs/development.md's layers:\n" + "\n".join(upward)
