@@ -1,4 +1,4 @@
-"""coherent_jax: Deep Coherent Exploration for continuous control, in JAX on MJX."""
+"""coherent_jax: Deep Coherent Exploration for continuous control, in JAX, on MuJoCo (its C engine or MJX)."""
 
 import importlib as _importlib
 import os as _os
