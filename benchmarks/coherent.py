@@ -10,10 +10,11 @@ costs next to Gaussian action noise:
    machine hits both, and the median iteration time gives env steps/s. Peak memory
    of each compiled iteration comes from XLA's ``memory_analysis()``, also for
    ``remat=true``.
-2. *The filter alone.* `coherent_filter.log_marginals` (p independent (q+1)-dimensional
-   Kalman filters, docs/design.md §3) against `reference.dense_log_marginals`, the thesis's
-   recursion (4.33)-(4.49) over the flattened p(q+1) weight vector, forward and
-   forward+gradient, with a check that both give the same log-probabilities.
+2. *The filter alone.* `coherent_jax.exploration.coherent.filter.log_marginals` (p
+   independent (q+1)-dimensional Kalman filters, docs/design.md §3) against
+   `reference.dense_log_marginals`, the thesis's recursion (4.33)-(4.49) over the flattened
+   p(q+1) weight vector, forward and forward+gradient, with a check that both give the
+   same log-probabilities.
 3. *The loss's segment log-prob.* ``strategy.log_prob`` as the trainer's loss
    calls it (vmapped over a minibatch of env segments, with its gradient), for
    coherent and for action noise.

@@ -1,6 +1,6 @@
 """Section 2 of the ``coherent`` suite: the block filter against the thesis's dense recursion.
 
-`coherent_filter.log_marginals` (p independent (q+1)-dimensional Kalman filters,
+`coherent_jax.exploration.coherent.filter.log_marginals` (p independent (q+1)-dimensional Kalman filters,
 docs/design.md §3) against `reference.dense_log_marginals`, the recursion (4.33)-(4.49)
 over the flattened p(q+1) weight vector: forward and forward+gradient times, and a
 check that both give the same log-probabilities and gradients.

@@ -1,4 +1,4 @@
-"""coherent_jax: Deep Coherent Exploration for continuous control, in JAX on MJX."""
+"""coherent_jax: Deep Coherent Exploration for continuous control, in JAX, on MuJoCo (its C engine or MJX)."""
 
 import importlib as _importlib
 import os as _os
@@ -30,6 +30,7 @@ _LAZY = {
     "load_policy": "coherent_jax.api",
     "TrainResult": "coherent_jax.api",
     "PolicyFunction": "coherent_jax.api",
+    "Policy": "coherent_jax.policy",
     "TrainedPolicy": "coherent_jax.policy",
     "Callback": "coherent_jax.run.callbacks",
     "Stop": "coherent_jax.run.callbacks",

@@ -13,7 +13,7 @@
 (`coherent_jax.run.single.launch_train`: checks, run directory, lock, config, loop, summary),
 the same files and lines, the same refusals raised instead of printed. `load_policy` is
 `coherent_jax.policy.load_policy`: the policy evaluation acts with (what ``python -m
-coherent_jax.evaluate`` reads) as a `TrainedPolicy`, with ``predict(obs, state,
+coherent_jax.evaluate`` reads) as a `Policy`, with ``predict(obs, state,
 episode_start, deterministic)`` and actions in the env's own action space.
 """
 
@@ -26,7 +26,7 @@ from typing import Any, NamedTuple
 
 from coherent_jax.config import Config, ConfigError, override_items
 from coherent_jax.config.parse import overrides_of
-from coherent_jax.policy import TrainedPolicy, load_policy
+from coherent_jax.policy import Policy, load_policy
 from coherent_jax.run.callbacks import Callback
 from coherent_jax.run.callbacks import checked as checked_callbacks
 from coherent_jax.run.runs import CHECKPOINT, METRICS, PARAMS, read_metrics
@@ -34,7 +34,7 @@ from coherent_jax.run.single import SUMMARY, launch_train
 from coherent_jax.run.stop import StopRequest
 
 #: the policy `load_policy` returns (``PolicyFunction`` before it had ``predict``).
-PolicyFunction = TrainedPolicy
+PolicyFunction = Policy
 
 
 class TrainResult(NamedTuple):
@@ -53,7 +53,7 @@ class TrainResult(NamedTuple):
         stopped early, which ``{"resume": run_dir}`` continues.
     """
 
-    policy: TrainedPolicy | None
+    policy: Policy | None
     metrics: list[dict[str, Any]]
     run_dir: Path
     summary: dict[str, Any] | None

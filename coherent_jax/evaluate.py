@@ -1,7 +1,7 @@
 """Evaluate a run's policy: ``python -m coherent_jax.evaluate RUN_DIR episodes=10 video=true``.
 
 ``RUN_DIR`` is a training run's directory or one point of a sweep
-(``runs/sweep-.../p003-beta=0.1-seed=1``). Its policy (`coherent_jax.run.policy.Policy`) is
+(``runs/sweep-.../p003-beta=0.1-seed=1``). Its policy (`coherent_jax.policy.net.PolicyNet`) is
 read from ``checkpoint.msgpack`` (verified as in `coherent_jax.run.runs`), or from
 ``params.msgpack`` where there is no checkpoint, without building the training envs,
 a trainer or a replay buffer. ``episodes`` deterministic (mean-action) episodes run in

@@ -3,8 +3,8 @@
 This is what the config validates against (its ``explore`` choices, the algorithms each
 strategy runs with and the one-line reason for each it does not) and what the
 experiments enumerate, so it must load without JAX. The classes are registered by
-class in `coherent_jax.exploration.registry`, one row per name here; a test keeps the
-two equal (`coherent_jax.exploration.registry.check_registry`).
+class in `coherent_jax.agents.registry`, one row per name here; a test keeps the
+two equal (`coherent_jax.agents.registry.check_registry`).
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
     PYTHONPATH=. python experiments/two_core_loss.py [OUT.json] [--envs 4] [--steps 1000] [--rounds 7]
 
 Under ``preset=thesis`` a Coherent-PPO policy step scores 4 chains of 1,000 steps
-(`coherent_exact.chained_marginals`, eqs. 4.37/4.49 chained by the posterior
+(`coherent_jax.exploration.coherent.exact.chained_marginals`, eqs. 4.37/4.49 chained by the posterior
 4.44-4.46); XLA runs that loss on one core. Its envs are independent chains, so the
 loss splits over devices with one all-reduce of the gradient. The iteration's rollout,
 though, steps MuJoCo's C engine through one host callback per step. This measures both

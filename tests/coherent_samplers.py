@@ -30,7 +30,7 @@ def log_marginals_from(
 ) -> tuple[chex.Array, Belief]:
     """log p(a_t | a_<t, s_<=t) over a segment that starts from ``belief0``.
 
-    `coherent_filter.segment_marginals` without the predictive variances; returns
+    `coherent_jax.exploration.coherent.filter.segment_marginals` without the predictive variances; returns
     (logp [T], final belief).
     """
     logp, final_belief, _ = segment_marginals(

@@ -103,8 +103,8 @@ def test_train_returns_the_run_and_its_policy_acts_as_evaluation_does(tmp_path):
     """A tiny run through the API: the result's fields hold what the run wrote; its policy is
     the one ``python -m coherent_jax.evaluate`` evaluates, action for action."""
     from coherent_jax.evaluate import EvalConfig
+    from coherent_jax.policy.net import read_policy
     from coherent_jax.run.evaluation import evaluate_run
-    from coherent_jax.run.policy import load_policy as read_policy
     from coherent_jax.run.runs import read_metrics
     from coherent_jax.train import main
 

@@ -76,7 +76,8 @@ def refiltered_marginals(
     """log p(a_t | a_<t, s_<=t) of a segment, the episode prefix re-inferred from its start.
 
     The prefix (H steps before the segment) and the segment are one chain of
-    `coherent_exact.chained_marginals` that starts from the prior at the first prefix step (4.33), so
+    `E.chained_marginals` (`coherent_jax.exploration.coherent.exact`) that starts from the prior at
+    the first prefix step (4.33), so
     the segment's terms are exactly the thesis's marginals (4.37)/(4.49) of an episode
     filtered from its beginning under the given parameters, and differentiate through
     the prefix's inputs. The prefix must start at an episode start, or at a step before
@@ -87,8 +88,8 @@ def refiltered_marginals(
       history_x, history_a, history_first: [H, q], [H, p], [H] the steps before the
         segment; H may be 0.
       x, a, first: [T, q], [T, p], [T] the segment.
-      mu, w_std, action_std, beta: as `coherent_exact.chained_marginals`.
-      block: steps per block, a divisor of H + T; by default blocks of `coherent_exact.MAX_BLOCK` steps,
+      mu, w_std, action_std, beta: as `E.chained_marginals`.
+      block: steps per block, a divisor of H + T; by default blocks of `E.MAX_BLOCK` steps,
         the front padded with one-step episodes to a whole number of blocks.
 
     Returns:

@@ -316,7 +316,7 @@ def test_policy_restored_without_a_trainer_acts_as_the_agent(tmp_path, monkeypat
     from coherent_jax.agents.onpolicy import OnPolicyTrainer
     from coherent_jax.agents.sac import SACTrainer
     from coherent_jax.networks import normalize
-    from coherent_jax.run.policy import Policy, load_policy
+    from coherent_jax.policy.net import PolicyNet, read_policy
 
     cfg = parse_overrides([*POINTMASS, *overrides])
     trainer = agents.make_trainer(cfg)
@@ -339,7 +339,7 @@ def test_policy_restored_without_a_trainer_acts_as_the_agent(tmp_path, monkeypat
     monkeypatch.setattr("coherent_jax.agents.sac.replay_init", refuse)
 
     for source in ("checkpoint.msgpack", "params.msgpack"):
-        policy, origin = load_policy(run, *sizes)
+        policy, origin = read_policy(run, *sizes)
         assert origin["source"] == source
         for got, want in zip(
             jax.tree.leaves((policy.params, policy.obs_stats)),
@@ -350,7 +350,7 @@ def test_policy_restored_without_a_trainer_acts_as_the_agent(tmp_path, monkeypat
         np.testing.assert_array_equal(np.asarray(policy.mean_action(obs)), np.asarray(expected))
         (run / CHECKPOINT).unlink(missing_ok=True)
 
-    again = Policy.from_bytes(policy.to_bytes())
+    again = PolicyNet.from_bytes(policy.to_bytes())
     np.testing.assert_array_equal(np.asarray(again.mean_action(obs)), np.asarray(expected))
     # The stochastic action differs from the mean action but stays near it.
     sampled = np.asarray(jax.jit(lambda p, k, o: p.sample(k, o))(policy, jax.random.PRNGKey(1), obs))

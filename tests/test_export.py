@@ -17,10 +17,10 @@ from helpers import child_env
 from coherent_jax.config import make_config
 from coherent_jax.envs.action_map import ActionMap
 from coherent_jax.networks import RunningStats
-from coherent_jax.policy import TrainedPolicy
+from coherent_jax.policy import Policy
 from coherent_jax.policy.formats import run_stablehlo, write_onnx, write_stablehlo
+from coherent_jax.policy.net import PolicyNet, policy_template
 from coherent_jax.policy.onnx_graph import to_onnx
-from coherent_jax.run.policy import Policy, policy_template
 from coherent_jax.strategies import EXPLORES, SUPPORTED_ALGOS
 
 OBS, ACT = 5, 3
@@ -39,7 +39,7 @@ CASES = [
 
 def random_policy(
     algo: str, explore: str, extra: dict, seed: int = 0, env: str = "pointmass", sizes=(OBS, ACT), amap=None
-) -> TrainedPolicy:
+) -> Policy:
     """A policy of task ``env`` with random parameters and observation statistics (no training)."""
     obs_size, action_size = sizes
     cfg = make_config({"env": env, "algo": algo, "explore": explore, "policy_hidden": [16, 8], **extra})
@@ -54,7 +54,7 @@ def random_policy(
     )
     if amap is None:  # non-unit, one asymmetric
         amap = ActionMap.make("centre", [-3.0, -0.4, 0.0], [3.0, 0.4, 2.0])
-    return TrainedPolicy(Policy.create(cfg, params, stats, obs_size, action_size), amap, {"source": "test"})
+    return Policy(PolicyNet.create(cfg, params, stats, obs_size, action_size), amap, {"source": "test"})
 
 
 OBS_1000 = np.random.default_rng(1).normal(0, 2, (1000, OBS)).astype(np.float32)

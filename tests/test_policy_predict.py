@@ -10,10 +10,12 @@ import yaml
 from test_export import ACT, CASES, OBS, random_policy
 
 import coherent_jax
+import coherent_jax.policy as policy_package
+from coherent_jax import api
 from coherent_jax.config import make_config
 from coherent_jax.envs.action_map import ActionMap
 from coherent_jax.export import main as export_main
-from coherent_jax.policy import PolicyState, TrainedPolicy, load_policy
+from coherent_jax.policy import Policy, PolicyState, load_policy
 
 TINY = {
     "env": "pointmass",
@@ -38,9 +40,18 @@ def ppo_run(tmp_path_factory):
     return run_dir
 
 
+def test_one_policy_class_and_one_load_policy_under_every_public_name():
+    """`Policy` and `load_policy` are the package's one policy and one loader; `TrainedPolicy`
+    and `PolicyFunction` are former names of the same class."""
+    assert coherent_jax.Policy is coherent_jax.TrainedPolicy is policy_package.TrainedPolicy is Policy
+    assert api.PolicyFunction is coherent_jax.PolicyFunction is Policy
+    assert coherent_jax.load_policy is api.load_policy is policy_package.load_policy
+    assert not hasattr(policy_package, "read_policy") and "PolicyError" in policy_package.__all__
+
+
 def test_predict_deterministic_one_and_batch(ppo_run):
     policy = load_policy(ppo_run)
-    assert isinstance(policy, TrainedPolicy) and coherent_jax.load_policy(ppo_run).origin == policy.origin
+    assert isinstance(policy, Policy) and coherent_jax.load_policy(ppo_run).origin == policy.origin
     assert policy.observation_space.shape == (6,) and policy.action_space.shape == (2,)
     text = repr(policy)
     for part in ("task='pointmass'", "algo='ppo'", "explore='coherent'", "env_steps=32"):

@@ -19,7 +19,7 @@ from helpers import child_env
 
 from coherent_jax.agents import losses, make_trainer
 from coherent_jax.config import SWEEPABLE, ConfigError, help_text, parse_overrides
-from coherent_jax.run.policy import load_policy
+from coherent_jax.policy.net import read_policy
 from coherent_jax.run.runs import load_config, read_metrics, resume_config, write_config
 from coherent_jax.sweep import parse_sweep
 from coherent_jax.train import main
@@ -356,7 +356,7 @@ def test_separate_value_run_resumes_to_the_uninterrupted_run(tmp_path):
     assert (split / "params.msgpack").read_bytes() == (straight / "params.msgpack").read_bytes()
     summary = json.loads((split / "summary.json").read_text())
     assert summary["resumed_from"] == 2
-    policy, where = load_policy(split, 6, 2)
+    policy, where = read_policy(split, 6, 2)
     assert where["iteration"] == 3
     assert np.all(np.isfinite(policy.mean_action(jnp.zeros((1, 6)))))
 

@@ -137,7 +137,8 @@ whiten.defvjp(_whiten_fwd, _whiten_bwd, symbolic_zeros=True)
 def masked_gram(x: jax.Array, var: jax.Array, mask: jax.Array, noise_var: jax.Array) -> jax.Array:
     """K_i = mask * (X diag(var_i) X') + noise_var_i I, one T x T matrix per row i of ``var``.
 
-    The covariance of the joint form (`coherent_joint.segment_marginals_joint`), symmetric
+    The covariance of the joint form
+    (`coherent_jax.exploration.coherent.joint.segment_marginals_joint`), symmetric
     whenever ``mask`` is. Its reverse pass uses that symmetry: with G_i = mask * Kbar_i and
     S_i = G_i + G_i', one product Y_i = S_i X per matrix gives
 

@@ -1,4 +1,8 @@
-"""A `TrainedPolicy`'s deterministic action out of Python: ONNX and serialized StableHLO.
+"""A `Policy`'s deterministic action out of Python: ONNX and serialized StableHLO.
+
+It stands alone because it is a public module (``coherent_jax.policy.formats``, docs/api.md)
+and because it keeps onnx, an optional dependency, out of every import but `write_onnx`'s:
+`coherent_jax.policy.onnx_graph` needs onnx, StableHLO only JAX.
 
 Both hold the whole evaluation action, a = m(clip(mu(norm(s)), -1, 1)) (observation
 normalisation, the algorithm's mean, the task's `ActionMap`), on a batch ``obs`` [N, o]
@@ -18,16 +22,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from coherent_jax.policy.agent import TrainedPolicy
+from coherent_jax.policy.trained import Policy
 
 
-def action_fn(policy: TrainedPolicy):
+def action_fn(policy: Policy):
     """obs [..., o] -> the deterministic action [..., p] in the env's action space, parameters closed over."""
     inner, amap = policy.policy, policy.action_map
     return lambda obs: amap(inner.mean_action(obs))
 
 
-def write_onnx(policy: TrainedPolicy, path: Path) -> None:
+def write_onnx(policy: Policy, path: Path) -> None:
     """The ONNX model of the policy's deterministic action (inputs ``obs`` [N, o], output ``action``)."""
     from coherent_jax.policy.onnx_graph import to_onnx  # lazy: onnx, an optional dependency (export extra)
 
@@ -36,7 +40,7 @@ def write_onnx(policy: TrainedPolicy, path: Path) -> None:
     path.write_bytes(model.SerializeToString())
 
 
-def write_stablehlo(policy: TrainedPolicy, path: Path) -> None:
+def write_stablehlo(policy: Policy, path: Path) -> None:
     """``jax.export`` of the deterministic action on ``obs`` [b, o] float32, b symbolic, serialized."""
     (b,) = jax.export.symbolic_shape("b")
     spec = jax.ShapeDtypeStruct((b, policy.obs_size), jnp.float32)

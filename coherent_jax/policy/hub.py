@@ -26,8 +26,8 @@ import coherent_jax
 from coherent_jax.config import Config, make_config, override_items
 from coherent_jax.config.parse import overrides_of
 from coherent_jax.envs.registry import check_task
-from coherent_jax.policy.agent import META_FILE, POLICY_FILE, TrainedPolicy, load_policy
 from coherent_jax.policy.formats import write_onnx
+from coherent_jax.policy.trained import META_FILE, POLICY_FILE, Policy, load_policy
 from coherent_jax.run import provenance
 from coherent_jax.run.evaluation import evaluate_run
 from coherent_jax.run.video_path import default_suffix
@@ -74,7 +74,7 @@ def strategy_settings(cfg: Config) -> dict[str, Any]:
     return dataclasses.asdict(group) if dataclasses.is_dataclass(group) else {}
 
 
-def model_card(policy: TrainedPolicy, figures: dict[str, Any], versions: dict[str, Any], command: str) -> str:
+def model_card(policy: Policy, figures: dict[str, Any], versions: dict[str, Any], command: str) -> str:
     """README.md of the folder: YAML front matter (the Hub's metadata), then the card."""
     cfg = policy.config
     mean, std, episodes = figures["return_mean"], figures["return_std"], figures["episodes"]

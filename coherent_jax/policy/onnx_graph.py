@@ -2,7 +2,7 @@
 
 The function exported is one observation -> one action, s -> m(clip(mu(norm(s)), -1, 1)) (the
 observation normalisation, the algorithm's mean and the task's `ActionMap`, as
-`coherent_jax.policy.TrainedPolicy.predict` computes it), traced to a jaxpr with the
+`coherent_jax.policy.Policy.predict` computes it), traced to a jaxpr with the
 parameters as constants. The graph acts on a batch ``obs`` [N, o] -> ``action`` [N, p]:
 
 * every equation whose inputs are all constants (parameters, the action bounds, literals)

@@ -23,8 +23,8 @@ from coherent_jax.envs.native import NATIVE_TASKS
 from coherent_jax.envs.quiet import quiet_stdio
 from coherent_jax.envs.registry import CLASSIC_IDS
 from coherent_jax.envs.vec_env import VecEnv
+from coherent_jax.policy.net import PolicyError, read_policy
 from coherent_jax.run import tracking, video
-from coherent_jax.run.policy import PolicyError, load_policy
 from coherent_jax.run.runs import load_config
 from coherent_jax.run.video_path import default_suffix
 
@@ -49,7 +49,7 @@ def gymnasium_returns(policy, env: str, episode_length: int, episodes: int, seed
     One ``gymnasium.make(gym_id, max_episode_steps=episode_length)`` per episode, stepped
     in lockstep so that the policy runs once per step on the batch of observations. Each
     observation is cast to float32 (our observations' type) and passed through the
-    run's normalisation inside `Policy.mean_action`; the action is clipped to [-1, 1]
+    run's normalisation inside `PolicyNet.mean_action`; the action is clipped to [-1, 1]
     and mapped onto Gymnasium's action space with the task's own map
     (`gymnasium_action_map`: centre + a * half-width), exactly what `VecEnv.step` and the
     task do in training;
@@ -104,7 +104,7 @@ def evaluate_run(run_dir: Path, opts: Any, mirror_wandb: bool = True) -> dict[st
         )
     else:
         eval_env = VecEnv(cfg.env, opts.episodes, cfg.episode_length, cfg.physics, cfg.physics_threads)
-    policy, origin = load_policy(run_dir, eval_env.observation_size, eval_env.action_size)
+    policy, origin = read_policy(run_dir, eval_env.observation_size, eval_env.action_size)
     evaluate = jax.jit(lambda p, k: evaluation_metrics(eval_env, p.mean_action, k))
     metrics = jax.device_get(evaluate(policy, jax.random.PRNGKey(opts.seed)))
     result = {

@@ -49,7 +49,7 @@ from coherent_jax.run.provenance import provenance
 
 PREFIX = "[coherent_jax]"  # starts every line the command-line programs print
 CHECKPOINT = "checkpoint.msgpack"
-PARAMS = "params.msgpack"  # a finished run's final parameters (`coherent_jax.run.policy`)
+PARAMS = "params.msgpack"  # a finished run's final parameters (`coherent_jax.policy.net`)
 CONFIG = "config.yaml"
 METRICS = "metrics.jsonl"
 VERSIONS = "versions.json"

@@ -8,7 +8,7 @@ trunk features, mu and w_std all move the belief a later step conditions on.
 
 `chained_marginals` gives the exact quantity at a cost linear in the episode length: it
 scores a long segment as a chain of blocks of the joint form
-(`coherent_joint.segment_marginals_joint`), each block starting from the belief the block
+(`joint.segment_marginals_joint`), each block starting from the belief the block
 before it ends with, *not* stopped: the gradient flows through every belief back to the
 start of the chain. O(T (B (q+1) + (q+1)^2)) per action dimension for blocks of B steps,
 instead of the single joint form's O(T^2 (q+1) + T^3).
@@ -19,7 +19,7 @@ every segment is scored from the prior by `chained_marginals`. Its episode mode
 (``coherent.gradient=episode``) scores a segment that starts mid-episode by running the
 same chain over the episode prefix (its features, actions and resets) first, so the
 segment's log-probabilities condition on the prefix re-inferred under the current
-parameters (`coherent.CoherentExploration`); its cost grows as (prefix + segment) /
+parameters (`strategy.CoherentExploration`); its cost grows as (prefix + segment) /
 segment.
 """
 
@@ -56,7 +56,7 @@ def chained_marginals(
     remat: bool = False,
     start_block: chex.Array | None = None,
 ) -> tuple[chex.Array, Belief, chex.Array]:
-    """`coherent_filter.segment_marginals` over T steps, as blocks of the joint form chained by beliefs.
+    """`filter.segment_marginals` over T steps, as blocks of the joint form chained by beliefs.
 
     The segment is cut into T / B blocks of B steps. Block k is scored from its joint
     Gaussian (eqs. 4.37/4.49 through the Cholesky factor, as in
@@ -88,7 +88,7 @@ def chained_marginals(
         1 .. k0 - 1 are skipped: the belief passes through them unchanged, their logp
         are 0 and their variances 1. Only right where every step that is kept
         conditions on nothing before block k0, i.e. each kept step's episode starts at
-        or after step k0 B (the episode mode's windows, `coherent.window_start_block`).
+        or after step k0 B (the episode mode's windows, `strategy.window_start_block`).
         A ``jax.lax.cond`` per block, so a k0 that is the same for a whole batch skips
         its work; under ``vmap`` over k0 both branches run.
 

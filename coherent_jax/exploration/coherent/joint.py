@@ -1,6 +1,6 @@
 """The coherent marginals in parallel form: the joint Gaussian of a segment's actions.
 
-`segment_marginals_joint` gives what the filter (`coherent_filter`) gives, the per-step
+`segment_marginals_joint` gives what the filter (`filter.segment_marginals`) gives, the per-step
 marginals (4.37)/(4.49), the predictive variances and the belief that starts the next
 segment, from one Cholesky factor per action dimension instead of a sequential loop
 (docs/design.md §4).

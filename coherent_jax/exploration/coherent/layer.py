@@ -1,8 +1,8 @@
 """What the on-policy strategies on the beta-chain share (thesis §4.1).
 
 `ChainStrategy` holds the chain's settings (beta, the initial w_std, the action noise);
-every coherent on-policy strategy (`coherent.CoherentExploration` and the ablations of
-`coherent_mc`) is one. `LastLayer` is the policy whose last layer the chain perturbs:
+every coherent on-policy strategy (`strategy.CoherentExploration` and the ablations of
+`mc`) is one. `LastLayer` is the policy whose last layer the chain perturbs:
 the trunk f_theta and the last layer's weight mean and spread. The analytic strategy
 and its Monte Carlo ablation each hold one and differ only in how they score an
 action, so neither derives from the other.

@@ -38,8 +38,8 @@ from coherent_jax.networks import ACTIVATIONS, augment
 class CoherentMC(ChainStrategy):
     """Coherent exploration of the last layer scored by single-sample Monte Carlo.
 
-    The policy (`coherent_layer.LastLayer`: parameters, the weights the chain runs with,
-    the evaluation action) is that of `coherent.CoherentExploration`; only the per-env
+    The policy (`layer.LastLayer`: parameters, the weights the chain runs with,
+    the evaluation action) is that of `strategy.CoherentExploration`; only the per-env
     carry (the chain's z) and the log-probability differ.
     """
 

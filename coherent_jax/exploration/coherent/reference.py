@@ -38,9 +38,9 @@ def dense_log_marginals(x, a, first, params: ChainParams, checkpoint_chunk: int 
     flatters the dense side, except where its gradient must be checkpointed to fit
     in memory, which costs about one more forward pass (the bench records this).
 
-    Same contract as `coherent_filter.log_marginals`: x [T, q], a [T, p], first [T], the
-    chain's mu and w_std [p, q+1] (bias last), action_std [p] and beta; t = 0 always starts
-    from the prior.
+    Same contract as `coherent_jax.exploration.coherent.filter.log_marginals`: x [T, q],
+    a [T, p], first [T], the chain's mu and w_std [p, q+1] (bias last), action_std [p]
+    and beta; t = 0 always starts from the prior.
     ``checkpoint_chunk > 0`` rematerialises the scan in chunks of that many steps
     (only the belief at each chunk start is kept for the backward pass), so the
     gradient fits in memory when p(q+1) is large.

@@ -3,8 +3,8 @@
 Deep Coherent Exploration perturbs only the policy's last layer with the beta-chain
 (thesis §4.1, eqs. 4.1-4.5); on-policy, every action is scored with the analytic
 marginal log p(a_t | a_<t, s_<=t) of the chain actually run (§4.2): by the filter of
-`coherent_filter`, the joint form of `coherent_joint`, or the chained blocks of
-`coherent_exact` for long segments and episode prefixes. docs/coherent.md lists the
+`filter`, the joint form of `joint`, or the chained blocks of `exact` (modules of this
+folder) for long segments and episode prefixes. docs/coherent.md lists the
 options and what each runs.
 """
 
@@ -93,7 +93,7 @@ def window_start_block(first: chex.Array, history_length: int, block: int) -> ch
     before the segment's first step (window index H; index 0 if none) is the earliest
     any of them needs. The block holding it, at its earliest over the windows (``first``
     [W, *b]) and over a sweep's points, so that one ``lax.cond`` per block skips the
-    blocks before it for the whole minibatch (`coherent_exact.chained_marginals`).
+    blocks before it for the whole minibatch (`exact.chained_marginals`).
     """
     if first.shape[0] <= history_length:  # a segment without its prefix: nothing to skip
         return jnp.zeros((), jnp.int32)
@@ -107,7 +107,7 @@ class CoherentExploration(ChainStrategy):
     """Deep Coherent Exploration of the policy's last layer (thesis §4.1-4.2).
 
     Parameters: the trunk f_theta, the last-layer mean ``mu`` [p, q+1] and per-weight
-    ``log_w_std`` [p, q+1] (Lambda^-1/2) of its policy (`coherent_layer.LastLayer`,
+    ``log_w_std`` [p, q+1] (Lambda^-1/2) of its policy (`layer.LastLayer`,
     ``layer``), and ``log_action_std`` [p] when learned
     (otherwise ``action_std`` is a fixed, sweepable hyperparameter, as in the
     thesis). ``beta`` is a hyperparameter (an array, so it can be swept).
@@ -118,7 +118,7 @@ class CoherentExploration(ChainStrategy):
     scores the whole segment at once from its joint Gaussian and stores the belief
     that starts the next one; with ``"filter"`` `act` runs the filter step by step.
     `log_prob` recomputes the marginals of a stored segment under the current
-    parameters in the same form; segments longer than `coherent_exact.MAX_BLOCK` are
+    parameters in the same form; segments longer than `exact.MAX_BLOCK` are
     scored as blocks of the joint form chained by differentiable beliefs.
 
     ``gradient`` chooses what a segment's first step conditions on:
@@ -348,7 +348,7 @@ class CoherentExploration(ChainStrategy):
     def _window_log_prob(self, x, actions, first, chain: ChainParams, start) -> SegmentLogProb:
         """``gradient="episode"``: a window of `history_length` prefix steps and a segment,
         scored from the prior at its first step as blocks of the joint form chained by
-        differentiable beliefs (`coherent_exact.chained_marginals`). The window always
+        differentiable beliefs (`exact.chained_marginals`). The window always
         reaches back to the segment's episode start, which resets the belief there (4.33);
         the blocks before ``start`` (`window_start_block`) are skipped, as nothing kept
         depends on them. The trainer reads the last T steps."""

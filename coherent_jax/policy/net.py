@@ -1,17 +1,18 @@
-"""A trained policy on its own: parameters + observation statistics -> action.
+"""`PolicyNet`: a trained policy's network alone, parameters + observation statistics -> action.
 
-`Policy` is what evaluation, a video or a user of a trained agent needs, and nothing
-of training: no environments, no optimiser, no replay buffer, no exploration state.
+The piece under `coherent_jax.policy.trained.Policy` (its ``policy`` attribute) that
+evaluation, a video or JAX code needs, and nothing of training: no environments, no
+optimiser, no replay buffer, no exploration state.
 
-    policy = load_policy(run_dir, obs_size, action_size)   # from checkpoint.msgpack or params.msgpack
-    action = policy.mean_action(obs)                        # deterministic: the evaluation action
-    action = policy.sample(key, obs)                        # stochastic (see `Policy.sample`)
-    blob = policy.to_bytes(); policy = Policy.from_bytes(blob)
+    net, origin = read_policy(run_dir, obs_size, action_size)   # from checkpoint.msgpack or params.msgpack
+    action = net.mean_action(obs)                                # deterministic: the evaluation action
+    action = net.sample(key, obs)                                # stochastic (see `PolicyNet.sample`)
+    blob = net.to_bytes(); net = PolicyNet.from_bytes(blob)
 
 The network is the algorithm's own: for A2C/PPO the exploration strategy's
 (`OnPolicyStrategy.mean_action`), for SAC the squashed Gaussian actor
 (tanh of its mean). Observations are normalised with the run's statistics when the
-run normalised them. A `Policy` is a pytree (parameters and statistics are its
+run normalised them. A `PolicyNet` is a pytree (parameters and statistics are its
 leaves; the network and settings are static), so
 ``jax.jit(lambda p, o: p.mean_action(o))`` takes it as an argument.
 """
@@ -58,7 +59,7 @@ def _network(cfg: Config, action_size: int):
 
 
 @struct.dataclass
-class Policy:
+class PolicyNet:
     """Parameters and observation statistics of a trained policy, and the network they belong to.
 
     Attributes:
@@ -143,7 +144,7 @@ class Policy:
         )
 
     @classmethod
-    def from_bytes(cls, blob: bytes) -> Policy:
+    def from_bytes(cls, blob: bytes) -> PolicyNet:
         """The policy `to_bytes` wrote; raises `PolicyError` in one line."""
         try:
             record = msgpack.unpackb(blob, raw=False)
@@ -196,7 +197,7 @@ def _restore(template: Any, stored: Any, where: str) -> Any:
     return jax.tree.map(jnp.asarray, restored)
 
 
-def policy_from_checkpoint(cfg: Config, state_bytes: bytes, obs_size: int, action_size: int) -> Policy:
+def policy_from_checkpoint(cfg: Config, state_bytes: bytes, obs_size: int, action_size: int) -> PolicyNet:
     """The policy inside a checkpoint's train state (`coherent_jax.run.state_bytes.state_to_bytes`).
 
     The state is stored as its leaves in tree order, and every trainer's state starts
@@ -220,10 +221,10 @@ def policy_from_checkpoint(cfg: Config, state_bytes: bytes, obs_size: int, actio
             )
     params, _, obs_stats = jax.tree_util.tree_unflatten(flat[1], [jnp.asarray(v) for v in leaves])
     exported = module.export(params, obs_stats)
-    return Policy.create(cfg, exported[_policy_key(cfg)], obs_stats, obs_size, action_size)
+    return PolicyNet.create(cfg, exported[_policy_key(cfg)], obs_stats, obs_size, action_size)
 
 
-def policy_from_params(cfg: Config, params_bytes: bytes, obs_size: int, action_size: int) -> Policy:
+def policy_from_params(cfg: Config, params_bytes: bytes, obs_size: int, action_size: int) -> PolicyNet:
     """The policy in a ``params.msgpack`` (the trainer's ``export_params``, flax serialisation)."""
     module = _agent_module(cfg)
     params, _, obs_stats = module.learner_template(cfg, obs_size, action_size)
@@ -232,10 +233,10 @@ def policy_from_params(cfg: Config, params_bytes: bytes, obs_size: int, action_s
     except Exception as exc:  # noqa: BLE001
         raise PolicyError(f"{PARAMS}: unreadable ({str(exc).splitlines()[0]})") from None
     exported = _restore(module.export(params, obs_stats), stored, PARAMS)
-    return Policy.create(cfg, exported[_policy_key(cfg)], exported["obs_stats"], obs_size, action_size)
+    return PolicyNet.create(cfg, exported[_policy_key(cfg)], exported["obs_stats"], obs_size, action_size)
 
 
-def load_policy(run_dir: Path, obs_size: int, action_size: int) -> tuple[Policy, dict[str, Any]]:
+def read_policy(run_dir: Path, obs_size: int, action_size: int) -> tuple[PolicyNet, dict[str, Any]]:
     """The policy of a run directory (a training run's, or one point of a sweep).
 
     From ``checkpoint.msgpack`` (verified against ``config.yaml``) if there is one, else

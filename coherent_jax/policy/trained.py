@@ -1,4 +1,4 @@
-"""`TrainedPolicy`: a run's policy as a user acts with it, one observation or a batch at a time.
+"""`Policy`: a run's policy as a user acts with it, one observation or a batch at a time.
 
     policy = load_policy("runs/hopper-...")            # a run directory or a Hub folder
     action, state = policy.predict(obs)               # deterministic, in the env's action space
@@ -29,8 +29,7 @@ from coherent_jax.agents.registry import make_behaviour
 from coherent_jax.config import Config, from_stored, validate
 from coherent_jax.envs.action_map import ActionMap
 from coherent_jax.envs.vec_env import VecEnv
-from coherent_jax.run.policy import Policy, PolicyError
-from coherent_jax.run.policy import load_policy as read_policy
+from coherent_jax.policy.net import PolicyError, PolicyNet, read_policy
 from coherent_jax.run.runs import load_config
 
 #: the files of a Hub folder (`coherent_jax.policy.hub`) that `load_policy` reads.
@@ -46,21 +45,23 @@ class PolicyState(NamedTuple):
     carry: Any
 
 
-def _config(policy: Policy) -> Config:
+def _config(policy: PolicyNet) -> Config:
     return validate(from_stored(yaml.safe_load(policy.config_yaml)))
 
 
-class TrainedPolicy:
+class Policy:
     """A trained policy with ``predict``; see the module docstring for the actions it takes.
 
     Attributes:
-      policy: the `coherent_jax.run.policy.Policy` underneath (a pytree, usable in JAX code).
+      policy: the `coherent_jax.policy.net.PolicyNet` underneath (a pytree, usable in JAX code).
       action_map: the task's `ActionMap` from [-1, 1] to the env's action space.
       origin: where it was read from: ``source``, ``iteration``, ``env_steps``.
       observation_space, action_space: Gymnasium ``Box``es of the env's observations and actions.
     """
 
-    def __init__(self, policy: Policy, action_map: ActionMap, origin: dict[str, Any], seed: int = 0) -> None:
+    def __init__(
+        self, policy: PolicyNet, action_map: ActionMap, origin: dict[str, Any], seed: int = 0
+    ) -> None:
         self.policy = policy
         self.action_map = action_map
         self.origin = dict(origin)
@@ -86,7 +87,7 @@ class TrainedPolicy:
         c = self.config
         steps = self.origin.get("env_steps")
         return (
-            f"TrainedPolicy(task={c.env!r}, algo={c.algo!r}, explore={c.explore!r}, "
+            f"Policy(task={c.env!r}, algo={c.algo!r}, explore={c.explore!r}, "
             f"env_steps={steps if steps is not None else 'unknown'}, "
             f"obs={self.obs_size}, actions={self.action_size} in {self.action_map.kind} "
             f"[{float(self.action_map.low.min()):g}, {float(self.action_map.high.max()):g}], "
@@ -97,12 +98,12 @@ class TrainedPolicy:
     def _hparams(self) -> Any:
         return (self.behaviour if self.policy.is_sac else self.policy.network).init_hparams()
 
-    def _init_carry(self, p: Policy, key: jax.Array, n: int) -> Any:
+    def _init_carry(self, p: PolicyNet, key: jax.Array, n: int) -> Any:
         if p.is_sac:
             return self.behaviour.init_carry(key, p.network, p.params, self._hparams(), n)
         return p.network.init_carry(key, p.params, self._hparams(), n)
 
-    def _act(self, p: Policy, state: PolicyState, obs: jax.Array, first: jax.Array):
+    def _act(self, p: PolicyNet, state: PolicyState, obs: jax.Array, first: jax.Array):
         key, k_act = jax.random.split(state.key)
         norm = p._norm(obs)
         if p.is_sac:
@@ -173,29 +174,33 @@ class TrainedPolicy:
         return self.predict(obs)[0]
 
 
+#: the name of `Policy` before the policy package had one class (docs/api.md).
+TrainedPolicy = Policy
+
+
 def _action_map_of(cfg: Config) -> tuple[ActionMap, int, int]:
     env = VecEnv(cfg.env, 1, cfg.episode_length, cfg.physics, cfg.physics_threads)  # its sizes and map
     return ActionMap.of_physics(env.env, env.action_size), env.observation_size, env.action_size
 
 
-def load_policy(path: str | Path, seed: int = 0) -> TrainedPolicy:
+def load_policy(path: str | Path, seed: int = 0) -> Policy:
     """The policy of a run directory (a training run's or a sweep point's) or of a Hub folder
     (``python -m coherent_jax.export RUN_DIR format=hub``). A run directory is read as
     ``python -m coherent_jax.evaluate`` reads it (``checkpoint.msgpack`` verified against
     ``config.yaml``, else ``params.msgpack``); a Hub folder from its ``policy.msgpack`` and
-    ``policy.json``. ``seed`` starts the key stream of stochastic `TrainedPolicy.predict`.
+    ``policy.json``. ``seed`` starts the key stream of stochastic `Policy.predict`.
     Raises `ConfigError`, `coherent_jax.run.runs.CheckpointError` or `PolicyError` in one line.
     """
     path = Path(path)
     if (path / POLICY_FILE).is_file() and (path / META_FILE).is_file():
-        policy = Policy.from_bytes((path / POLICY_FILE).read_bytes())
+        policy = PolicyNet.from_bytes((path / POLICY_FILE).read_bytes())
         try:
             meta = json.loads((path / META_FILE).read_text())
             amap = ActionMap.from_dict(meta["action_map"])
         except (ValueError, KeyError, TypeError) as exc:
             raise PolicyError(f"{path / META_FILE}: unreadable ({exc})") from None
-        return TrainedPolicy(policy, amap, meta.get("origin", {}), seed)
+        return Policy(policy, amap, meta.get("origin", {}), seed)
     cfg = load_config(path)
     amap, obs_size, action_size = _action_map_of(cfg)
     policy, origin = read_policy(path, obs_size, action_size)
-    return TrainedPolicy(policy, amap, origin, seed)
+    return Policy(policy, amap, origin, seed)
