@@ -26,8 +26,8 @@ _LAZY = {
     "EnvState": "coherent_jax.envs.vec_env",
     "StepOutcome": "coherent_jax.envs.vec_env",
     "VecEnv": "coherent_jax.envs.vec_env",
-    "env_sizes": "coherent_jax.envs.make",
-    "make_brax_env": "coherent_jax.envs.make",
+    "env_sizes": "coherent_jax.envs.brax_env",
+    "make_brax_env": "coherent_jax.envs.brax_env",
 }
 
 

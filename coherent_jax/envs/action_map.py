@@ -2,7 +2,7 @@
 
 Every policy of this package acts in [-1, 1]^p; `VecEnv.step` clips the action there and
 the task maps it onto its own action space. Training (`coherent_jax.envs.task.control`,
-`coherent_jax.envs.classic`, a Gymnasium env's host pool in `coherent_jax.envs.host_gym`),
+`coherent_jax.envs.brax_env`, a Gymnasium env's host pool in `coherent_jax.envs.host_gym`),
 ``evaluate engine=gymnasium`` and a shipped policy
 (`coherent_jax.policy`) all map through this module, so the three cannot disagree:
 

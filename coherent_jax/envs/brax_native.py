@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from coherent_jax.envs.make import make_brax_env
+from coherent_jax.envs.brax_env import make_brax_env
 from coherent_jax.envs.task import Kinematics, NativeModel, NativeTask, quat_rotate, uniform_reset
 
 

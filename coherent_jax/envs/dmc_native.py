@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from coherent_jax.envs.make import make_playground_env
+from coherent_jax.envs.brax_env import make_playground_env
 from coherent_jax.envs.task import Kinematics, NativeModel, NativeTask
 
 

@@ -15,7 +15,7 @@ DeepMind Control Suite, Gymnasium's classic exploration tasks, a test task.
   built): dm_control's tasks with rewards in [0, 1] per step, 1000-step episodes and
   no terminations, several of them sparse, where exploration matters most.
 * Gymnasium's ``MountainCarContinuous-v0`` and ``Pendulum-v1`` (``mountain_car_continuous``,
-  ``pendulum``), step for step in pure JAX (`coherent_jax.envs.classic`).
+  ``pendulum``), step for step in pure JAX (`coherent_jax.envs.brax_env`).
 * A task of the user's own, ``env=MODULE:NAME``: an MJCF file and JAX formulas
   (`coherent_jax.envs.user_task`), run like Gymnasium's tasks on native MuJoCo or MJX; or
   any Gymnasium env, ``env=gym:ID`` or the user's ``gymnasium.Env`` as ``env=MODULE:NAME``,
@@ -188,7 +188,7 @@ TASKS: Mapping[str, TaskSpec] = {
     "pointmass": TaskSpec(
         "pointmass", None, description="analytic 2D point mass to a goal (6 obs, 2 act)", backend="jax"
     ),
-    # Gymnasium's classic exploration tasks, step for step in pure JAX (`coherent_jax.envs.classic`).
+    # Gymnasium's classic exploration tasks, step for step in pure JAX (`coherent_jax.envs.brax_env`).
     "mountain_car_continuous": TaskSpec(
         "mountain_car_continuous",
         None,

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from coherent_jax.envs.host_gym import GymPhysics, GymState
-from coherent_jax.envs.make import env_sizes, make_brax_env
+from coherent_jax.envs.brax_env import env_sizes, make_brax_env
 from coherent_jax.envs.mjx_physics import MjxPhysics
 from coherent_jax.envs.native import NativePhysics, mujoco_model, native_task
 from coherent_jax.envs.registry import (
