@@ -20,7 +20,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
-from coherent_jax.envs.task import Kinematics
+from coherent_jax.envs.mujoco_task import Kinematics
 from coherent_jax.envs.user_task import MjcfTask
 
 MJCF = Path(__file__).resolve().parent / "tasks" / "reacher.xml"

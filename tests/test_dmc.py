@@ -87,8 +87,8 @@ def _playground_formulas(task: str, qpos, mocap=None):
     import mujoco
     from mujoco import mjx
 
-    from coherent_jax.envs.native import NATIVE_TASKS
-    from coherent_jax.envs.task import Kinematics
+    from coherent_jax.envs.mujoco_task import Kinematics
+    from coherent_jax.envs.physics import NATIVE_TASKS
 
     spec, raw = NATIVE_TASKS[task], make_brax_env(task)
     model = spec.load().model

@@ -159,13 +159,13 @@ def imports_of(path: Path, source: str | None = None) -> set[str]:
 
 def test_layer_check_sees_function_level_and_relative_imports():
     source = (
-        "from . import task\nfrom .spec import TaskSpec\nimport json\n\n"
+        "from . import mujoco_task\nfrom .spec import TaskSpec\nimport json\n\n"
         "def f():\n    from coherent_jax.run import launch\n    import coherent_jax.cli\n"
         "    from coherent_jax.config import Config\n"
     )
     found = imports_of(ROOT / PACKAGE / "envs" / "quiet.py", source)
     assert found == {
-        "coherent_jax.envs.task",
+        "coherent_jax.envs.mujoco_task",
         "coherent_jax.envs.spec",
         "coherent_jax.run.launch",
         "coherent_jax.cli",

@@ -22,7 +22,7 @@ from coherent_jax.envs.registry import (
 )
 
 _LAZY = {
-    "NativePhysics": "coherent_jax.envs.native",
+    "NativePhysics": "coherent_jax.envs.physics",
     "EnvState": "coherent_jax.envs.vec_env",
     "StepOutcome": "coherent_jax.envs.vec_env",
     "VecEnv": "coherent_jax.envs.vec_env",

@@ -4,7 +4,7 @@ The same task as its MJX version: the ``MjModel`` Brax builds, with the MJX task
 solver options (``TaskSpec.ls_iterations`` and Brax's own overrides, such as ant's
 Newton solver with one iteration) copied onto it, the same substeps, the same reset
 noise drawn from the same JAX keys, and the formulas of Brax 0.14.2's env classes
-(``brax/envs/<task>.py``), written here in JAX. `coherent_jax.envs.native` steps them.
+(``brax/envs/<task>.py``), written here in JAX. `coherent_jax.envs.physics` steps them.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from coherent_jax.envs.brax_env import make_brax_env
-from coherent_jax.envs.task import Kinematics, NativeModel, NativeTask, quat_rotate, uniform_reset
+from coherent_jax.envs.mujoco_task import Kinematics, NativeModel, NativeTask, quat_rotate, uniform_reset
 
 
 # --- Brax's tasks (Brax 0.14.2, brax/envs/<task>.py; `dt` is the env step). Body 1 is the torso.

@@ -31,7 +31,7 @@ import mujoco
 import numpy as np
 
 from coherent_jax.envs.brax_env import make_playground_env
-from coherent_jax.envs.task import Kinematics, NativeModel, NativeTask
+from coherent_jax.envs.mujoco_task import Kinematics, NativeModel, NativeTask
 
 
 @functools.cache

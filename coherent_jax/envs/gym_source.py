@@ -8,7 +8,7 @@ Gymnasium can run trains here, within these limits, each refused in one line
 
 * a flat ``Box`` observation space (shape ``(obs_size,)``) and a ``Box`` action space
   (shape ``(action_size,)``) with finite bounds: the agent's action a in [-1, 1] is mapped
-  onto them as centre + a * half-width (`coherent_jax.envs.task.to_bounds`), as for the
+  onto them as centre + a * half-width (`coherent_jax.envs.action_map.to_bounds`), as for the
   built-in tasks; ``Dict``, ``Tuple``, ``Discrete`` and the other spaces are refused;
 * ``reset(seed=0)`` and one ``step`` with a sample action must work, return a finite
   observation of the declared shape and a finite scalar reward (the env's own error is quoted).

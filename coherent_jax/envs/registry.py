@@ -66,7 +66,7 @@ _GYM_DESCRIPTIONS = {
 }
 
 # Why MJX cannot run a Gymnasium task (``physics=mjx`` is refused with this reason); the
-# others run their own model on MJX (`coherent_jax.envs.mjx_physics`).
+# others run their own model on MJX (`coherent_jax.envs.physics`).
 MJX_REFUSAL: Mapping[str, str] = {
     "Humanoid-v5": "its PGS solver is not implemented in MJX; Brax's MJX re-creation is 'brax-humanoid'",
 }
@@ -271,7 +271,7 @@ def resolve_physics(task: str, physics: str, backend: str | None = None) -> str:
 
     ``native`` and ``mjx`` are taken as given where the task has them: Gymnasium's tasks and
     the user's own (``MODULE:NAME``) run on native MuJoCo, or their own model on MJX
-    (`coherent_jax.envs.mjx_physics`) except where MJX cannot run it (refused with the
+    (`coherent_jax.envs.physics`) except where MJX cannot run it (refused with the
     reason); a Gymnasium env (``gym:ID``, or the user's ``gymnasium.Env``) on ``gym``, its
     own engine on the host, with ``auto`` or ``native``; Brax's re-creations and Playground's
     tasks on MJX, or native MuJoCo for those that have it. ``auto`` is `auto_physics` of the

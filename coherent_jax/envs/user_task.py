@@ -5,7 +5,7 @@ checks Gymnasium's).
 
 A user task is a `MjcfTask`: an MJCF file, the `Kinematics` fields its formulas read,
 and its observation, reward and termination as pure JAX functions of those fields,
-the contract of the built-in tasks (`coherent_jax.envs.task.NativeTask`). ``NAME`` is an
+the contract of the built-in tasks (`coherent_jax.envs.mujoco_task.NativeTask`). ``NAME`` is an
 attribute of the importable module ``MODULE`` (or of the Python file at that path) that
 is a `MjcfTask`, a subclass of it, or a function of no arguments annotated to return
 one (`task_maker`): what the attribute is is checked before it is called, so no other
@@ -37,6 +37,14 @@ import numpy as np
 
 from coherent_jax.envs import jax_env
 from coherent_jax.envs.gym_source import GYM_RULE, GymSource, gym_maker, registered_gym_env, user_gym_env
+from coherent_jax.envs.mujoco_task import (
+    POST_CONSTRAINT_FIELDS,
+    Kinematics,
+    NativeModel,
+    NativeTask,
+    control,
+    uniform_reset,
+)
 from coherent_jax.envs.quiet import quiet_stdio
 from coherent_jax.envs.spec import (
     USER_TASK_FORM,
@@ -47,14 +55,6 @@ from coherent_jax.envs.spec import (
     refuse,
     user_attribute,
     user_task_parts,
-)
-from coherent_jax.envs.task import (
-    POST_CONSTRAINT_FIELDS,
-    Kinematics,
-    NativeModel,
-    NativeTask,
-    control,
-    uniform_reset,
 )
 
 # Fields every task reads (the reset and `Kinematics` need them).

@@ -19,7 +19,7 @@ from coherent_jax.agents.rollout import evaluation_metrics
 from coherent_jax.config.checks import gymnasium_id
 from coherent_jax.envs.action_map import ActionMap
 from coherent_jax.envs.host_gym import host_pool
-from coherent_jax.envs.native import NATIVE_TASKS
+from coherent_jax.envs.physics import NATIVE_TASKS
 from coherent_jax.envs.quiet import quiet_stdio
 from coherent_jax.envs.registry import CLASSIC_IDS
 from coherent_jax.envs.vec_env import VecEnv
