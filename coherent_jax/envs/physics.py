@@ -20,7 +20,7 @@ and gives its formulas in JAX; these run here:
   the formulas of Brax's env classes (`coherent_jax.envs.brax_native`);
 * two of MuJoCo Playground's DeepMind Control tasks (``dmc-ball_in_cup``,
   ``dmc-finger_turn_hard``; `coherent_jax.envs.dmc_native`), the ones MJX runs slowest.
-* the user's own tasks, ``env=MODULE:NAME`` (`coherent_jax.envs.user_task`).
+* the user's own tasks, ``env=MODULE:NAME`` (`coherent_jax.envs.user`).
 
 The physics state lives in JAX, not in the engine: each env's float64
 ``mjSTATE_INTEGRATION`` row (positions, velocities, controls, solver warm start,
@@ -65,7 +65,7 @@ from coherent_jax.envs.mujoco_task import (
     control,
 )
 from coherent_jax.envs.registry import DEFAULT_THREADS, SHORT_NAMES, is_user_task, resolve_physics
-from coherent_jax.envs.user_task import load_user_task
+from coherent_jax.envs.user import load_user_task
 
 
 @struct.dataclass
@@ -179,7 +179,7 @@ NATIVE_TASKS: dict[str, NativeTask] = {
 
 def native_task(task: str) -> NativeTask:
     """The `NativeTask` of registry name `task`, or of a user's ``MODULE:NAME`` (imported and
-    checked by `coherent_jax.envs.user_task`); raises naming the supported tasks otherwise."""
+    checked by `coherent_jax.envs.user`); raises naming the supported tasks otherwise."""
     if is_user_task(task):
         return load_user_task(task).native
     if task not in NATIVE_TASKS:

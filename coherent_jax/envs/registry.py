@@ -17,9 +17,14 @@ DeepMind Control Suite, Gymnasium's classic exploration tasks, a test task.
 * Gymnasium's ``MountainCarContinuous-v0`` and ``Pendulum-v1`` (``mountain_car_continuous``,
   ``pendulum``), step for step in pure JAX (`coherent_jax.envs.brax_env`).
 * A task of the user's own, ``env=MODULE:NAME``: an MJCF file and JAX formulas
-  (`coherent_jax.envs.user_task`), run like Gymnasium's tasks on native MuJoCo or MJX; or
+  (`coherent_jax.envs.user`), run like Gymnasium's tasks on native MuJoCo or MJX; or
   any Gymnasium env, ``env=gym:ID`` or the user's ``gymnasium.Env`` as ``env=MODULE:NAME``,
   stepped on the host (`coherent_jax.envs.gym_source`, `coherent_jax.envs.host_gym`).
+
+The registry is free of JAX, so the config reads it without loading JAX: a task's environment
+is built elsewhere (`coherent_jax.envs.vec_env`, `coherent_jax.envs.brax_env`). `TaskSpec` and
+the names of a user's tasks are in `coherent_jax.envs.spec`, below the loaders of users' tasks
+that `check_task` calls (`coherent_jax.envs.user`).
 """
 
 from __future__ import annotations
@@ -229,7 +234,7 @@ def check_task(name: str) -> TaskSpec:
     A ``MODULE:NAME`` task is imported and checked here (JAX and MuJoCo are loaded then);
     a bad one raises `TaskDefinitionError`."""
     if is_user_task(name):
-        from coherent_jax.envs.user_task import (
+        from coherent_jax.envs.user import (
             load_user_task,  # lazy: JAX and MuJoCo; this module has neither
         )
 

@@ -29,7 +29,7 @@ from coherent_jax.envs.registry import (
     check_task,
     resolve_physics,
 )
-from coherent_jax.envs.user_task import load_user_task
+from coherent_jax.envs.user import load_user_task
 from coherent_jax.sweep_axis import any_point
 
 
