@@ -4,8 +4,8 @@ A task's observation, reward and termination are pure JAX functions of a few MjD
 fields after a reset or a step (`Kinematics`), so the same formulas run on any engine
 that can produce those fields (`coherent_jax.envs.physics`): native MuJoCo through a
 callback or MJX inside the program. The built-in MuJoCo tasks are written in this form
-(`coherent_jax.envs.gym_v5`, `coherent_jax.envs.brax_native`, `coherent_jax.envs.dmc_native`),
-and a user's MJCF task is turned into it (`coherent_jax.envs.user`).
+(`coherent_jax.envs.gym_v5`, `coherent_jax.envs.native_ports`), and a user's MJCF task is
+turned into it (`coherent_jax.envs.user`).
 """
 
 from __future__ import annotations

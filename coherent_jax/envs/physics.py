@@ -17,9 +17,9 @@ and gives its formulas in JAX; these run here:
   ``MjModel`` Brax builds, with the MJX task's solver options (``TaskSpec.ls_iterations``
   and Brax's own overrides, such as ant's Newton solver with one iteration) copied
   onto it, the same substeps, the same reset noise drawn from the same JAX keys, and
-  the formulas of Brax's env classes (`coherent_jax.envs.brax_native`);
+  the formulas of Brax's env classes (`coherent_jax.envs.native_ports`);
 * two of MuJoCo Playground's DeepMind Control tasks (``dmc-ball_in_cup``,
-  ``dmc-finger_turn_hard``; `coherent_jax.envs.dmc_native`), the ones MJX runs slowest.
+  ``dmc-finger_turn_hard``; `coherent_jax.envs.native_ports`), the ones MJX runs slowest.
 * the user's own tasks, ``env=MODULE:NAME`` (`coherent_jax.envs.user`).
 
 The physics state lives in JAX, not in the engine: each env's float64
@@ -54,8 +54,6 @@ import numpy as np
 from flax import struct
 from mujoco import batch, mjx
 
-from coherent_jax.envs.brax_native import BRAX_NATIVE
-from coherent_jax.envs.dmc_native import DMC_NATIVE
 from coherent_jax.envs.gym_v5 import GYM_TASKS
 from coherent_jax.envs.mujoco_task import (
     POST_CONSTRAINT_FIELDS,
@@ -64,6 +62,7 @@ from coherent_jax.envs.mujoco_task import (
     NativeTask,
     control,
 )
+from coherent_jax.envs.native_ports import BRAX_NATIVE, DMC_NATIVE
 from coherent_jax.envs.registry import DEFAULT_THREADS, SHORT_NAMES, is_user_task, resolve_physics
 from coherent_jax.envs.user import load_user_task
 

@@ -166,7 +166,7 @@ def dmc_name(playground_id: str) -> str:
     return "dmc-" + re.sub(r"(?<!^)(?=[A-Z])", "_", playground_id).lower()
 
 
-# Playground's tasks native MuJoCo runs (`coherent_jax.envs.dmc_native`): the ones MJX runs slowest.
+# Playground's tasks native MuJoCo runs (`coherent_jax.envs.native_ports`): the ones MJX runs slowest.
 _DMC_NATIVE = ("BallInCup", "FingerTurnHard")
 
 

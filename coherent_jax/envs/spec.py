@@ -40,7 +40,7 @@ class TaskSpec:
         classic task in pure JAX, backend ``jax``).
       playground_id: the MuJoCo Playground id of a DeepMind Control Suite task.
       native: whether native MuJoCo runs it (its formulas: `coherent_jax.envs.gym_v5`,
-        `coherent_jax.envs.brax_native`, `coherent_jax.envs.dmc_native`).
+        `coherent_jax.envs.native_ports`).
       goal: the task terminates exactly when it reaches its goal, so the fraction of episodes
         that terminate is logged as ``train/goal_reached`` and ``eval/goal_reached``.
     """
