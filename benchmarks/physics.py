@@ -54,7 +54,7 @@ from mujoco import batch
 
 from benchmarks import measure
 from coherent_jax.config import ConfigError, cli
-from coherent_jax.envs.native import mujoco_model
+from coherent_jax.envs.physics import mujoco_model
 from coherent_jax.envs.registry import DEFAULT_THREADS, NATIVE_TASKS, check_task
 from coherent_jax.envs.vec_env import VecEnv
 
@@ -173,7 +173,7 @@ def set_ls_iterations(env, iterations: int) -> None:
     """Sets the MJX solver's line-search iterations of `env` (a `VecEnv` on MJX) before it is traced.
 
     Brax's environments keep their MJX model as ``sys``, Gymnasium's tasks on MJX
-    (`coherent_jax.envs.mjx_physics.MjxPhysics`) as ``model``.
+    (`coherent_jax.envs.physics.MjxPhysics`) as ``model``.
     """
     name = "sys" if hasattr(env.env, "sys") else "model"
     setattr(env.env, name, getattr(env.env, name).tree_replace({"opt.ls_iterations": iterations}))

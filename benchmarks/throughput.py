@@ -24,7 +24,7 @@ from flax import linen
 from benchmarks import IGNORED, measure
 from coherent_jax.agents import make_trainer
 from coherent_jax.config import Config, cli, parse_overrides, to_dict
-from coherent_jax.envs.make import make_brax_env
+from coherent_jax.envs.brax_env import make_brax_env
 from coherent_jax.envs.registry import brax_counterpart
 from coherent_jax.envs.vec_env import VecEnv
 

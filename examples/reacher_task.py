@@ -20,8 +20,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
-from coherent_jax.envs.task import Kinematics
-from coherent_jax.envs.user_task import MjcfTask
+from coherent_jax.envs import Kinematics, MjcfTask
 
 MJCF = Path(__file__).resolve().parent / "tasks" / "reacher.xml"
 FINGERTIP, TARGET = 3, 4

@@ -1,7 +1,7 @@
 """The `classic` suite: PPO on MountainCarContinuous with every exploration strategy.
 
 Gymnasium's ``MountainCarContinuous-v0`` (``env=mountain_car_continuous``, in pure JAX:
-`coherent_jax.envs.classic`) pays 100 once at the hilltop and charges 0.1 a^2 every step,
+`coherent_jax.envs.brax_env`) pays 100 once at the hilltop and charges 0.1 a^2 every step,
 so a policy whose exploration never finds the goal learns to stand still, at return 0.
 Gaussian action noise rarely finds it; coloured (pink) noise and parameter-space noise
 do (Eberhard et al., ICLR 2023; Plappert et al., ICLR 2018). Coherent exploration runs

@@ -105,7 +105,7 @@ DEFAULT_BETA = 0.01  # coherent_jax.config.Config.beta: the thesis cells' chain 
 # strategy on four sparse DeepMind Control tasks (Playground's ports), coherent at
 # three beta from trajectory-based towards step-based, 1M env steps per seed.
 # Cart-pole and acrobot run on MJX (Playground's own env); ball-in-cup and finger on
-# native MuJoCo (`coherent_jax.envs.dmc_native`, 1.5x MJX's rate in PPO, pinned below).
+# native MuJoCo (`coherent_jax.envs.native_ports`, 1.5x MJX's rate in PPO, pinned below).
 SPARSE_TASKS = (
     "dmc-cartpole_swingup_sparse",
     "dmc-acrobot_swingup_sparse",

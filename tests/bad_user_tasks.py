@@ -7,7 +7,7 @@ from pathlib import Path
 
 import jax.numpy as jnp
 
-from coherent_jax.envs.user_task import MjcfTask
+from coherent_jax.envs import MjcfTask
 from examples.reacher_task import reacher
 
 not_a_task = 3

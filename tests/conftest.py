@@ -19,7 +19,7 @@ from helpers import CACHE_VAR as _CACHE_VAR
 from references import x64_enabled
 
 from coherent_jax.config import parse_overrides
-from coherent_jax.envs import native
+from coherent_jax.envs import physics
 
 
 def pytest_configure(config):
@@ -50,7 +50,7 @@ def _snapshot() -> dict:
     return {
         "jax config": {name: getattr(jax.config, name, None) for name in sorted(jax.config.values)},
         "config defaults": repr(parse_overrides([])),
-        "native tasks": repr(native.NATIVE_TASKS),
+        "native tasks": repr(physics.NATIVE_TASKS),
         "environment": {k: v for k, v in os.environ.items() if k.startswith(_RELEVANT_ENV)},
     }
 

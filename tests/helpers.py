@@ -68,7 +68,7 @@ def native_and_mjx_rollouts(task: str, n: int, steps: int):
     import jax
 
     from coherent_jax.envs import make_brax_env
-    from coherent_jax.envs.native import NativePhysics
+    from coherent_jax.envs.physics import NativePhysics
 
     native, brax_env = NativePhysics(task), make_brax_env(task)
     keys = jax.random.split(jax.random.PRNGKey(0), n)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from coherent_jax.envs.action_map import ActionMap
-from coherent_jax.envs.native import NATIVE_TASKS
+from coherent_jax.envs.physics import NATIVE_TASKS
 from coherent_jax.envs.vec_env import VecEnv
 from coherent_jax.run.evaluation import gymnasium_action_map
 

@@ -1,4 +1,4 @@
-"""The classic exploration tasks (`coherent_jax.envs.classic`) against Gymnasium 1.4.0 itself:
+"""The classic exploration tasks (`coherent_jax.envs.brax_env`) against Gymnasium 1.4.0 itself:
 ``mountain_car_continuous`` = ``MountainCarContinuous-v0``, ``pendulum`` = ``Pendulum-v1``.
 
 Dynamics, reward and termination are compared step for step from the same states: before

@@ -87,8 +87,8 @@ def _playground_formulas(task: str, qpos, mocap=None):
     import mujoco
     from mujoco import mjx
 
-    from coherent_jax.envs.native import NATIVE_TASKS
-    from coherent_jax.envs.task import Kinematics
+    from coherent_jax.envs.mujoco_task import Kinematics
+    from coherent_jax.envs.physics import NATIVE_TASKS
 
     spec, raw = NATIVE_TASKS[task], make_brax_env(task)
     model = spec.load().model
@@ -120,7 +120,7 @@ def test_native_dmc_formulas_are_playgrounds_on_identical_states():
     np.testing.assert_array_equal(reward, ref_reward)
     assert 0 < reward.sum() < len(reward)
 
-    from coherent_jax.envs.dmc_native import _finger_layout
+    from coherent_jax.envs.native_ports import _finger_layout
 
     lay = _finger_layout("FingerTurnHard")
     turn = np.linspace(-np.pi, np.pi, 91)

@@ -171,13 +171,13 @@ def imports_of(path: Path, source: str | None = None) -> set[str]:
 
 def test_layer_check_sees_function_level_and_relative_imports():
     source = (
-        "from . import task\nfrom .spec import TaskSpec\nimport json\n\n"
+        "from . import mujoco_task\nfrom .spec import TaskSpec\nimport json\n\n"
         "def f():\n    from coherent_jax.run import launch\n    import coherent_jax.train\n"
         "    from coherent_jax.config import Config\n"
     )
     found = imports_of(ROOT / PACKAGE / "envs" / "quiet.py", source)
     assert found == {
-        "coherent_jax.envs.task",
+        "coherent_jax.envs.mujoco_task",
         "coherent_jax.envs.spec",
         "coherent_jax.run.launch",
         "coherent_jax.train",
@@ -326,6 +326,8 @@ FORMER_MODULES = (
     *("bench_distributed", "bench_physics", "bench_sac", "bench_gradient", "sweep_resume", "sweep_table"),
     *("exploration.registry", "run.policy", "policy.agent"),
     *("config.legacy", "config.declare", "config.limits", "config.presets"),
+    *("envs.native", "envs.task", "envs.user_task", "envs.make", "envs.classic", "envs.pointmass"),
+    *("envs.brax_native", "envs.dmc_native", "envs.mjx_physics"),
 )
 #: ``.py`` names the package's prose gives of other projects' files, or as placeholders.
 FOREIGN_FILES = {

@@ -177,7 +177,7 @@ def test_termination_is_not_truncation():
 def test_registry_names_the_engines_native_tasks():
     """The JAX-free registry's native flag (what the config checks) and the native engine's
     tasks (their formulas) name the same tasks."""
-    from coherent_jax.envs import native, registry
+    from coherent_jax.envs import physics, registry
 
-    assert set(registry.NATIVE_TASKS) == set(native.NATIVE_TASKS)
-    assert len(registry.NATIVE_TASKS) == len(native.NATIVE_TASKS)
+    assert set(registry.NATIVE_TASKS) == set(physics.NATIVE_TASKS)
+    assert len(registry.NATIVE_TASKS) == len(physics.NATIVE_TASKS)

@@ -21,7 +21,7 @@ def _text(path: str) -> str:
 # ---------------------------------------------------------------- row 8: docs that mislead
 def test_row8_pointmass_compile_time_is_the_measured_range():
     """No "compiles in about a second" for pointmass: the measured range, with its command."""
-    for path in ("coherent_jax/envs/pointmass.py", "docs/tasks.md", "docs/development.md"):
+    for path in ("coherent_jax/envs/brax_env.py", "docs/tasks.md", "docs/development.md"):
         text = " ".join(_text(path).split())
         assert "compiles in about a second" not in text, path
     tasks = " ".join(_text("docs/tasks.md").split())

@@ -128,7 +128,7 @@ def test_row12_a_task_by_file_path_and_the_declared_forms(tmp_path, monkeypatch)
 
             import dataclasses
 
-            from coherent_jax.envs.user_task import MjcfTask
+            from coherent_jax.envs import MjcfTask
             from examples.reacher_task import reacher
 
 

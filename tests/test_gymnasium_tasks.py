@@ -13,9 +13,9 @@ from scipy import stats
 
 from coherent_jax.envs import VecEnv, check_task
 from coherent_jax.envs.gym_v5 import EPISODE_LENGTH, GYM_TASKS, SHORT_NAMES
-from coherent_jax.envs.native import NativePhysics
+from coherent_jax.envs.mujoco_task import control
+from coherent_jax.envs.physics import NativePhysics
 from coherent_jax.envs.registry import PhysicsError, resolve_physics
-from coherent_jax.envs.task import control
 
 gym = pytest.importorskip("gymnasium")
 

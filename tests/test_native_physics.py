@@ -11,7 +11,7 @@ from helpers import BRAX_SIZES, MJX_SIDE_BY_SIDE, native_and_mjx_rollouts
 from coherent_jax.agents.onpolicy import OnPolicyTrainer
 from coherent_jax.config import ConfigError, parse_overrides
 from coherent_jax.envs import VecEnv, env_sizes, make_brax_env
-from coherent_jax.envs.native import NATIVE_TASKS, NativeState
+from coherent_jax.envs.physics import NATIVE_TASKS, NativeState
 from coherent_jax.envs.registry import PhysicsError, resolve_physics
 
 # MJX programs take 10-60 s each to compile here: the suite checks two tasks;

@@ -94,8 +94,7 @@ def test_mjx_observes_what_native_observes():
     observations and rewards to float32 accuracy (MJX computes in float32, MuJoCo in float64)."""
     import jax
 
-    from coherent_jax.envs.mjx_physics import MjxPhysics
-    from coherent_jax.envs.native import NativePhysics, mujoco_model, native_task
+    from coherent_jax.envs.physics import MjxPhysics, NativePhysics, mujoco_model, native_task
 
     native = NativePhysics(EXAMPLE)
     mjx = MjxPhysics(EXAMPLE, native_task(EXAMPLE), mujoco_model(EXAMPLE))

@@ -1,8 +1,9 @@
 """MuJoCo tasks: a registry by short name and a vectorized wrapper, on MJX or native MuJoCo.
 
 The registry (`coherent_jax.envs.registry`: the tasks, and which engine runs each) is
-free of JAX, so the config reads it without loading JAX; the engines and the wrapper
-are imported from here on first use.
+free of JAX, so the config reads it without loading JAX; the engines, the wrapper and
+the names a task of the user's own is written with (`MjcfTask`, `Kinematics`) are imported
+from here on first use.
 """
 
 from __future__ import annotations
@@ -22,12 +23,14 @@ from coherent_jax.envs.registry import (
 )
 
 _LAZY = {
-    "NativePhysics": "coherent_jax.envs.native",
+    "Kinematics": "coherent_jax.envs.mujoco_task",
+    "MjcfTask": "coherent_jax.envs.user",
+    "NativePhysics": "coherent_jax.envs.physics",
     "EnvState": "coherent_jax.envs.vec_env",
     "StepOutcome": "coherent_jax.envs.vec_env",
     "VecEnv": "coherent_jax.envs.vec_env",
-    "env_sizes": "coherent_jax.envs.make",
-    "make_brax_env": "coherent_jax.envs.make",
+    "env_sizes": "coherent_jax.envs.brax_env",
+    "make_brax_env": "coherent_jax.envs.brax_env",
 }
 
 
@@ -40,6 +43,8 @@ def __getattr__(name: str) -> Any:
 __all__ = [
     "NATIVE_TASKS",
     "PHYSICS",
+    "Kinematics",
+    "MjcfTask",
     "NativePhysics",
     "PhysicsError",
     "resolve_physics",

@@ -1,8 +1,8 @@
 """The one map from the agent's action in [-1, 1] to the action an environment receives.
 
 Every policy of this package acts in [-1, 1]^p; `VecEnv.step` clips the action there and
-the task maps it onto its own action space. Training (`coherent_jax.envs.task.control`,
-`coherent_jax.envs.classic`, a Gymnasium env's host pool in `coherent_jax.envs.host_gym`),
+the task maps it onto its own action space. Training (`coherent_jax.envs.mujoco_task.control`,
+`coherent_jax.envs.brax_env`, a Gymnasium env's host pool in `coherent_jax.envs.host_gym`),
 ``evaluate engine=gymnasium`` and a shipped policy
 (`coherent_jax.policy`) all map through this module, so the three cannot disagree:
 
@@ -67,7 +67,7 @@ class ActionMap(NamedTuple):
 
     @classmethod
     def of_task(cls, scale_action: bool, brax_scaling: bool, ctrl_range: Any) -> ActionMap:
-        """A MuJoCo task's map (`coherent_jax.envs.task.NativeTask`'s ``scale_action`` and
+        """A MuJoCo task's map (`coherent_jax.envs.mujoco_task.NativeTask`'s ``scale_action`` and
         ``brax_scaling``) onto its actuators' ``ctrl_range`` [nu, 2]."""
         low, high = np.asarray(ctrl_range, np.float32).reshape(-1, 2).T
         if not scale_action:

@@ -23,9 +23,9 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from coherent_jax.envs.mujoco_task import Kinematics, NativeModel, NativeTask, uniform_reset
 from coherent_jax.envs.quiet import quiet_stdio
 from coherent_jax.envs.registry import EPISODE_LENGTH, SHORT_NAMES  # noqa: F401  (re-exported)
-from coherent_jax.envs.task import Kinematics, NativeModel, NativeTask, uniform_reset
 
 
 class GymnasiumMissingError(ImportError):

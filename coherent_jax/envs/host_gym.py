@@ -2,7 +2,7 @@
 
 `GymPhysics` holds a pool of Python env copies on the host (`HostPool`) and reaches it
 through a pure callback (`host_call`, XLA's buffers read and written in place), as native
-MuJoCo is reached (`coherent_jax.envs.native`), so the training iteration stays one
+MuJoCo is reached (`coherent_jax.envs.physics`), so the training iteration stays one
 compiled function.
 
 **Why a pure callback and a tick.** The pool has state (the envs), so its calls must run

@@ -1,5 +1,12 @@
 """One silencer for the libraries that print on import or build (no JAX here).
 
+A module of its own, importing only ``os`` and ``sys``, because its users sit on both sides
+of JAX: the launch of a run imports it on the start-up path that loads no JAX
+(`coherent_jax.run.launch`), and the modules that build envs with JAX, MuJoCo or Gymnasium
+(`coherent_jax.envs.brax_env`, `coherent_jax.envs.gym_v5`, `coherent_jax.envs.gym_source`,
+`coherent_jax.envs.user`, the evaluation) use it too; in any one of them, the launch would
+load that module's dependencies.
+
 Brax prints a line for its optional Warp backend on import, MJX for its missing
 ``warp`` backend, Warp its kernel-cache lines, and MuJoCo's compiler deprecation notes
 (some from C, below Python's ``sys.stdout``): `quiet_stdio` points file descriptors 1

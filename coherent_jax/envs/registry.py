@@ -15,11 +15,16 @@ DeepMind Control Suite, Gymnasium's classic exploration tasks, a test task.
   built): dm_control's tasks with rewards in [0, 1] per step, 1000-step episodes and
   no terminations, several of them sparse, where exploration matters most.
 * Gymnasium's ``MountainCarContinuous-v0`` and ``Pendulum-v1`` (``mountain_car_continuous``,
-  ``pendulum``), step for step in pure JAX (`coherent_jax.envs.classic`).
+  ``pendulum``), step for step in pure JAX (`coherent_jax.envs.brax_env`).
 * A task of the user's own, ``env=MODULE:NAME``: an MJCF file and JAX formulas
-  (`coherent_jax.envs.user_task`), run like Gymnasium's tasks on native MuJoCo or MJX; or
+  (`coherent_jax.envs.user`), run like Gymnasium's tasks on native MuJoCo or MJX; or
   any Gymnasium env, ``env=gym:ID`` or the user's ``gymnasium.Env`` as ``env=MODULE:NAME``,
   stepped on the host (`coherent_jax.envs.gym_source`, `coherent_jax.envs.host_gym`).
+
+The registry is free of JAX, so the config reads it without loading JAX: a task's environment
+is built elsewhere (`coherent_jax.envs.vec_env`, `coherent_jax.envs.brax_env`). `TaskSpec` and
+the names of a user's tasks are in `coherent_jax.envs.spec`, below the loaders of users' tasks
+that `check_task` calls (`coherent_jax.envs.user`).
 """
 
 from __future__ import annotations
@@ -66,7 +71,7 @@ _GYM_DESCRIPTIONS = {
 }
 
 # Why MJX cannot run a Gymnasium task (``physics=mjx`` is refused with this reason); the
-# others run their own model on MJX (`coherent_jax.envs.mjx_physics`).
+# others run their own model on MJX (`coherent_jax.envs.physics`).
 MJX_REFUSAL: Mapping[str, str] = {
     "Humanoid-v5": "its PGS solver is not implemented in MJX; Brax's MJX re-creation is 'brax-humanoid'",
 }
@@ -161,7 +166,7 @@ def dmc_name(playground_id: str) -> str:
     return "dmc-" + re.sub(r"(?<!^)(?=[A-Z])", "_", playground_id).lower()
 
 
-# Playground's tasks native MuJoCo runs (`coherent_jax.envs.dmc_native`): the ones MJX runs slowest.
+# Playground's tasks native MuJoCo runs (`coherent_jax.envs.native_ports`): the ones MJX runs slowest.
 _DMC_NATIVE = ("BallInCup", "FingerTurnHard")
 
 
@@ -188,7 +193,7 @@ TASKS: Mapping[str, TaskSpec] = {
     "pointmass": TaskSpec(
         "pointmass", None, description="analytic 2D point mass to a goal (6 obs, 2 act)", backend="jax"
     ),
-    # Gymnasium's classic exploration tasks, step for step in pure JAX (`coherent_jax.envs.classic`).
+    # Gymnasium's classic exploration tasks, step for step in pure JAX (`coherent_jax.envs.brax_env`).
     "mountain_car_continuous": TaskSpec(
         "mountain_car_continuous",
         None,
@@ -229,7 +234,7 @@ def check_task(name: str) -> TaskSpec:
     A ``MODULE:NAME`` task is imported and checked here (JAX and MuJoCo are loaded then);
     a bad one raises `TaskDefinitionError`."""
     if is_user_task(name):
-        from coherent_jax.envs.user_task import (
+        from coherent_jax.envs.user import (
             load_user_task,  # lazy: JAX and MuJoCo; this module has neither
         )
 
@@ -271,7 +276,7 @@ def resolve_physics(task: str, physics: str, backend: str | None = None) -> str:
 
     ``native`` and ``mjx`` are taken as given where the task has them: Gymnasium's tasks and
     the user's own (``MODULE:NAME``) run on native MuJoCo, or their own model on MJX
-    (`coherent_jax.envs.mjx_physics`) except where MJX cannot run it (refused with the
+    (`coherent_jax.envs.physics`) except where MJX cannot run it (refused with the
     reason); a Gymnasium env (``gym:ID``, or the user's ``gymnasium.Env``) on ``gym``, its
     own engine on the host, with ``auto`` or ``native``; Brax's re-creations and Playground's
     tasks on MJX, or native MuJoCo for those that have it. ``auto`` is `auto_physics` of the

@@ -1,19 +1,22 @@
-"""What a task is to the registry, and the names of a user's own tasks; no JAX.
+"""What a task is to the registry (`TaskSpec`), the names of a user's own tasks, and their
+refusals; no JAX.
 
 `TaskSpec` says how to build one task; ``env=MODULE:NAME`` and ``env=path/to/file.py:NAME``
-name a task of the user's own (`coherent_jax.envs.user_task` loads it). The registry
-(`coherent_jax.envs.registry`) and the user-task loader both build on this module.
+name a task of the user's own, ``env=gym:ID`` a registered Gymnasium env (`coherent_jax.envs.user`
+loads them). A bad one is refused in one line (`refuse`: `TaskDefinitionError` naming the task
+and the problem), as is a module of the user's that does not import (`import_module`).
+
+Apart from the registry (`coherent_jax.envs.registry`): the registry's `check_task` loads a
+user's task through `coherent_jax.envs.user`, which builds on this module, as do the kinds'
+loaders (`coherent_jax.envs.gym_source`, `coherent_jax.envs.jax_env`); in one module, the
+registry would import itself back through them.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import importlib
-import importlib.util
-import os
 import re
-import sys
 from pathlib import Path
 from types import ModuleType
 from typing import NoReturn
@@ -37,7 +40,7 @@ class TaskSpec:
         classic task in pure JAX, backend ``jax``).
       playground_id: the MuJoCo Playground id of a DeepMind Control Suite task.
       native: whether native MuJoCo runs it (its formulas: `coherent_jax.envs.gym_v5`,
-        `coherent_jax.envs.brax_native`, `coherent_jax.envs.dmc_native`).
+        `coherent_jax.envs.native_ports`).
       goal: the task terminates exactly when it reaches its goal, so the fraction of episodes
         that terminate is logged as ``train/goal_reached`` and ``eval/goal_reached``.
     """
@@ -59,11 +62,11 @@ class UnknownTaskError(ValueError):
 
 class TaskDefinitionError(ValueError):
     """A task of the user's (``env=MODULE:NAME``) that cannot be loaded or breaks the contract;
-    the message names the task and the problem (`coherent_jax.envs.user_task`)."""
+    the message names the task and the problem (`coherent_jax.envs.user`)."""
 
 
 # ``env=MODULE:NAME``: attribute NAME of the importable module MODULE is a task of the user's
-# (`coherent_jax.envs.user_task`), imported only when the task is built or checked;
+# (`coherent_jax.envs.user`), imported only when the task is built or checked;
 # ``env=path/to/file.py:NAME``: the same, of the Python file at that path.
 _USER_TASK = re.compile(r"(?P<source>[A-Za-z_]\w*(\.[A-Za-z_]\w*)*|[^:]+\.py):(?P<name>[A-Za-z_]\w*)")
 # ``env=gym:ID`` (a registered Gymnasium id) or ``env=gym:MODULE:ID`` (MODULE imported first for
@@ -128,32 +131,3 @@ def import_module(name: str, module_name: str) -> ModuleType:
         return importlib.import_module(module_name)
     except Exception as exc:  # any error of the user's module is a bad task definition
         refuse(name, f"cannot import module {module_name!r} ({first_line(exc)}; is it on PYTHONPATH?)")
-
-
-def import_file(name: str, path: str) -> ModuleType:
-    """The Python file at `path` (from the working directory), imported once per process as a
-    module of its own (named after its absolute path, so two files of one name do not clash)."""
-    full = os.path.abspath(path)
-    if not os.path.isfile(full):
-        refuse(name, f"file {path!r} not found (from {os.getcwd()})")
-    module_name = "coherent_jax_task_" + hashlib.sha1(full.encode()).hexdigest()[:16]
-    if module_name in sys.modules:
-        return sys.modules[module_name]
-    spec = importlib.util.spec_from_file_location(module_name, full)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[module_name] = module  # dataclasses of the file look their module up there
-    try:
-        spec.loader.exec_module(module)
-    except Exception as exc:
-        del sys.modules[module_name]
-        refuse(name, f"cannot import file {path!r} ({first_line(exc)})")
-    return module
-
-
-def user_attribute(name: str) -> object:
-    """The attribute ``NAME`` of ``MODULE:NAME`` or ``path/to/file.py:NAME``, imported (not called)."""
-    source, attr, is_file = user_task_parts(name)
-    module = import_file(name, source) if is_file else import_module(name, source)
-    if not hasattr(module, attr):
-        refuse(name, f"{'file' if is_file else 'module'} {source!r} has no attribute {attr!r}")
-    return getattr(module, attr)

@@ -21,16 +21,15 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from coherent_jax.envs.brax_env import env_sizes, make_brax_env
 from coherent_jax.envs.host_gym import GymPhysics, GymState
-from coherent_jax.envs.make import env_sizes, make_brax_env
-from coherent_jax.envs.mjx_physics import MjxPhysics
-from coherent_jax.envs.native import NativePhysics, mujoco_model, native_task
+from coherent_jax.envs.physics import MjxPhysics, NativePhysics, mujoco_model, native_task
 from coherent_jax.envs.registry import (
     DEFAULT_THREADS,
     check_task,
     resolve_physics,
 )
-from coherent_jax.envs.user_task import load_user_task
+from coherent_jax.envs.user import load_user_task
 from coherent_jax.sweep_axis import any_point
 
 

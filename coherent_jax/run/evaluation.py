@@ -19,7 +19,7 @@ from coherent_jax.agents.rollout import evaluation_metrics
 from coherent_jax.config.checks import gymnasium_id
 from coherent_jax.envs.action_map import ActionMap
 from coherent_jax.envs.host_gym import host_pool
-from coherent_jax.envs.native import NATIVE_TASKS
+from coherent_jax.envs.physics import NATIVE_TASKS
 from coherent_jax.envs.quiet import quiet_stdio
 from coherent_jax.envs.registry import CLASSIC_IDS
 from coherent_jax.envs.vec_env import VecEnv
@@ -35,7 +35,7 @@ def gymnasium_action_map(env: str, space) -> ActionMap:
     """The `ActionMap` from the agent's action in [-1, 1] to the action Gymnasium's env of task
     ``env`` receives: the task's own map onto the action space ``space`` (a MuJoCo task's
     `ActionMap.of_task` onto the Box's bounds; a classic task's centre + a * half-width,
-    as `coherent_jax.envs.classic` maps it). Calling it clips to [-1, 1] first."""
+    as `coherent_jax.envs.brax_env` maps it). Calling it clips to [-1, 1] first."""
     gym_id = gymnasium_id(env)
     if gym_id in CLASSIC_IDS:
         return ActionMap.of_box(space)

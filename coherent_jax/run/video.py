@@ -27,9 +27,9 @@ from PIL import Image
 from coherent_jax.envs.gym_source import render_problem
 from coherent_jax.envs.host_gym import host_pool
 from coherent_jax.envs.jax_env import BraxInterfaceEnv, jax_env
-from coherent_jax.envs.native import mujoco_model
+from coherent_jax.envs.physics import mujoco_model
 from coherent_jax.envs.registry import check_task
-from coherent_jax.envs.user_task import load_user_task
+from coherent_jax.envs.user import load_user_task
 from coherent_jax.envs.vec_env import VecEnv
 
 # Camera as Gymnasium's locomotion tasks set it: from the side, a little above.

@@ -1,11 +1,13 @@
-"""Tasks of the user's own: an MJCF file and JAX formulas, named ``env=MODULE:NAME`` or
-``env=path/to/file.py:NAME``; the same names may give a Gymnasium env instead, as may
-``env=gym:ID`` (`resolve_user_attribute` decides the kind, `coherent_jax.envs.gym_source`
-checks Gymnasium's).
+"""Users' environments: what ``env=MODULE:NAME`` or ``env=path/to/file.py:NAME`` names,
+imported (the module or the file, once per process) and taken by kind, one branch per kind
+(`resolve_user_attribute`): an MJCF task (below), a Gymnasium env (checked by
+`coherent_jax.envs.gym_source`, as is ``env=gym:ID``; stepped by `coherent_jax.envs.host_gym`)
+or a JAX env with Brax's interface (`coherent_jax.envs.jax_env`). `load_user_task` gives the
+task's registry entry and what the engines run.
 
-A user task is a `MjcfTask`: an MJCF file, the `Kinematics` fields its formulas read,
+An MJCF task is a `MjcfTask`: an MJCF file, the `Kinematics` fields its formulas read,
 and its observation, reward and termination as pure JAX functions of those fields,
-the contract of the built-in tasks (`coherent_jax.envs.task.NativeTask`). ``NAME`` is an
+the contract of the built-in tasks (`coherent_jax.envs.mujoco_task.NativeTask`). ``NAME`` is an
 attribute of the importable module ``MODULE`` (or of the Python file at that path) that
 is a `MjcfTask`, a subclass of it, or a function of no arguments annotated to return
 one (`task_maker`): what the attribute is is checked before it is called, so no other
@@ -24,10 +26,14 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
+import importlib.util
 import inspect
 import os
+import sys
 import typing
 from collections.abc import Callable
+from types import ModuleType
 from typing import Any, NamedTuple
 
 import jax
@@ -37,24 +43,24 @@ import numpy as np
 
 from coherent_jax.envs import jax_env
 from coherent_jax.envs.gym_source import GYM_RULE, GymSource, gym_maker, registered_gym_env, user_gym_env
-from coherent_jax.envs.quiet import quiet_stdio
-from coherent_jax.envs.spec import (
-    USER_TASK_FORM,
-    TaskSpec,
-    first_line,
-    is_gym_id,
-    is_user_task,
-    refuse,
-    user_attribute,
-    user_task_parts,
-)
-from coherent_jax.envs.task import (
+from coherent_jax.envs.mujoco_task import (
     POST_CONSTRAINT_FIELDS,
     Kinematics,
     NativeModel,
     NativeTask,
     control,
     uniform_reset,
+)
+from coherent_jax.envs.quiet import quiet_stdio
+from coherent_jax.envs.spec import (
+    USER_TASK_FORM,
+    TaskSpec,
+    first_line,
+    import_module,
+    is_gym_id,
+    is_user_task,
+    refuse,
+    user_task_parts,
 )
 
 # Fields every task reads (the reset and `Kinematics` need them).
@@ -108,6 +114,35 @@ TASK_RULE = (
     "an MjcfTask, a subclass of it, or a function of no arguments annotated '-> MjcfTask'; "
     "nothing else is called (docs/tasks.md)"
 )
+
+
+def import_file(name: str, path: str) -> ModuleType:
+    """The Python file at `path` (from the working directory), imported once per process as a
+    module of its own (named after its absolute path, so two files of one name do not clash)."""
+    full = os.path.abspath(path)
+    if not os.path.isfile(full):
+        refuse(name, f"file {path!r} not found (from {os.getcwd()})")
+    module_name = "coherent_jax_task_" + hashlib.sha1(full.encode()).hexdigest()[:16]
+    if module_name in sys.modules:
+        return sys.modules[module_name]
+    spec = importlib.util.spec_from_file_location(module_name, full)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[module_name] = module  # dataclasses of the file look their module up there
+    try:
+        spec.loader.exec_module(module)
+    except Exception as exc:
+        del sys.modules[module_name]
+        refuse(name, f"cannot import file {path!r} ({first_line(exc)})")
+    return module
+
+
+def user_attribute(name: str) -> object:
+    """The attribute ``NAME`` of ``MODULE:NAME`` or ``path/to/file.py:NAME``, imported (not called)."""
+    source, attr, is_file = user_task_parts(name)
+    module = import_file(name, source) if is_file else import_module(name, source)
+    if not hasattr(module, attr):
+        refuse(name, f"{'file' if is_file else 'module'} {source!r} has no attribute {attr!r}")
+    return getattr(module, attr)
 
 
 def resolve_user_attribute(name: str) -> tuple[str, Any]:

@@ -1,9 +1,11 @@
-"""What a task on native MuJoCo is: the MjData fields it reads and its formulas.
+"""What a MuJoCo task is: the MjData fields it reads and its formulas (`NativeTask`).
 
 A task's observation, reward and termination are pure JAX functions of a few MjData
 fields after a reset or a step (`Kinematics`), so the same formulas run on any engine
-that can produce those fields: native MuJoCo through a callback (`coherent_jax.envs.native`)
-or MJX inside the program.
+that can produce those fields (`coherent_jax.envs.physics`): native MuJoCo through a
+callback or MJX inside the program. The built-in MuJoCo tasks are written in this form
+(`coherent_jax.envs.gym_v5`, `coherent_jax.envs.native_ports`), and a user's MJCF task is
+turned into it (`coherent_jax.envs.user`).
 """
 
 from __future__ import annotations
@@ -12,10 +14,8 @@ import dataclasses
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
-import chex
 import jax
 import jax.numpy as jnp
-from flax import struct
 
 from coherent_jax.envs.action_map import ActionMap
 
@@ -119,97 +119,6 @@ def control(task: NativeTask, action: jax.Array, ctrl_range) -> jax.Array:
     task scales actions, in Brax's or Gymnasium's arithmetic (`NativeTask.brax_scaling`),
     by the task's `coherent_jax.envs.action_map.ActionMap`."""
     return ActionMap.of_task(task.scale_action, task.brax_scaling, ctrl_range).unclipped(action)
-
-
-@struct.dataclass
-class PhysicsState:
-    """Physics state of `n` envs of a `TaskPhysics` engine.
-
-    Attributes:
-      engine: the engine's own state of every env (`NativePhysics`: the MjData rows;
-        `MjxPhysics`: a batched ``mjx.Data``).
-      kin: `Kinematics` of every env, [n, ...].
-      obs: [n, obs_size] observation.
-      reward: [n] reward of the step that led here (0 after a reset).
-      done: [n] 1.0 where the task's termination condition holds.
-    """
-
-    engine: Any
-    kin: Kinematics
-    obs: jax.Array
-    reward: jax.Array
-    done: jax.Array
-
-
-class TaskPhysics:
-    """What every engine of a `NativeTask` shares (`NativePhysics`, `MjxPhysics`): the reset
-    distribution, the action map, and observation, reward and termination from the
-    `Kinematics` an engine produces. Subclasses set ``spec``, ``init_q``, ``nq``, ``nv``,
-    ``dt``, ``action_size``, ``ctrl_range`` and ``state_type``, and write how their engine
-    places a fresh state (`_place`) and advances one env step (`_advance`)."""
-
-    spec: NativeTask
-    init_q: jax.Array
-    nq: int
-    nv: int
-    dt: float
-    action_size: int
-    ctrl_range: Any
-    state_type: type[PhysicsState] = PhysicsState
-
-    def reset(self, keys: jax.Array) -> PhysicsState:
-        """Initial states of len(keys) envs, one key each (the task's reset distribution)."""
-        draws = jax.vmap(lambda k: self.spec.reset_noise(k, self.init_q, self.nv))(keys)
-        return self.reset_to(*draws)
-
-    def reset_to(self, qpos: jax.Array, qvel: jax.Array, mocap_pos: jax.Array | None = None) -> PhysicsState:
-        """n envs at joint positions [n, nq] and velocities [n, nv] (and mocap bodies at
-        ``mocap_pos`` [n, nmocap, 3], placed after the forward pass), as a reset leaves them."""
-        n = qpos.shape[0]
-        chex.assert_shape([qpos, qvel], [(n, self.nq), (n, self.nv)])
-        engine, kin = self._place(qpos, qvel, mocap_pos)
-        obs, reward, done = self._outputs(kin)
-        return self.state_type(engine=engine, kin=kin, obs=obs, reward=reward, done=done)
-
-    def step(self, state: PhysicsState, action: jax.Array) -> PhysicsState:
-        """One env step (the task's substeps) of every env with `action` [n, action_size]."""
-        chex.assert_shape(action, (state.obs.shape[0], self.action_size))
-        ctrl = control(self.spec, action, self.ctrl_range)
-        engine, kin = self._advance(state.engine, ctrl)
-        obs, reward, done = self._outputs(kin, state.kin, ctrl)
-        return self.state_type(engine=engine, kin=kin, obs=obs, reward=reward, done=done)
-
-    def _place(self, qpos: jax.Array, qvel: jax.Array, mocap_pos: jax.Array | None):
-        """(engine state, `Kinematics`) of fresh envs after the forward pass."""
-        raise NotImplementedError
-
-    def _advance(self, engine: Any, ctrl: jax.Array):
-        """(engine state, `Kinematics`) after one env step with controls ``ctrl`` [n, nu]."""
-        raise NotImplementedError
-
-    def trajectory(self, keys: jax.Array, actions: jax.Array):
-        """Resets len(keys) envs from ``keys``, then steps them with ``actions`` [T, n, nu]
-        (a `lax.scan`; jit it). Returns (first obs [n, o], (obs [T, n, o], reward [T, n],
-        done [T, n])): what comparisons of two engines or against Gymnasium read."""
-
-        def body(state, action):
-            state = self.step(state, action)
-            return state, (state.obs, state.reward, state.done)
-
-        state = self.reset(keys)
-        return state.obs, jax.lax.scan(body, state, actions)[1]
-
-    def _outputs(self, kin: Kinematics, before: Kinematics | None = None, ctrl: jax.Array | None = None):
-        """(obs, reward, done) of every env [n, ...]: after a step from ``before`` with ``ctrl``,
-        or after a reset (``before`` None: reward and done 0)."""
-        obs = jax.vmap(self.spec.observe)(kin)
-        if before is None:
-            zeros = jnp.zeros(obs.shape[:1], jnp.float32)
-            return obs, zeros, zeros
-        reward, done = jax.vmap(lambda k0, k1, c: self.spec.reward_done(k0, k1, c, self.dt))(
-            before, kin, ctrl
-        )
-        return obs, reward.astype(jnp.float32), done.astype(jnp.float32)
 
 
 def uniform_reset(q_scale: float, qd_scale: float, qd_normal: bool):
