@@ -31,8 +31,8 @@ _LAZY = {
     "TrainResult": "coherent_jax.api",
     "PolicyFunction": "coherent_jax.api",
     "TrainedPolicy": "coherent_jax.policy",
-    "Callback": "coherent_jax.run.callbacks",
-    "Stop": "coherent_jax.run.callbacks",
+    "Callback": "coherent_jax.run.outputs",
+    "Stop": "coherent_jax.run.outputs",
 }
 __all__ = ["__version__", *_LAZY]
 
