@@ -47,7 +47,7 @@ from coherent_jax.agents.onpolicy import OnPolicyTrainer
 from coherent_jax.config import Config, cli, to_dict, validate, with_values
 from coherent_jax.envs.vec_env import VecEnv
 from coherent_jax.exploration.base import Segment
-from coherent_jax.run import sharding
+from coherent_jax.run import devices
 
 _count = cli.int_at_least(1)
 # How long the suite takes at its defaults (`python -m benchmarks --help` prints it).
@@ -109,7 +109,7 @@ def parse(items: Sequence[str]) -> cli.Parsed:
 def _bench_training(cfg: Config, iterations: int, log, remat_row: bool = True) -> tuple[dict, dict]:
     """Compiles and times the PPO iteration for both strategies (and compiles the filter
     form with remat for its memory, with ``remat_row``); returns (results, trainers)."""
-    num_devices = sharding.resolve_num_devices(cfg.num_devices, cfg.env)
+    num_devices = devices.resolve_num_devices(cfg.num_devices, cfg.env)
     shape = f"{cfg.env}, {cfg.num_envs} envs x {cfg.unroll_length} steps, {num_devices} device(s)"
     # One env object for all trainers (building an MJX model takes seconds); no
     # evaluation runs here, so it also stands in for the evaluation env.
@@ -131,11 +131,11 @@ def _bench_training(cfg: Config, iterations: int, log, remat_row: bool = True) -
         # (The filter form's carry holds a belief, the joint exact form's does not: each
         # row starts from its own state.)
         # With several devices (num_devices) the envs are split over them as in training.
-        state, shardings = sharding.init_state(
+        state, shardings = devices.init_state(
             trainer, jax.random.PRNGKey(cfg.seed), num_devices, cfg.num_envs
         )
         t0 = time.perf_counter()
-        step = sharding.compile_iteration(trainer, state, shardings)
+        step = devices.compile_iteration(trainer, state, shardings)
         compile_s = time.perf_counter() - t0
         mem = measure.memory(step)
         log(f"[bench]   compiled in {compile_s:.1f} s; peak memory {measure.peak_mb(mem)} MB")

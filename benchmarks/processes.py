@@ -35,7 +35,7 @@ from typing import Any
 
 from benchmarks import measure
 from coherent_jax.config import cli
-from coherent_jax.run.runs import atomic_write
+from coherent_jax.run.rundir import atomic_write
 
 DEFAULTS = [
     "env=pointmass",

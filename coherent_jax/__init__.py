@@ -32,8 +32,8 @@ _LAZY = {
     "PolicyFunction": "coherent_jax.api",
     "Policy": "coherent_jax.policy",
     "TrainedPolicy": "coherent_jax.policy",
-    "Callback": "coherent_jax.run.callbacks",
-    "Stop": "coherent_jax.run.callbacks",
+    "Callback": "coherent_jax.run.outputs",
+    "Stop": "coherent_jax.run.outputs",
 }
 __all__ = ["__version__", *_LAZY]
 

@@ -10,7 +10,7 @@
     coherent_jax.learn(cfg, callbacks=[MyCallback()])      # hooks; one can stop the run
 
 `learn` is ``python -m coherent_jax.train`` called from Python: the same launch path
-(`coherent_jax.run.single.launch_train`: checks, run directory, lock, config, loop, summary),
+(`coherent_jax.run.launch.launch_train`: checks, run directory, lock, config, loop, summary),
 the same files and lines, the same refusals raised instead of printed. `load_policy` is
 `coherent_jax.policy.load_policy`: the policy evaluation acts with (what ``python -m
 coherent_jax.evaluate`` reads) as a `Policy`, with ``predict(obs, state,
@@ -27,11 +27,11 @@ from typing import Any, NamedTuple
 from coherent_jax.config import Config, ConfigError, override_items
 from coherent_jax.config.parse import overrides_of
 from coherent_jax.policy import Policy, load_policy
-from coherent_jax.run.callbacks import Callback
-from coherent_jax.run.callbacks import checked as checked_callbacks
-from coherent_jax.run.runs import CHECKPOINT, METRICS, PARAMS, read_metrics
-from coherent_jax.run.single import SUMMARY, launch_train
-from coherent_jax.run.stop import StopRequest
+from coherent_jax.run.checkpoint import CHECKPOINT, PARAMS
+from coherent_jax.run.launch import RUN_SUMMARY, launch_train
+from coherent_jax.run.loop_state import StopRequest
+from coherent_jax.run.outputs import Callback, checked_callbacks
+from coherent_jax.run.rundir import METRICS, read_metrics
 
 #: the policy `load_policy` returns (``PolicyFunction`` before it had ``predict``).
 PolicyFunction = Policy
@@ -80,16 +80,16 @@ def learn(
     """Trains as ``python -m coherent_jax.train`` does and returns the `TrainResult`.
 
     ``callbacks``: `coherent_jax.Callback` instances whose hooks the run calls
-    (`coherent_jax.run.callbacks`: ``on_start``, ``on_iteration`` with each metrics row,
+    (`coherent_jax.run.outputs`: ``on_start``, ``on_iteration`` with each metrics row,
     which can stop the run with a checkpoint, ``on_evaluation``, ``on_end``).
 
     ``config`` is a `Config` (`make_config`) or a mapping of overrides
     (``{"env": "hopper", "ppo.clip_eps": 0.1}``, a group's keys dotted or nested);
     ``{"resume": run_dir}`` continues a run. Raises, before anything is written,
     `ConfigError` (a bad key or value, a busy or unusable run directory),
-    `coherent_jax.run.runs.CheckpointError` (a checkpoint that does not fit) or
-    `coherent_jax.run.tracking.TrackingError` (``wandb=true`` without ``wandb``); raises
-    `coherent_jax.run.divergence.DivergenceError` when the run diverges (its last good
+    `coherent_jax.run.checkpoint.CheckpointError` (a checkpoint that does not fit) or
+    `coherent_jax.run.outputs.TrackingError` (``wandb=true`` without ``wandb``); raises
+    `coherent_jax.run.loop_state.DivergenceError` when the run diverges (its last good
     checkpoint stays). ``distributed=true`` runs from the command line only. SIGINT and
     SIGTERM stop the run after the current iteration, with a checkpoint.
     """
@@ -105,8 +105,8 @@ def learn(
         done = launch_train(items, stop, hooks)
     run_dir = done.run_dir
     summary = done.summary
-    if summary is None and (run_dir / SUMMARY).is_file():  # already complete
-        summary = json.loads((run_dir / SUMMARY).read_text())
+    if summary is None and (run_dir / RUN_SUMMARY).is_file():  # already complete
+        summary = json.loads((run_dir / RUN_SUMMARY).read_text())
     has_policy = (run_dir / CHECKPOINT).is_file() or (run_dir / PARAMS).is_file()
     return TrainResult(
         policy=load_policy(run_dir) if has_policy else None,

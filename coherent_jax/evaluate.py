@@ -2,17 +2,17 @@
 
 ``RUN_DIR`` is a training run's directory or one point of a sweep
 (``runs/sweep-.../p003-beta=0.1-seed=1``). Its policy (`coherent_jax.policy.net.PolicyNet`) is
-read from ``checkpoint.msgpack`` (verified as in `coherent_jax.run.runs`), or from
+read from ``checkpoint.msgpack`` (verified as in `coherent_jax.run.checkpoint`), or from
 ``params.msgpack`` where there is no checkpoint, without building the training envs,
 a trainer or a replay buffer. ``episodes`` deterministic (mean-action) episodes run in
 parallel, as training evaluates, and the mean and standard deviation of their returns
 are printed. With ``video=true`` it also renders the first episode
-(`coherent_jax.run.video`; headless: ``MUJOCO_GL=egl`` by default, or ``osmesa``) to
+(`coherent_jax.run.evaluation`; headless: ``MUJOCO_GL=egl`` by default, or ``osmesa``) to
 ``RUN_DIR/videos/eval-it<iteration>-s<seed>.mp4`` (``.gif`` without ffmpeg) unless
 ``video_path`` is given (``video_path`` without ``video=true`` is refused); the physics
 states come from inside the jitted evaluation, so the video shows exactly the episodes
 whose returns are printed; a run trained with ``wandb=true`` also logs the video to its
-W&B run (`coherent_jax.run.tracking`). The pure-JAX tasks (`pointmass`, the classic ones)
+W&B run (`coherent_jax.run.outputs`). The pure-JAX tasks (`pointmass`, the classic ones)
 have no MuJoCo model and refuse ``video=true``. A sweep's root directory is refused with
 the list of its points.
 
@@ -40,8 +40,8 @@ from coherent_jax.config.checks import gymnasium_id
 from coherent_jax.config.schema import MAX_SEED, SEED_ALLOWED
 from coherent_jax.envs.registry import CLASSIC_IDS, check_task
 from coherent_jax.exit_codes import EXIT_BAD_INPUT
-from coherent_jax.run import rundir, tracking, video_path
-from coherent_jax.run.runs import CHECKPOINT, PARAMS, CheckpointError, decode_checkpoint, load_config
+from coherent_jax.run import outputs, rundir
+from coherent_jax.run.checkpoint import CHECKPOINT, PARAMS, CheckpointError, decode_checkpoint, load_config
 
 ENGINES = ("jax", "gymnasium")
 GYMNASIUM_EXTRA = 'pip install -e ".[gym]"'
@@ -60,8 +60,8 @@ KEYS: dict[str, cli.Key] = {
     "seed": cli.Key(0, cli.int_between(0, MAX_SEED), SEED_ALLOWED, "PRNG seed of the evaluation episodes"),
     "video_path": cli.Key(
         "",
-        video_path.check_path,
-        video_path.PATH_ALLOWED,
+        outputs.check_video_path,
+        outputs.VIDEO_PATH_ALLOWED,
         "where the video goes, only with video=true; default "
         "RUN_DIR/videos/eval-it<iteration>-s<seed>.mp4 (.gif without ffmpeg)",
     ),
@@ -150,7 +150,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 "(allowed: false; this task has no MuJoCo model to render)"
             )
         if opts.video and check_task(cfg.env).backend in ("jax-env", "gym"):
-            from coherent_jax.run.video import video_problem  # lazy: JAX, MuJoCo; these envs only
+            from coherent_jax.run.evaluation import video_problem  # lazy: JAX, MuJoCo; these envs only
 
             problem = video_problem(cfg.env)
             if problem:
@@ -161,8 +161,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             gymnasium_id(cfg.env)
             check_gymnasium(cfg.env)
         if opts.video and cfg.wandb:
-            tracking.preflight()
-    except (ConfigError, CheckpointError, tracking.TrackingError) as exc:
+            outputs.wandb_preflight()
+    except (ConfigError, CheckpointError, outputs.TrackingError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     print(f"[coherent_jax] evaluating {run_dir} ({opts.episodes} episodes)", flush=True)
@@ -170,7 +170,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     try:
         result = evaluation.evaluate_run(run_dir, opts)
-    except (CheckpointError, evaluation.PolicyError, tracking.TrackingError) as exc:
+    except (CheckpointError, evaluation.PolicyError, outputs.TrackingError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     when = (

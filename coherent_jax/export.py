@@ -25,7 +25,7 @@ from coherent_jax.config import ConfigError, cli
 from coherent_jax.config.schema import MAX_SEED, SEED_ALLOWED
 from coherent_jax.exit_codes import EXIT_BAD_INPUT
 from coherent_jax.run import rundir
-from coherent_jax.run.runs import CHECKPOINT, PARAMS, CheckpointError, load_config
+from coherent_jax.run.checkpoint import CHECKPOINT, PARAMS, CheckpointError, load_config
 
 FORMATS = ("onnx", "stablehlo", "hub")
 DEFAULT_NAMES = {"onnx": "policy.onnx", "stablehlo": "policy.stablehlo", "hub": "hub"}

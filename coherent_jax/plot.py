@@ -38,8 +38,8 @@ import numpy as np
 
 from coherent_jax.config import ConfigError, cli, to_dict
 from coherent_jax.exit_codes import EXIT_BAD_INPUT
-from coherent_jax.run.rundir import is_sweep, sweep_points
-from coherent_jax.run.runs import CONFIG, METRICS, load_config, read_metrics
+from coherent_jax.run.checkpoint import load_config
+from coherent_jax.run.rundir import CONFIG, METRICS, is_sweep, read_metrics, sweep_points
 
 KEYS: dict[str, cli.Key] = {
     "out": cli.Key("plots", cli.output_dir, "a directory that can be written", "where the figures go"),

@@ -1,5 +1,8 @@
 """A sweep's points axis: `vmap` over it, and conditions reduced over it to branch once.
 
+A shared base apart from the sweep (`coherent_jax.run.sweep`, `coherent_jax.run.training`):
+the envs, the strategies and the trainers, layers below `run/`, branch through it.
+
 A sweep runs its grid points as one program, ``vmap(trainer.iteration, axis_name=
 POINT_AXIS)``. Under `jax.vmap` a `jax.lax.cond` whose predicate may differ between
 points becomes a select that computes *both* branches at every point: a fresh draw

@@ -10,11 +10,11 @@ writes one directory:
   with ``tensorboard=true``, the same scalars as TensorBoard event files in ``tb/``;
 * ``checkpoint.msgpack`` (the whole train state and the loop's state, every
   ``checkpoint_every`` iterations, at the end and when stopped by SIGINT/SIGTERM;
-  see `coherent_jax.run.runs`);
+  see `coherent_jax.run.checkpoint`);
 * at the end ``params.msgpack`` (final parameters and observation statistics, flax
   serialisation) and ``summary.json``;
 * with ``wandb=true``, ``wandb-run.json`` (the W&B run's id) and ``wandb/``: the same
-  config, rows and summary in a Weights & Biases run (`coherent_jax.run.tracking`).
+  config, rows and summary in a Weights & Biases run (`coherent_jax.run.outputs`).
 
 ``coherent_jax.learn(config)`` (`coherent_jax.api.learn`) runs the same launch path from
 Python.
@@ -24,13 +24,13 @@ even by SIGKILL, from any working directory, after the directory was moved): the
 rows past the checkpoint are dropped and recomputed, so the metrics equal those of
 an uninterrupted run of the same seed; ``resume=RUN_DIR total_steps=N`` extends a
 finished run. While it trains, a run holds ``run.lock`` in its directory
-(`coherent_jax.run.runlock`): a second process starting or resuming there is refused. Before
+(`coherent_jax.run.rundir`): a second process starting or resuming there is refused. Before
 anything is written, a key given twice, a configuration whose arrays cannot fit in
 memory (`coherent_jax.run.memory`), a sweep's directory given to ``resume=`` and a run whose
 ``metrics.jsonl`` lost rows before its checkpoint are refused like any bad input.
 A non-finite loss or parameter stops the run (exit status 3) naming
 the iteration and the quantity; the last good checkpoint stays. `main` reads top down: the
-mode (``--help``, a dry run or a run), then `coherent_jax.run.single.launch_train` (parse,
+mode (``--help``, a dry run or a run), then `coherent_jax.run.launch.launch_train` (parse,
 check, prepare the run directory, train, exit status). The helpers it shares with sweeps
 are `coherent_jax.run.launch`'s, the loop is `coherent_jax.run.loop`'s. Exit statuses
 (`coherent_jax.exit_codes`): 0 done, 2 bad input, 3 diverged, 4 another process of a
@@ -45,8 +45,8 @@ from collections.abc import Sequence
 
 from coherent_jax.config import help_text, parse_overrides
 from coherent_jax.run import launch, multihost
-from coherent_jax.run.single import describe_train, launch_train
-from coherent_jax.run.stop import StopRequest
+from coherent_jax.run.launch import describe_train, launch_train
+from coherent_jax.run.loop_state import StopRequest
 
 
 def train_help(items: Sequence[str] = ()) -> str:
@@ -60,9 +60,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         mode, items = launch.split_mode(list(sys.argv[1:] if argv is None else argv))
         if mode == launch.HELP:
-            return launch.answer(train_help(items))
+            return launch.print_answer(train_help(items))
         if mode == launch.DRY:
-            return launch.answer(describe_train(items))
+            return launch.print_answer(describe_train(items))
         with StopRequest() as stop:  # SIGINT/SIGTERM: stop after the current iteration
             return launch_train(items, stop).status
     except launch.REFUSED as exc:

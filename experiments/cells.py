@@ -25,7 +25,7 @@ import carry  # beside this file (reproduce.py puts it on sys.path)
 from curves import point_dirs as _point_dirs
 
 from coherent_jax.config.parse import modern_items
-from coherent_jax.run.provenance import cpu_info
+from coherent_jax.run.rundir import cpu_info
 
 SPEC_VERSION = 1  # bump when the meaning of a cell's overrides changes
 

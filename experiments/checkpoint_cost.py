@@ -6,7 +6,7 @@
 Each config after ``--`` is one comma-separated list of overrides, e.g.
 ``env=halfcheetah,explore=coherent``. The state has the trainer's exact shapes
 (traced from ``init``, filled with random numbers; nothing is compiled), and goes
-through the code the train loop uses (`coherent_jax.run.runs`). Prints one line per
+through the code the train loop uses (`coherent_jax.run.checkpoint`). Prints one line per
 config and writes the figures to OUT.json (default bench_results/checkpoint_cost.json).
 """
 
@@ -23,14 +23,9 @@ import numpy as np
 
 from coherent_jax.agents import make_trainer
 from coherent_jax.config import parse_overrides
-from coherent_jax.run.runs import (
-    CHECKPOINT,
-    LoopState,
-    atomic_write,
-    decode_checkpoint,
-    encode_checkpoint,
-)
-from coherent_jax.run.state_bytes import restore_state, state_to_bytes
+from coherent_jax.run.checkpoint import CHECKPOINT, LoopState, decode_checkpoint, encode_checkpoint
+from coherent_jax.run.devices import restore_state, state_to_bytes
+from coherent_jax.run.rundir import atomic_write
 
 
 def measure(overrides: list[str], repeats: int) -> dict:

@@ -89,7 +89,7 @@ def log_rows(cell: str, point: str, rows: Iterable[dict[str, Any]]) -> list[Row]
 
 def cell_rows(cell: str, sweep: Path) -> list[Row]:
     """The table's rows of a cell from its points' local ``metrics.jsonl`` (none without logs)."""
-    from coherent_jax.run.runs import read_metrics  # what plot.load_run reads the logs with
+    from coherent_jax.run.rundir import read_metrics  # what plot.load_run reads the logs with
 
     rows: list[Row] = []
     for point in point_dirs(sweep):

@@ -25,7 +25,7 @@ import numpy as np
 
 from coherent_jax import strategies
 from coherent_jax.config import ALGOS, ConfigError, parse_overrides
-from coherent_jax.run.single import train
+from coherent_jax.run.training import train
 
 BASE = [
     "env=pointmass",

@@ -85,7 +85,7 @@ def _episodes_with(fn, run_dir, episodes, seed):
     import jax
 
     from coherent_jax.envs.vec_env import VecEnv
-    from coherent_jax.run.runs import load_config
+    from coherent_jax.run.checkpoint import load_config
 
     cfg = load_config(run_dir)
     env = VecEnv(cfg.env, episodes, cfg.episode_length, cfg.physics, cfg.physics_threads)
@@ -105,7 +105,7 @@ def test_train_returns_the_run_and_its_policy_acts_as_evaluation_does(tmp_path):
     from coherent_jax.evaluate import EvalConfig
     from coherent_jax.policy.net import read_policy
     from coherent_jax.run.evaluation import evaluate_run
-    from coherent_jax.run.runs import read_metrics
+    from coherent_jax.run.rundir import read_metrics
     from coherent_jax.train import main
 
     cfg = make_config({**TINY, "seed": 5, "run_dir": str(tmp_path / "api")})

@@ -1,4 +1,4 @@
-"""Callbacks (coherent_jax.run.callbacks) through coherent_jax.learn: the hooks see what the run
+"""Callbacks (coherent_jax.run.outputs) through coherent_jax.learn: the hooks see what the run
 logs, a stop from a callback writes a checkpoint, and resume= from there equals a run that
 was never stopped."""
 
@@ -11,11 +11,12 @@ import pytest
 
 import coherent_jax
 from coherent_jax.config import ConfigError
-from coherent_jax.run import callbacks as hooks
-from coherent_jax.run.callbacks import Callback, Stop
-from coherent_jax.run.loop import drive
+from coherent_jax.run import outputs
+from coherent_jax.run.checkpoint import CHECKPOINT, PARAMS
+from coherent_jax.run.loop import run_loop
 from coherent_jax.run.loop_state import Job
-from coherent_jax.run.runs import CHECKPOINT, METRICS, PARAMS
+from coherent_jax.run.outputs import Callback, Stop
+from coherent_jax.run.rundir import METRICS
 
 ROOT = Path(__file__).resolve().parent.parent
 TINY = {
@@ -152,17 +153,17 @@ def test_a_sweep_takes_no_callbacks():
         callbacks=(Callback(),),
     )
     with pytest.raises(ValueError, match="invalid callbacks for a sweep"):
-        drive(job, None, None)
+        run_loop(job, None, None)
 
 
 def test_every_callback_sees_every_row_and_the_first_reason_wins():
     first, second = Recorder(stop_at=1, how=Stop("first")), Recorder(stop_at=1, how=Stop("second"))
     row = {"iteration": 1, "env_steps": 8, "time_s": 0.1, "eval/episode_return": -3.0}
-    assert hooks.iteration([first, second], row) == "first"
+    assert outputs.call_on_iteration([first, second], row) == "first"
     assert [k for k, _ in first.calls] == [k for k, _ in second.calls] == ["evaluation", "iteration"]
-    assert hooks.iteration([Recorder()], {**row, "iteration": 2}) is None
+    assert outputs.call_on_iteration([Recorder()], {**row, "iteration": 2}) is None
     assert (
-        hooks.iteration([Recorder(stop_at=2)], {**row, "iteration": 2})
+        outputs.call_on_iteration([Recorder(stop_at=2)], {**row, "iteration": 2})
         == "Recorder.on_iteration returned True"
     )
     assert Callback().on_iteration(row) is None  # the base's hooks do nothing

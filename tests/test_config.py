@@ -18,7 +18,7 @@ from coherent_jax.config import (
     modern_key,
     parse_overrides,
 )
-from coherent_jax.run.runs import load_config, write_config
+from coherent_jax.run.checkpoint import load_config, write_config
 
 ROOT = Path(__file__).resolve().parents[1]
 STORED = sorted((ROOT / "experiments" / "results").rglob("config.yaml"))
@@ -75,7 +75,7 @@ def test_flat_and_grouped_key_together_are_refused_as_one_key_given_twice():
 
 
 def test_flat_keys_work_in_a_sweep_and_points_keep_their_names():
-    from coherent_jax.sweep import parse_sweep
+    from coherent_jax.run.sweep import parse_sweep
 
     plan = parse_sweep(["env=pointmass", "explore=coherent", "beta=[0.01,0.1]", "clip_eps=0.1"])
     assert list(plan.axes) == ["coherent.beta"]
@@ -85,7 +85,7 @@ def test_flat_keys_work_in_a_sweep_and_points_keep_their_names():
 
 
 def test_a_grid_stored_with_flat_axes_reads_with_grouped_ones(tmp_path):
-    from coherent_jax.sweeps.resume import _read_grid
+    from coherent_jax.run.sweep import _read_grid
 
     (tmp_path / "grid.json").write_text(json.dumps({"axes": {"beta": [0.0, 0.1]}, "seeds": [0, 1]}))
     assert _read_grid(tmp_path) == ({"coherent.beta": [0.0, 0.1]}, [0, 1])
@@ -103,7 +103,7 @@ def test_sac_defaults_are_recorded_resolved_in_config_yaml(tmp_path):
 def test_a_later_group_leaves_the_flat_layout_of_before_unchanged():
     """lattice.* (no flat keys of before) enters the flat layout, and so checkpoint
     fingerprints, only where a setting differs from its default."""
-    from coherent_jax.run.runs import config_fingerprint
+    from coherent_jax.run.checkpoint import config_fingerprint
 
     plain = parse_overrides(["env=hopper", "explore=lattice"])
     assert "lattice" not in flat_dict(plain) and "lattice" not in flat_dict(parse_overrides([]))

@@ -328,6 +328,17 @@ FORMER_MODULES = (
     *("config.legacy", "config.declare", "config.limits", "config.presets"),
     *("envs.native", "envs.task", "envs.user_task", "envs.make", "envs.classic", "envs.pointmass"),
     *("envs.brax_native", "envs.dmc_native", "envs.mjx_physics"),
+    *(
+        "run.single",
+        "run.runs",
+        "run.stop",
+        "run.tracking",
+        "run.callbacks",
+        "run.sharding",
+        "run.collective",
+    ),
+    *("run.state_bytes", "run.video", "run.video_path", "run.provenance", "run.runlock", "run.divergence"),
+    *("coherent_jax.sweeps", "sweeps.plan", "sweeps.program", "sweeps.resume", "sweeps.table"),
 )
 #: ``.py`` names the package's prose gives of other projects' files, or as placeholders.
 FOREIGN_FILES = {

@@ -12,8 +12,9 @@ from helpers import child_env
 
 from coherent_jax.config import parse_overrides, to_dict
 from coherent_jax.evaluate import main, parse_eval_args
-from coherent_jax.run.runs import CHECKPOINT, LoopState, atomic_write, encode_checkpoint
-from coherent_jax.run.state_bytes import state_to_bytes
+from coherent_jax.run.checkpoint import CHECKPOINT, LoopState, encode_checkpoint
+from coherent_jax.run.devices import state_to_bytes
+from coherent_jax.run.rundir import atomic_write
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -181,16 +182,16 @@ def test_missing_or_foreign_run_dir_or_broken_checkpoint_is_refused(tmp_path, ca
 FRAMING = """
 import importlib.util, json, os
 import mujoco, numpy as np
-from coherent_jax.run import video
+from coherent_jax.run import evaluation
 
 # Brax's halfcheetah MJCF, loaded without importing JAX (the test stays a few seconds).
 brax_dir = importlib.util.find_spec("brax").submodule_search_locations[0]
 xml = os.path.join(brax_dir, "envs", "assets", "half_cheetah.xml")
-model = video.lit_model(mujoco.MjModel.from_xml_path(xml))
+model = evaluation.lit_model(mujoco.MjModel.from_xml_path(xml))
 data = mujoco.MjData(model)
 data.qpos[0] = 25.0  # far from the start: a tracking camera keeps the body in view
 mujoco.mj_forward(model, data)
-camera = video.tracking_camera(model, data)
+camera = evaluation.tracking_camera(model, data)
 with mujoco.Renderer(model, height=96, width=128) as renderer:
     renderer.update_scene(data, camera=camera)
     rgb = renderer.render().astype(float)
@@ -224,15 +225,15 @@ def test_video_frames_the_body_and_lights_it():
 
 def test_mp4_goes_through_ffmpeg_and_gif_without_it(tmp_path, monkeypatch):
     """With ffmpeg on the PATH the default is MP4, written from raw RGB frames on its stdin."""
-    from coherent_jax.run import video, video_path
+    from coherent_jax.run import evaluation, outputs
 
     frames = [np.full((5, 7, 3), i * 40, dtype=np.uint8) for i in range(3)]
     cat = shutil.which("cat")  # the fake ffmpeg below runs where PATH holds nothing else
     monkeypatch.setenv("PATH", str(tmp_path / "empty"))
-    assert video_path.default_suffix() == ".gif"
+    assert outputs.video_suffix() == ".gif"
     with pytest.raises(ValueError):
-        video_path.check_path(str(tmp_path / "v.mp4"))
-    video.write_video(tmp_path / "v.gif", frames, fps=20.0)
+        outputs.check_video_path(str(tmp_path / "v.mp4"))
+    evaluation.write_video(tmp_path / "v.gif", frames, fps=20.0)
     assert (tmp_path / "v.gif").read_bytes()[:6] == b"GIF89a"
 
     bin_dir = tmp_path / "bin"
@@ -246,9 +247,9 @@ def test_mp4_goes_through_ffmpeg_and_gif_without_it(tmp_path, monkeypatch):
     )
     fake.chmod(0o755)
     monkeypatch.setenv("PATH", str(bin_dir))
-    assert video_path.default_suffix() == ".mp4"
-    assert video_path.check_path(str(tmp_path / "out" / "v.mp4"))
-    video.write_video(tmp_path / "out" / "v.mp4", frames, fps=20.0)
+    assert outputs.video_suffix() == ".mp4"
+    assert outputs.check_video_path(str(tmp_path / "out" / "v.mp4"))
+    evaluation.write_video(tmp_path / "out" / "v.mp4", frames, fps=20.0)
     assert (tmp_path / "out" / "v.mp4").read_text() == "mp4\n"
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["v.mp4"]  # no temporary file left
     assert "-s 7x5" in (tmp_path / "args").read_text() and "rgb24" in (tmp_path / "args").read_text()

@@ -34,7 +34,7 @@ def test_row8_beta_is_stated_per_gradient_mode():
     gradient and per episode under gradient=episode; the README's beta sweep runs the
     mode in which beta = 0 is one draw per episode."""
     from coherent_jax.config.parse import help_text
-    from coherent_jax.sweep import parse_sweep
+    from coherent_jax.run.sweep import parse_sweep
 
     help_line = next(line for line in help_text().splitlines() if "coherent.beta=" in line)
     for words in ("unroll_length", "gradient=exact", "gradient=episode", "algo=sac"):

@@ -13,9 +13,10 @@ from helpers import ROOT
 from coherent_jax import sweep, train
 from coherent_jax.config import ConfigError, parse_overrides
 from coherent_jax.config.checks import warmup_warning
-from coherent_jax.run import single
-from coherent_jax.run.loop import StopRequest
-from coherent_jax.run.runs import stored_config
+from coherent_jax.run import launch, training
+from coherent_jax.run.checkpoint import stored_config
+from coherent_jax.run.loop_state import StopRequest
+from coherent_jax.run.sweep import parse_sweep
 
 EXAMPLE_FILE = ROOT / "examples" / "reacher_task.py"
 
@@ -98,7 +99,7 @@ def test_row6_a_sweeps_items_given_to_train_point_to_the_sweep(tmp_path, monkeyp
     shape = _refused(train.main, ["num_envs=[4,8]"], capsys)
     assert "'num_envs'" in shape and "cannot vary it" in shape
     # What the pointer says works, and a list setting still takes its one list.
-    assert len(sweep.parse_sweep(["env=pointmass", "seeds=2", "lr=[1e-3,3e-4]"]).points) == 4
+    assert len(parse_sweep(["env=pointmass", "seeds=2", "lr=[1e-3,3e-4]"]).points) == 4
     assert parse_overrides(["policy_hidden=[32,32]"]).policy_hidden == [32, 32]
 
 
@@ -151,7 +152,7 @@ def test_row12_a_task_by_file_path_and_the_declared_forms(tmp_path, monkeypatch)
     assert parse_overrides(["env=arm.py:arm"]).episode_length == 30  # annotated (as a string) factory
     assert parse_overrides(["env=arm.py:Arm"]).episode_length == 40  # a subclass
     cfg = parse_overrides(["env=arm.py:arm"])
-    assert str(single.default_run_dir(cfg)).startswith(os.path.join("runs", "arm:arm-ppo-"))
+    assert str(launch.default_run_dir(cfg)).startswith(os.path.join("runs", "arm:arm-ppo-"))
     with pytest.raises(ConfigError, match=r"file 'nowhere\.py' not found"):
         parse_overrides(["env=nowhere.py:arm"])
     readme = (ROOT / "README.md").read_text()
@@ -175,7 +176,7 @@ def test_row13_sac_within_its_warmup_is_warned_of_naming_both_numbers(tmp_path, 
     assert err == [warning]
     assert os.listdir(tmp_path) == []
     # A run warns too, once every input is accepted (training itself is left out here).
-    monkeypatch.setattr(single, "train", lambda *args, **kwargs: {"stopped_by": None})
+    monkeypatch.setattr(training, "train", lambda *args, **kwargs: {"stopped_by": None})
     with StopRequest() as stop:
-        done = single.launch_train(["preset=thesis", "algo=sac", "total_steps=5000", "env=pointmass"], stop)
+        done = launch.launch_train(["preset=thesis", "algo=sac", "total_steps=5000", "env=pointmass"], stop)
     assert done.status == 0 and capsys.readouterr().err.strip().splitlines() == [warning]

@@ -10,10 +10,10 @@ import pytest
 
 from coherent_jax.config import parse_overrides
 from coherent_jax.envs.registry import PhysicsError, auto_physics, resolve_physics
-from coherent_jax.run import tracking
-from coherent_jax.run.loop import StopRequest
-from coherent_jax.run.runs import write_config
-from coherent_jax.run.single import launch_train
+from coherent_jax.run import outputs
+from coherent_jax.run.checkpoint import write_config
+from coherent_jax.run.launch import launch_train
+from coherent_jax.run.loop_state import StopRequest
 from coherent_jax.train import main
 
 TINY = [
@@ -73,16 +73,16 @@ def _closed_port() -> int:
 def test_row9_wandb_online_without_credentials_is_one_line_exit_2_before_the_run_dir(home, tmp_path, capsys):
     pytest.importorskip("wandb")
     env = {"HOME": str(home), "WANDB_MODE": "online"}
-    assert tracking.credentials(env) is None
+    assert outputs.wandb_credentials(env) is None
     # Where `wandb login` and the user's settings put a key are found, without asking a server.
     (home / ".netrc").write_text("machine api.wandb.ai\n  login user\n  password " + FAKE_KEY + "\n")
-    assert tracking.credentials(env) == str(home / ".netrc")
-    assert tracking.credentials({**env, "WANDB_BASE_URL": "https://wandb.example.org"}) is None
+    assert outputs.wandb_credentials(env) == str(home / ".netrc")
+    assert outputs.wandb_credentials({**env, "WANDB_BASE_URL": "https://wandb.example.org"}) is None
     (home / ".netrc").unlink()
-    assert tracking.credentials({**env, "WANDB_API_KEY": FAKE_KEY}) == "WANDB_API_KEY"
+    assert outputs.wandb_credentials({**env, "WANDB_API_KEY": FAKE_KEY}) == "WANDB_API_KEY"
     (home / ".config/wandb").mkdir(parents=True)
     (home / ".config/wandb/settings").write_text(f"[default]\napi_key = {FAKE_KEY}\n")
-    assert tracking.credentials(env) == str(home / ".config/wandb/settings")
+    assert outputs.wandb_credentials(env) == str(home / ".config/wandb/settings")
     (home / ".config/wandb/settings").unlink()
 
     run = tmp_path / "run"
@@ -121,7 +121,7 @@ def test_row9_offline_wandb_writes_its_files_in_the_run_directory_only(home, tmp
     run = tmp_path / "run"
     run.mkdir()
     before = dict(__import__("os").environ)
-    with tracking.mirrored([(run, {"env": "pointmass"}, "run")]) as mirrors:
+    with outputs.mirrored([(run, {"env": "pointmass"}, "run")]) as mirrors:
         mirrors.runs[0].log({"train/loss": 0.5}, step=1)
         mirrors.summaries = [{"final_eval_return": 1.0}]
     assert _files(home) == []  # no ~/.cache/wandb, ~/.config/wandb, ~/.local/share/wandb
@@ -129,9 +129,9 @@ def test_row9_offline_wandb_writes_its_files_in_the_run_directory_only(home, tmp
     assert list((run / "wandb" / "cache").rglob("*.log"))  # W&B's service log, here
     assert dict(__import__("os").environ) == before
     # The user's own settings win; online keeps the user's config directory (the login).
-    env = tracking.wandb_environment(run, {"WANDB_CACHE_DIR": "/elsewhere"})
+    env = outputs.wandb_environment(run, {"WANDB_CACHE_DIR": "/elsewhere"})
     assert "WANDB_CACHE_DIR" not in env and env["WANDB_CONFIG_DIR"] == str(run / "wandb" / "config")
-    assert "WANDB_CONFIG_DIR" not in tracking.wandb_environment(run, {"WANDB_MODE": "online"})
+    assert "WANDB_CONFIG_DIR" not in outputs.wandb_environment(run, {"WANDB_MODE": "online"})
 
 
 def test_row11_resume_without_a_checkpoint_says_so_and_sets_the_rows_aside(tmp_path, capsys):

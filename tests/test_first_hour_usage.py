@@ -21,7 +21,7 @@ from coherent_jax import evaluate, plot, sweep
 from coherent_jax.config import parse_overrides
 from coherent_jax.config.checks import rounding_note
 from coherent_jax.run.loop import eval_text
-from coherent_jax.sweeps.table import aggregate, format_table
+from coherent_jax.run.sweep import aggregate, format_table, parse_sweep
 
 # One iteration of 2 envs x 4 steps, 8-unit networks, one evaluation episode of 8 steps.
 TINY_SWEEP = [
@@ -174,7 +174,7 @@ def test_row7_progress_says_what_it_shows():
     assert "total_steps=50000" in note and "53,248 env steps" in note and "13 iterations" in note
     assert rounding_note(parse_overrides(["total_steps=40960"])) is None  # 10 x 64 x 64
 
-    plan = sweep.parse_sweep([*TINY_SWEEP, "seeds=2", "lr=[1e-3,3e-4]"])
+    plan = parse_sweep([*TINY_SWEEP, "seeds=2", "lr=[1e-3,3e-4]"])
     summaries = [
         {"lr": 1e-3, "final_eval_return": 111.45},
         {"lr": 1e-3, "final_eval_return": 73.80},

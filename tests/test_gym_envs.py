@@ -228,7 +228,7 @@ def test_a_gymnasium_env_runs_on_one_device_of_several(tmp_path):
     assert len(lines) == 1 and "'num_devices': 2" in lines[0] and "allowed: 1" in lines[0], r.stderr
     assert not run_dir.exists()
     probe = (
-        "import jax; from coherent_jax.run.sharding import resolve_num_devices as n; "
+        "import jax; from coherent_jax.run.devices import resolve_num_devices as n; "
         "print(jax.device_count(), n(0, 'gym:Pendulum-v1'), n(0, 'pointmass'), n(0))"
     )
     r = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, timeout=300)

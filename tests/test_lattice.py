@@ -17,7 +17,7 @@ from coherent_jax.agents.registry import make_behaviour, make_strategy
 from coherent_jax.config import ConfigError, parse_overrides
 from coherent_jax.exploration.base import Segment
 from coherent_jax.networks import SquashedGaussianActor
-from coherent_jax.run.single import train
+from coherent_jax.run.training import train
 
 OBS_SIZE, ACTIONS, HIDDEN = 5, 3, 8
 

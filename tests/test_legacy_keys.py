@@ -19,7 +19,7 @@ from coherent_jax.config import (
     parse_overrides,
     to_dict,
 )
-from coherent_jax.run.runs import config_fingerprint, load_config
+from coherent_jax.run.checkpoint import config_fingerprint, load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 COHERENT_SAC = ["env=pointmass", "algo=sac", "explore=coherent"]
@@ -82,7 +82,7 @@ def test_every_old_psne_key_gives_the_config_and_the_hyperparameters_of_the_new_
 
 def test_old_psne_keys_work_from_the_api_the_command_line_and_a_sweep(capsys):
     from coherent_jax.config import cli
-    from coherent_jax.sweep import parse_sweep
+    from coherent_jax.run.sweep import parse_sweep
 
     want = parse_overrides([*COHERENT_SAC, "coherent_sac.sigma_delta=0.2"])
     assert make_config(env="pointmass", algo="sac", explore="coherent", psne={"sigma_delta": 0.2}) == want
@@ -110,7 +110,7 @@ def test_psne_keys_stay_psne_s_own_for_every_other_pair(pair, capsys):
 def test_a_coherent_sac_grid_stored_with_psne_axes_reads_with_its_own(tmp_path):
     import json
 
-    from coherent_jax.sweeps.resume import _read_grid
+    from coherent_jax.run.sweep import _read_grid
 
     (tmp_path / "grid.json").write_text(json.dumps({"axes": {"psne.sigma_init": [0.1, 0.3]}, "seeds": [0]}))
     assert _read_grid(tmp_path, ("sac", "coherent")) == ({"coherent_sac.sigma_init": [0.1, 0.3]}, [0])
@@ -198,4 +198,4 @@ def test_every_key_of_before_maps_through_the_one_module():
             if helper in LEGACY_HELPERS:
                 assert module == "coherent_jax.config.parse", (path, name)
                 users.append(path.name)
-    assert {"sweep.py", "resume.py", "runs.py", "cells.py", "verify.py"} <= set(users)
+    assert {"sweep.py", "checkpoint.py", "cells.py", "verify.py"} <= set(users)

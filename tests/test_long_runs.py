@@ -17,15 +17,8 @@ import pytest
 from helpers import child_env, load_experiment, tensorboard_scalars
 
 from coherent_jax.config import parse_overrides
-from coherent_jax.run.runs import (
-    CHECKPOINT,
-    LoopState,
-    atomic_write,
-    decode_checkpoint,
-    encode_checkpoint,
-    read_metrics,
-    truncate_metrics,
-)
+from coherent_jax.run.checkpoint import CHECKPOINT, LoopState, decode_checkpoint, encode_checkpoint
+from coherent_jax.run.rundir import atomic_write, read_metrics, truncate_metrics
 from coherent_jax.train import main
 
 TINY = [
@@ -207,8 +200,8 @@ def test_guard_skips_losses_of_an_iteration_without_update_but_never_parameters(
     """SAC logs NaN losses while its buffer warms up (no update applied): not a divergence."""
     import jax.numpy as jnp
 
-    from coherent_jax.run.divergence import DivergenceError
-    from coherent_jax.run.divergence import check_finite as _check_finite
+    from coherent_jax.run.loop import check_finite as _check_finite
+    from coherent_jax.run.loop_state import DivergenceError
 
     class Trainer:
         def export_params(self, state):

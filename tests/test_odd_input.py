@@ -18,8 +18,10 @@ from helpers import child_env, commit_all, load_experiment
 from benchmarks.__main__ import main as bench_main
 from coherent_jax import evaluate, sweep, train
 from coherent_jax.config import ConfigError, help_text, parse_overrides, to_dict
-from coherent_jax.run import runlock
-from coherent_jax.run.runs import CHECKPOINT, LoopState, atomic_write, encode_checkpoint, resume_point
+from coherent_jax.run import rundir
+from coherent_jax.run.checkpoint import CHECKPOINT, LoopState, encode_checkpoint, resume_point
+from coherent_jax.run.rundir import atomic_write
+from coherent_jax.run.sweep import parse_sweep
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = [
@@ -86,7 +88,7 @@ def fake_run(path: Path, iteration: int, finished: bool = False, extra=()) -> Pa
 
 def fake_sweep(path: Path, finished: bool = True) -> Path:
     """A finished sweep of ent_coef=[0,0.5] x seeds=2, as sweep leaves it (synthetic state)."""
-    plan = sweep.parse_sweep([*TINY, "ppo.ent_coef=[0,0.5]", "seeds=2"])
+    plan = parse_sweep([*TINY, "ppo.ent_coef=[0,0.5]", "seeds=2"])
     path.mkdir()
     write_config(path, plan.base)
     (path / "grid.json").write_text(json.dumps({"axes": plan.axes, "seeds": plan.seeds}))
@@ -308,8 +310,8 @@ def test_checkpoint_every_0_is_documented_and_a_killed_run_starts_over(tmp_path)
 HOLD = """
 import sys
 from pathlib import Path
-from coherent_jax.run import runlock
-lock = runlock.acquire(Path(sys.argv[1]), "run_dir")
+from coherent_jax.run import rundir
+lock = rundir.acquire(Path(sys.argv[1]), "run_dir")
 print("holding", flush=True)
 sys.stdin.read()
 lock.release()
@@ -330,26 +332,26 @@ def test_directory_locked_by_a_live_process_is_refused_naming_its_pid(tmp_path, 
         pid = f"process {holder.pid}"
         refused(train.main, [f"resume={run}"], capsys, "'resume'", pid, where=tmp_path)
         refused(train.main, [*TINY, f"run_dir={run}"], capsys, "'run_dir'", pid, where=tmp_path)
-        assert runlock.holder(run) == str(holder.pid)
+        assert rundir.holder(run) == str(holder.pid)
     finally:
         holder.stdin.close()  # the holder reads to the end of its input, then exits
         holder.wait(timeout=60)
     # The holder is gone and removed its lock file: the directory is as it was.
-    assert not (run / runlock.LOCK).exists() and runlock.holder(run) is None
+    assert not (run / rundir.LOCK).exists() and rundir.holder(run) is None
 
 
 def test_stale_lock_of_a_dead_process_is_taken_over(tmp_path):
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
     run = fake_run(tmp_path / "run", 3)
-    (run / runlock.LOCK).write_text(f"{dead.pid}\n")  # what a SIGKILLed holder leaves behind
-    assert runlock.holder(run) is None
-    runlock.refuse_if_held(run, "resume")
-    with runlock.acquire(run, "resume"):
-        assert (run / runlock.LOCK).read_text().strip() == str(os.getpid())
+    (run / rundir.LOCK).write_text(f"{dead.pid}\n")  # what a SIGKILLed holder leaves behind
+    assert rundir.holder(run) is None
+    rundir.refuse_if_held(run, "resume")
+    with rundir.acquire(run, "resume"):
+        assert (run / rundir.LOCK).read_text().strip() == str(os.getpid())
         with pytest.raises(ConfigError, match=f"in use by process {os.getpid()}"):
-            runlock.acquire(run, "resume")  # a second holder, even in this process, is refused
-    assert not (run / runlock.LOCK).exists()
+            rundir.acquire(run, "resume")  # a second holder, even in this process, is refused
+    assert not (run / rundir.LOCK).exists()
 
 
 # ------------------------------------------------------------------ 10. messages that said the wrong thing
@@ -423,8 +425,8 @@ def test_episode_length_minus_1_message_names_0(tmp_path, capsys):
 
 # ------------------------------------------------------------------ 11. provenance
 def test_versions_json_records_commit_dirty_flag_and_cpu(tmp_path):
-    from coherent_jax.run import provenance
-    from coherent_jax.run.runs import record_versions
+    from coherent_jax.run import rundir
+    from coherent_jax.run.rundir import record_versions
 
     record_versions(tmp_path, None)
     versions = json.loads((tmp_path / "versions.json").read_text())
@@ -433,27 +435,27 @@ def test_versions_json_records_commit_dirty_flag_and_cpu(tmp_path):
     if head.returncode == 0:
         assert versions["git_commit"] == head.stdout.strip() and isinstance(versions["git_dirty"], bool)
     # Outside a git checkout (or in a checkout that only encloses the package): null, no error.
-    assert provenance.git_state(tmp_path) == {"git_commit": None, "git_dirty": None}
+    assert rundir.git_state(tmp_path) == {"git_commit": None, "git_dirty": None}
     cpuinfo = tmp_path / "cpuinfo"
     cpuinfo.write_text("processor\t: 0\nmodel name\t: Test CPU 3000\nflags\t\t: fpu sse4_2 avx avx2 fma\n")
-    assert provenance.cpu_info(cpuinfo) == {"cpu_model": "Test CPU 3000", "cpu_vector_isa": "avx2"}
+    assert rundir.cpu_info(cpuinfo) == {"cpu_model": "Test CPU 3000", "cpu_vector_isa": "avx2"}
 
 
 def test_results_data_do_not_make_the_checkout_dirty_but_code_does(tmp_path):
-    from coherent_jax.run import provenance
+    from coherent_jax.run import rundir
 
     repo = tmp_path / "repo"
     (repo / "coherent_jax").mkdir(parents=True)
-    (repo / provenance.RESULTS_DATA / "protocol").mkdir(parents=True)
+    (repo / rundir.RESULTS_DATA / "protocol").mkdir(parents=True)
     (repo / "coherent_jax" / "train.py").write_text("x = 1\n")
-    curves = repo / provenance.RESULTS_DATA / "protocol" / "curves.csv.gz"
+    curves = repo / rundir.RESULTS_DATA / "protocol" / "curves.csv.gz"
     curves.write_bytes(b"old")
     commit_all(repo)
-    assert provenance.git_state(repo)["git_dirty"] is False
+    assert rundir.git_state(repo)["git_dirty"] is False
     curves.write_bytes(b"new")  # a finished cell's curves, not yet committed
-    assert provenance.git_state(repo)["git_dirty"] is False
+    assert rundir.git_state(repo)["git_dirty"] is False
     (repo / "coherent_jax" / "train.py").write_text("x = 2\n")
-    assert provenance.git_state(repo)["git_dirty"] is True
+    assert rundir.git_state(repo)["git_dirty"] is True
 
 
 HOPPER_CELLS = ("hopper/a2c/action", "hopper/a2c/coherent", "hopper/ppo/action")

@@ -20,8 +20,9 @@ from helpers import child_env
 from coherent_jax.agents import losses, make_trainer
 from coherent_jax.config import SWEEPABLE, ConfigError, help_text, parse_overrides
 from coherent_jax.policy.net import read_policy
-from coherent_jax.run.runs import load_config, read_metrics, resume_config, write_config
-from coherent_jax.sweep import parse_sweep
+from coherent_jax.run.checkpoint import load_config, resume_config, write_config
+from coherent_jax.run.rundir import read_metrics
+from coherent_jax.run.sweep import parse_sweep
 from coherent_jax.train import main
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -32,7 +32,7 @@ def test_every_cell_is_a_valid_config_with_its_tasks_settings_for_every_strategy
     """Every full-size cell parses as a training config (as the sweep will parse it), and the
     A2C/PPO cells of a task share that task's settings whatever the strategy."""
     from coherent_jax.config import parse_overrides
-    from coherent_jax.sweep import parse_sweep
+    from coherent_jax.run.sweep import parse_sweep
 
     cells = [*reproduce.thesis_cells(), *reproduce.ablation_cells(), *reproduce.beyond_cells()]
     for cell in cells:
@@ -96,7 +96,7 @@ def test_classic_suite_runs_every_strategy_on_mountain_car():
     import classic
 
     from coherent_jax.config import EXPLORES, SUPPORTED_ALGOS
-    from coherent_jax.sweep import parse_sweep
+    from coherent_jax.run.sweep import parse_sweep
 
     cells = reproduce.select("classic", [])
     on_policy = {e for e in EXPLORES if "ppo" in SUPPORTED_ALGOS[e]}
@@ -333,7 +333,7 @@ def test_the_scripts_read_this_checkouts_package(tmp_path):
     (decoy / "__init__.py").write_text("raise ImportError('the decoy package was imported')\n")
     code = (
         "import runpy, sys; runpy.run_path(sys.argv[1], run_name='loaded'); "
-        "import coherent_jax.run.runs; print(coherent_jax.run.runs.__file__)"
+        "import coherent_jax.run.checkpoint; print(coherent_jax.run.checkpoint.__file__)"
     )
     proc = subprocess.run(
         [sys.executable, "-c", code, str(ROOT / "experiments" / "reproduce.py")],

@@ -12,7 +12,7 @@ from coherent_jax.agents.sac_losses import soft_target
 from coherent_jax.config import parse_overrides
 from coherent_jax.exploration.adaptive import adapt_sigma, policy_distance
 from coherent_jax.networks import SquashedGaussianActor, squash
-from coherent_jax.run.single import train
+from coherent_jax.run.training import train
 
 FAST = [
     "env=pointmass",

@@ -20,8 +20,9 @@ from coherent_jax.config import (
     parse_overrides,
     sweepable,
 )
-from coherent_jax.run.runs import read_metrics
-from coherent_jax.sweeps import program
+from coherent_jax.run import training
+from coherent_jax.run.rundir import read_metrics
+from coherent_jax.run.sweep import Point, parse_sweep
 
 TINY = [
     "env=pointmass",
@@ -141,7 +142,7 @@ def test_cli_exit_status(tmp_path):
 
 
 def test_grid_is_the_product_with_seeds_innermost():
-    plan = sweep.parse_sweep([*TINY, "seed=5", "seeds=3", "ppo.ent_coef=[0,0.01]", "gamma=[0.9,0.99]"])
+    plan = parse_sweep([*TINY, "seed=5", "seeds=3", "ppo.ent_coef=[0,0.01]", "gamma=[0.9,0.99]"])
     assert plan.axes == {"ppo.ent_coef": [0.0, 0.01], "gamma": [0.9, 0.99]}
     assert plan.seeds == [5, 6, 7]
     got = [(p.values["ppo.ent_coef"], p.values["gamma"], p.seed) for p in plan.points]
@@ -152,7 +153,7 @@ def test_grid_is_the_product_with_seeds_innermost():
         for p, (e, g, s) in zip(plan.points, want, strict=True)
     )
     with pytest.raises(ConfigError):
-        sweep.parse_sweep(["seed=[]"])
+        parse_sweep(["seed=[]"])
 
 
 @pytest.mark.slow
@@ -226,7 +227,7 @@ def test_sweepable_keys_enter_only_through_state_hparams():
 def test_sweepable_declarations_match_every_trainer():
     """For every valid (algo, explore) pair, the fields' declarations name exactly the keys that reach the
     trainer's hyperparameters: a trainer built with every sweepable key changed holds the base trainer's
-    hyperparameters with just the declared keys' leaves replaced (`program.point_hparams`), each of them
+    hyperparameters with just the declared keys' leaves replaced (`training.point_hparams`), each of them
     changed. So a sweep needs no trainer per point, and refuses an axis a pair does not read."""
     import jax
 
@@ -259,14 +260,12 @@ def test_sweepable_declarations_match_every_trainer():
                 cfg = parse_overrides([*args, *(f"{k}={v}" for k, v in changes.items())])
                 own = make_trainer(cfg, env, eval_env).init_hparams()
                 declared = {k: v for k, v in changes.items() if sweepable(k).read_by(algo, explore)}
-                derived = program.point_hparams(
-                    base_hp, sweep.Point(index=0, values=declared, seed=0, cfg=cfg)
-                )
+                derived = training.point_hparams(base_hp, Point(index=0, values=declared, seed=0, cfg=cfg))
                 assert jax.tree.structure(derived) == jax.tree.structure(own)
                 for a, b in zip(jax.tree.leaves(derived), jax.tree.leaves(own), strict=True):
                     assert a.dtype == b.dtype and np.array_equal(a, b), (algo, explore)
                 for key in declared:  # each declared key's leaf really moved
-                    one = program.point_hparams(base_hp, sweep.Point(0, {key: changed[key]}, 0, cfg))
+                    one = training.point_hparams(base_hp, Point(0, {key: changed[key]}, 0, cfg))
                     moved = [
                         not np.array_equal(a, b)
                         for a, b in zip(jax.tree.leaves(one), jax.tree.leaves(base_hp), strict=True)

@@ -1,34 +1,34 @@
-"""The Weights & Biases mirror (coherent_jax.run.tracking), offline: what the local run files hold."""
+"""The Weights & Biases mirror (coherent_jax.run.outputs), offline: what the local run files hold."""
 
 import json
 
 import pytest
 from wandb_records import offline_runs, read_run
 
-from coherent_jax.run import tracking
+from coherent_jax.run import outputs
 
 pytest.importorskip("wandb")
 
 
 def test_offline_by_default_and_the_users_mode_wins(monkeypatch):
     monkeypatch.delenv("WANDB_MODE", raising=False)
-    assert tracking.mode() == "offline"
+    assert outputs.wandb_mode() == "offline"
     monkeypatch.setenv("WANDB_MODE", "disabled")
-    assert tracking.mode() == "disabled"
+    assert outputs.wandb_mode() == "disabled"
 
 
 def test_rows_config_summary_and_resume_reach_the_local_run_files(tmp_path, monkeypatch):
     monkeypatch.delenv("WANDB_MODE", raising=False)
     config = {"env": "pointmass", "lr": 3e-4, "coherent": {"beta": 0.01}}
-    run = tracking.WandbRun.open(tmp_path, config, name="point", group="sweep-x")
+    run = outputs.WandbRun.open(tmp_path, config, name="point", group="sweep-x")
     rows = [{"env_steps": 64.0 * (i + 1), "train/loss": 1.0 / (i + 1), "eval/return": None} for i in range(3)]
     for i, row in enumerate(rows):
         run.log(row, step=i + 1)
     run.finish()
-    identity = json.loads((tmp_path / tracking.RUN_FILE).read_text())
+    identity = json.loads((tmp_path / outputs.WANDB_RUN_FILE).read_text())
 
     # Resumed: the same W&B id, the rows after the checkpoint, then the final summary.
-    run = tracking.WandbRun.open(tmp_path, config, name="point", group="sweep-x")
+    run = outputs.WandbRun.open(tmp_path, config, name="point", group="sweep-x")
     run.log({"env_steps": 256.0, "train/loss": 0.25, "eval/return": -3.5}, step=4)
     run.finish({"final_eval_return": -3.5, "env_steps": 256})
 
@@ -44,9 +44,9 @@ def test_rows_config_summary_and_resume_reach_the_local_run_files(tmp_path, monk
 
 
 def test_missing_package_is_one_line_with_the_install_command(monkeypatch):
-    monkeypatch.setattr(tracking, "available", lambda: False)
-    with pytest.raises(tracking.TrackingError, match=r'^wandb=true needs .*pip install -e "\.\[wandb\]"$'):
-        tracking.require()
+    monkeypatch.setattr(outputs, "wandb_available", lambda: False)
+    with pytest.raises(outputs.TrackingError, match=r'^wandb=true needs .*pip install -e "\.\[wandb\]"$'):
+        outputs.require_wandb()
 
 
 TINY = [
@@ -89,7 +89,7 @@ def test_a_run_mirrors_its_config_rows_and_summary_and_a_resume_continues_the_sa
     first_rows = _rows(run)
     first_summary = json.loads((run / "summary.json").read_text())
     assert main([f"resume={run}", "total_steps=384"]) == 0  # extended: iteration 3
-    identity = json.loads((run / tracking.RUN_FILE).read_text())
+    identity = json.loads((run / outputs.WANDB_RUN_FILE).read_text())
     assert identity["name"] == "run" and identity["group"] is None
 
     first, second = (read_run(p) for p in offline_runs(run, expected=2))
@@ -137,10 +137,10 @@ def test_wandb_without_the_package_is_one_line_exit_2_and_nothing_written(
     import importlib
 
     main = importlib.import_module(f"coherent_jax.{command}").main
-    monkeypatch.setattr(tracking, "available", lambda: False)
+    monkeypatch.setattr(outputs, "wandb_available", lambda: False)
     assert main([*TINY, f"run_dir={tmp_path / 'run'}"]) == 2
     err = capsys.readouterr().err
-    assert err == f"error: {tracking.INSTALL_HINT}\n"
+    assert err == f"error: {outputs.WANDB_INSTALL_HINT}\n"
     assert list(tmp_path.iterdir()) == []
 
 
@@ -169,7 +169,7 @@ def test_evaluate_adds_its_video_to_the_runs_wandb_run(tmp_path, monkeypatch):
     assert proc.returncode == 0, proc.stderr
     (path,) = offline_runs(run)
     record = read_run(path)
-    assert record["id"] == json.loads((run / tracking.RUN_FILE).read_text())["id"]
+    assert record["id"] == json.loads((run / outputs.WANDB_RUN_FILE).read_text())["id"]
     (row,) = [h for h in record["history"] if "eval/video/_type" in h]
     assert row["eval/video/_type"] == "video-file" and row["eval/video/path"].endswith(".gif")
     assert (path.parent / "files" / row["eval/video/path"]).read_bytes() == video.read_bytes()

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from coherent_jax.config import parse_overrides
-from coherent_jax.run.single import train
+from coherent_jax.run.training import train
 from coherent_jax.train import main
 
 FAST = [

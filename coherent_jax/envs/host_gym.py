@@ -28,7 +28,7 @@ one shared pool holds points * n envs, one row each (`HostPool` sizes itself at 
 
 **Resume.** `HostPool.snapshot` / `HostPool.restore` give the pool's state as bytes (each env
 pickled, its generator's state, and for MuJoCo envs the full ``MjData`` state), which the
-checkpoint carries (`coherent_jax.run.runs`), so a resumed run steps on bit for bit.
+checkpoint carries (`coherent_jax.run.checkpoint`), so a resumed run steps on bit for bit.
 """
 
 from __future__ import annotations

@@ -28,9 +28,9 @@ from coherent_jax.config.parse import overrides_of
 from coherent_jax.envs.registry import check_task
 from coherent_jax.policy.formats import write_onnx
 from coherent_jax.policy.trained import META_FILE, POLICY_FILE, Policy, load_policy
-from coherent_jax.run import provenance
+from coherent_jax.run import rundir
 from coherent_jax.run.evaluation import evaluate_run
-from coherent_jax.run.video_path import default_suffix
+from coherent_jax.run.outputs import video_suffix
 
 ONNX_FILE = "policy.onnx"
 
@@ -113,7 +113,7 @@ def model_card(policy: Policy, figures: dict[str, Any], versions: dict[str, Any]
             },
             "library_version": coherent_jax.__version__,
             "trained_at_commit": versions.get("git_commit"),
-            "exported_at_commit": provenance.git_state().get("git_commit"),
+            "exported_at_commit": rundir.git_state().get("git_commit"),
             "training_command": command,
         },
     }
@@ -164,7 +164,7 @@ def write_hub(run_dir: Path, out: Path, episodes: int = 10, seed: int = 0) -> di
     cfg = policy.config
     renders = check_task(cfg.env).backend != "jax"
     out.mkdir(parents=True)
-    video_name = f"replay{default_suffix()}" if renders else ""
+    video_name = f"replay{video_suffix()}" if renders else ""
     opts = HubEval(episodes, "jax", renders, seed, str(out / video_name) if renders else "")
     figures = evaluate_run(run_dir, opts, mirror_wandb=False)
     figures["video_name"] = video_name

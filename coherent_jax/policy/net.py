@@ -35,7 +35,7 @@ from coherent_jax.agents.registry import make_behaviour, make_strategy
 from coherent_jax.agents.sac import make_actor
 from coherent_jax.config import Config, ConfigError, from_stored, to_dict, validate
 from coherent_jax.networks import RunningStats, SquashedGaussianActor, normalize, squash
-from coherent_jax.run.runs import CHECKPOINT, PARAMS, decode_checkpoint, load_config
+from coherent_jax.run.checkpoint import CHECKPOINT, PARAMS, decode_checkpoint, load_config
 
 FORMAT = "coherent_jax-policy-1"
 
@@ -198,7 +198,7 @@ def _restore(template: Any, stored: Any, where: str) -> Any:
 
 
 def policy_from_checkpoint(cfg: Config, state_bytes: bytes, obs_size: int, action_size: int) -> PolicyNet:
-    """The policy inside a checkpoint's train state (`coherent_jax.run.state_bytes.state_to_bytes`).
+    """The policy inside a checkpoint's train state (`coherent_jax.run.devices.state_to_bytes`).
 
     The state is stored as its leaves in tree order, and every trainer's state starts
     with (params, opt_state, obs_stats) (`learner_template`): those leading leaves are
@@ -242,7 +242,7 @@ def read_policy(run_dir: Path, obs_size: int, action_size: int) -> tuple[PolicyN
     From ``checkpoint.msgpack`` (verified against ``config.yaml``) if there is one, else
     from ``params.msgpack``. Returns (policy, where it came from: {"source", "iteration",
     "env_steps"}; iteration and env_steps are None for ``params.msgpack``, which does not
-    record them). Raises `ConfigError`, `coherent_jax.run.runs.CheckpointError` or
+    record them). Raises `ConfigError`, `coherent_jax.run.checkpoint.CheckpointError` or
     `PolicyError` in one line.
     """
     run_dir = Path(run_dir)

@@ -30,7 +30,7 @@ from coherent_jax.config import Config, from_stored, validate
 from coherent_jax.envs.action_map import ActionMap
 from coherent_jax.envs.vec_env import VecEnv
 from coherent_jax.policy.net import PolicyError, PolicyNet, read_policy
-from coherent_jax.run.runs import load_config
+from coherent_jax.run.checkpoint import load_config
 
 #: the files of a Hub folder (`coherent_jax.policy.hub`) that `load_policy` reads.
 POLICY_FILE = "policy.msgpack"
@@ -189,7 +189,7 @@ def load_policy(path: str | Path, seed: int = 0) -> Policy:
     ``python -m coherent_jax.evaluate`` reads it (``checkpoint.msgpack`` verified against
     ``config.yaml``, else ``params.msgpack``); a Hub folder from its ``policy.msgpack`` and
     ``policy.json``. ``seed`` starts the key stream of stochastic `Policy.predict`.
-    Raises `ConfigError`, `coherent_jax.run.runs.CheckpointError` or `PolicyError` in one line.
+    Raises `ConfigError`, `coherent_jax.run.checkpoint.CheckpointError` or `PolicyError` in one line.
     """
     path = Path(path)
     if (path / POLICY_FILE).is_file() and (path / META_FILE).is_file():

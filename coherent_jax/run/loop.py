@@ -9,9 +9,9 @@ states (``vmap(trainer.iteration)``). Either way it
 * evaluates every ``eval_every`` iterations and at the end (deterministic episodes);
 * writes one row per iteration to each point's ``metrics.jsonl`` and, with
   ``tensorboard=true``, to TensorBoard event files in the point's ``tb/`` (with
-  ``wandb=true`` also to the point's W&B run, `coherent_jax.run.tracking`);
-* calls a single run's callbacks with each row (`coherent_jax.run.callbacks`);
-* writes ``checkpoint.msgpack`` (the whole state, `coherent_jax.run.runs`) every
+  ``wandb=true`` also to the point's W&B run, `coherent_jax.run.outputs`);
+* calls a single run's callbacks with each row (`coherent_jax.run.outputs`);
+* writes ``checkpoint.msgpack`` (the whole state, `coherent_jax.run.checkpoint`) every
   ``checkpoint_every`` iterations, at the end, and when SIGINT/SIGTERM or a callback stops it;
 * continues from a checkpoint (``resume``), recomputing the rows past it, so the
   metrics equal those of an uninterrupted run;
@@ -25,8 +25,13 @@ states (``vmap(trainer.iteration)``). Either way it
 
 Its steps are named functions of a `loop_state.Session`: `start_session` (devices,
 keys, initial or restored state), `compile_programs`, `open_outputs`, then per
-iteration `iterate` (which calls `guard`, the checks of `coherent_jax.run.divergence`),
-`sink_metrics`, `save_checkpoint` and `show_progress`, and `close_outputs`.
+iteration `iterate` (which calls `guard`), `sink_metrics`, `save_checkpoint` and
+`show_progress`, and `close_outputs`.
+
+The divergence guard's checks (`check_finite`): after every iteration each live point's
+loss metric of an iteration that applied an update, and every parameter, must be finite.
+A single run stops with `DivergenceError`, naming the iteration, the quantity and the
+last good checkpoint; a sweep marks the point and continues.
 """
 
 from __future__ import annotations
@@ -44,28 +49,26 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import serialization
 from tqdm.auto import tqdm
 
 from coherent_jax.agents.trainer import Trainer
 from coherent_jax.config.checks import rounding_note
 from coherent_jax.envs.host_gym import host_pool
-from coherent_jax.run import callbacks, collective, sharding
-from coherent_jax.run.collective import to_host
-from coherent_jax.run.divergence import DivergenceError, PointView, check_finite
-from coherent_jax.run.loop_state import Job, Outcome, Programs, Session, to_float
-from coherent_jax.run.runs import (
-    CHECKPOINT,
-    METRICS,
-    PREFIX,
-    Checkpoint,
-    LoopState,
-    atomic_write,
-    encode_checkpoint,
-    truncate_metrics,
+from coherent_jax.run import devices
+from coherent_jax.run.checkpoint import CHECKPOINT, Checkpoint, LoopState, encode_checkpoint
+from coherent_jax.run.devices import restore_state, state_to_bytes
+from coherent_jax.run.loop_state import (
+    CALLBACK,
+    DivergenceError,
+    Job,
+    Outcome,
+    Programs,
+    Session,
+    StopRequest,
+    to_float,
 )
-from coherent_jax.run.state_bytes import restore_state, state_to_bytes
-from coherent_jax.run.stop import CALLBACK, StopRequest
+from coherent_jax.run.outputs import call_on_iteration
+from coherent_jax.run.rundir import METRICS, PREFIX, atomic_write, truncate_metrics
 from coherent_jax.sweep_axis import vmap_points
 
 
@@ -113,15 +116,15 @@ def start_session(job: Job, resume: Checkpoint | None, t_start: float) -> Sessio
     evaluation key continue where the checkpoint left them.
     """
     cfg, trainer, n = job.cfg, job.trainer, job.num_points
-    available = sharding.resolve_num_devices(cfg.num_devices, cfg.env)
+    available = devices.resolve_num_devices(cfg.num_devices, cfg.env)
     keys = [run_keys(s) for s in job.seeds]
     if job.points:
-        num_devices = sharding.point_device_count(n, available)
+        num_devices = devices.point_device_count(n, available)
         key = jnp.stack([k for k, _ in keys])
         init_key = jnp.stack([k for _, k in keys])
     else:
         num_devices = available
-        sharding.check_env_split(cfg.num_envs, num_devices)
+        devices.check_env_split(cfg.num_envs, num_devices)
         key, init_key = keys[0]
     # The engine `physics=auto` resolved to (trainers keep their training env in `.env`).
     physics = getattr(getattr(trainer, "env", None), "physics", cfg.physics)
@@ -136,20 +139,20 @@ def start_session(job: Job, resume: Checkpoint | None, t_start: float) -> Sessio
     start = 0
     if resume is None:
         if job.points:
-            state, shardings = sharding.init_points(trainer, init_key, job.hparams, num_devices)
+            state, shardings = devices.init_points(trainer, init_key, job.hparams, num_devices)
         else:
-            state, shardings = sharding.init_state(trainer, init_key, num_devices, cfg.num_envs)
+            state, shardings = devices.init_state(trainer, init_key, num_devices, cfg.num_envs)
     else:
         # Several processes: each reads the checkpoint, only process 0 has a run_dir.
         checkpoint_path = Path(cfg.resume or job.run_dir or ".") / CHECKPOINT
         if job.points:
             template = jax.eval_shape(vmap_points(trainer.init), init_key, job.hparams)
             state = restore_state(template, resume.state_bytes, checkpoint_path)
-            state, shardings = sharding.shard_points(state, num_devices)
+            state, shardings = devices.shard_points(state, num_devices)
         else:
             template = jax.eval_shape(trainer.init, init_key)
             state = restore_state(template, resume.state_bytes, checkpoint_path)
-            state, shardings = sharding.shard_state(state, num_devices, cfg.num_envs)
+            state, shardings = devices.shard_state(state, num_devices, cfg.num_envs)
         loop, start = resume.loop, resume.iteration
         key = jnp.asarray(loop.eval_key, dtype=jnp.uint32)
         pool = host_pool(getattr(trainer, "env", None))
@@ -186,7 +189,7 @@ def compile_programs(run: Session) -> None:
 
     vmapped = vmap_points if job.points else (lambda f: f)
     run.programs = Programs(
-        iteration=sharding.compile_iteration(trainer, run.state, run.shardings, points=job.points),
+        iteration=devices.compile_iteration(trainer, run.state, run.shardings, points=job.points),
         evaluate=jax.jit(vmapped(trainer.evaluate)).lower(run.state, run.key).compile(),
         check_params=jax.jit(vmapped(params_finite)).lower(run.state).compile(),
         split=jax.jit(vmapped(jax.random.split)),
@@ -214,12 +217,12 @@ def open_outputs(run: Session, stop: StopRequest) -> None:
     run.diverged = {int(k): v for k, v in loop.diverged.items()}
     run.elapsed_before = loop.elapsed_s
     run.files, run.writers = _open_outputs(job, run.start, run.resumed)
-    run.checkpoints = collective.from_writer(job.run_dir is not None)
+    run.checkpoints = devices.from_writer(job.run_dir is not None)
     run.bar = tqdm(
         total=cfg.num_iterations * cfg.steps_per_iteration,
         initial=run.start * cfg.steps_per_iteration,
         unit="step",
-        disable=not cfg.progress or not collective.is_writer(),  # one progress bar per run
+        disable=not cfg.progress or not devices.is_writer(),  # one progress bar per run
         dynamic_ncols=True,
         mininterval=1.0,
         # One rate: the postfix's training env steps/s (tqdm's own would count compile and eval).
@@ -229,7 +232,7 @@ def open_outputs(run: Session, stop: StopRequest) -> None:
     run.saved = run.start if run.resumed else -1
     # A signal to one process stops all of them after the same iteration; the agreed
     # value, not the local one, decides (a signal may arrive after the agreement).
-    run.stopping = collective.largest(stop.signum or 0)
+    run.stopping = devices.largest(stop.signum or 0)
 
 
 def iterate(run: Session, i: int) -> dict[str, Any]:
@@ -241,15 +244,15 @@ def iterate(run: Session, i: int) -> dict[str, Any]:
     job, cfg, loop, n, programs = run.job, run.job.cfg, run.loop, run.job.num_points, run.programs
     t0 = time.perf_counter()
     run.state, metrics = programs.iteration(run.state)
-    metrics = _per_point(collective.to_host(metrics), n)
-    finite = np.asarray(collective.to_host(programs.check_params(run.state))).reshape(n)
+    metrics = _per_point(devices.to_host(metrics), n)
+    finite = np.asarray(devices.to_host(programs.check_params(run.state))).reshape(n)
     loop.train_s += time.perf_counter() - t0
     guard(run, i + 1, metrics, finite)
     if i == cfg.num_iterations - 1 or (cfg.eval_every > 0 and (i + 1) % cfg.eval_every == 0):
         t0 = time.perf_counter()
         keys_now = programs.split(run.key)
         run.key, eval_key = (keys_now[:, 0], keys_now[:, 1]) if job.points else (keys_now[0], keys_now[1])
-        run.last_eval = _per_point(collective.to_host(programs.evaluate(run.state, eval_key)), n)
+        run.last_eval = _per_point(devices.to_host(programs.evaluate(run.state, eval_key)), n)
         loop.eval_s += time.perf_counter() - t0
         metrics.update(run.last_eval)
     ret = metrics["train/episode_return"]
@@ -364,92 +367,120 @@ def close_outputs(run: Session) -> None:
 
 def run_loop(
     job: Job,
-    stop: StopRequest,
+    stop: StopRequest | None,
     resume: Checkpoint | None = None,
     progress_fn: Callable[[int, dict[str, float]], None] | None = None,
 ) -> Outcome:
     """Runs `job` from scratch or from `resume`, until the budget is spent or `stop` is requested.
 
     The steps: `start_session`, `compile_programs`, then per iteration `iterate` (with
-    `guard`), `sink_metrics`, the job's callbacks (`coherent_jax.run.callbacks.iteration`;
+    `guard`), `sink_metrics`, the job's callbacks (`coherent_jax.run.outputs.call_on_iteration`;
     one that asks to stop is a `StopRequest.request`) and, every ``checkpoint_every``
     iterations, at the end and on a stop, `save_checkpoint`. ``progress_fn(iteration,
     metrics)`` receives a single run's metrics (Python floats) after every iteration. Raises
     `DivergenceError` when a single run diverges (see the module docstring for sweeps).
+
+    Runs under `stop`, or under a stop request of its own when called from Python (`stop` None).
+    Callbacks are a single run's: a sweep's `Job` with callbacks is a `ValueError`.
     """
-    cfg, n = job.cfg, job.num_points
-    run = start_session(job, resume, time.perf_counter())
-    compile_programs(run)
-    open_outputs(run, stop)
-    try:
-        for i in range(run.start, cfg.num_iterations):
-            if run.stopping or stop.reason:
-                break
-            metrics = iterate(run, i)
-            rows = sink_metrics(run, i + 1, metrics)
-            run.done = i + 1
-            if progress_fn:
-                progress_fn(run.done, {k: float(v[0]) for k, v in metrics.items()})
-            reason = callbacks.iteration(job.callbacks, rows[0]) if job.callbacks else None
-            if reason is not None:
-                stop.request(reason)
-            every = cfg.checkpoint_every > 0 and run.done % cfg.checkpoint_every == 0
-            run.stopping = collective.largest(stop.signum or 0)
-            halt = bool(run.stopping) or stop.reason is not None
-            if run.checkpoints and (i == cfg.num_iterations - 1 or every or halt):
-                save_checkpoint(run)
-                run.saved = run.done
-            show_progress(run)
-            if len(run.diverged) == n:
-                break
-        if (run.stopping or stop.reason) and run.checkpoints and run.saved != run.done:
-            save_checkpoint(run)  # stopped before the first iteration: resume starts here
-    finally:
-        close_outputs(run)
-    return Outcome(
-        state=run.state,
-        loop=run.loop,
-        start=run.start,
-        done=run.done,
-        compile_s=run.compile_s,
-        num_devices=run.num_devices,
-        physics=run.physics,
-        stopped_by=signal.Signals(run.stopping).name if run.stopping else CALLBACK if stop.reason else None,
-        last_return=[float(x) for x in run.last_return],
-        last_eval={k: [float(x) for x in v] for k, v in run.last_eval.items()},
-        diverged=run.diverged,
-        wall_s=run.elapsed_before + time.perf_counter() - run.t_start,
-        stop_reason=stop.reason if not run.stopping else None,
-    )
-
-
-def drive(
-    job: Job,
-    stop: StopRequest | None,
-    resume: Checkpoint | None,
-    progress_fn: Callable[[int, dict[str, float]], None] | None = None,
-) -> Outcome:
-    """`run_loop` under `stop`, or under a stop request of its own when called from Python.
-    Callbacks are a single run's: a sweep's `Job` with callbacks is a `ValueError`."""
     if job.callbacks and job.points:
         raise ValueError("invalid callbacks for a sweep (allowed: callbacks of a single run)")
     with contextlib.ExitStack() as stack:
         stop = stop or stack.enter_context(StopRequest())
-        return run_loop(job, stop, resume, progress_fn)
+        cfg, n = job.cfg, job.num_points
+        run = start_session(job, resume, time.perf_counter())
+        compile_programs(run)
+        open_outputs(run, stop)
+        try:
+            for i in range(run.start, cfg.num_iterations):
+                if run.stopping or stop.reason:
+                    break
+                metrics = iterate(run, i)
+                rows = sink_metrics(run, i + 1, metrics)
+                run.done = i + 1
+                if progress_fn:
+                    progress_fn(run.done, {k: float(v[0]) for k, v in metrics.items()})
+                reason = call_on_iteration(job.callbacks, rows[0]) if job.callbacks else None
+                if reason is not None:
+                    stop.request(reason)
+                every = cfg.checkpoint_every > 0 and run.done % cfg.checkpoint_every == 0
+                run.stopping = devices.largest(stop.signum or 0)
+                halt = bool(run.stopping) or stop.reason is not None
+                if run.checkpoints and (i == cfg.num_iterations - 1 or every or halt):
+                    save_checkpoint(run)
+                    run.saved = run.done
+                show_progress(run)
+                if len(run.diverged) == n:
+                    break
+            if (run.stopping or stop.reason) and run.checkpoints and run.saved != run.done:
+                save_checkpoint(run)  # stopped before the first iteration: resume starts here
+        finally:
+            close_outputs(run)
+        return Outcome(
+            state=run.state,
+            loop=run.loop,
+            start=run.start,
+            done=run.done,
+            compile_s=run.compile_s,
+            num_devices=run.num_devices,
+            physics=run.physics,
+            stopped_by=(
+                signal.Signals(run.stopping).name if run.stopping else CALLBACK if stop.reason else None
+            ),
+            last_return=[float(x) for x in run.last_return],
+            last_eval={k: [float(x) for x in v] for k, v in run.last_eval.items()},
+            diverged=run.diverged,
+            wall_s=run.elapsed_before + time.perf_counter() - run.t_start,
+            stop_reason=stop.reason if not run.stopping else None,
+        )
 
 
-def platform(out: Outcome) -> dict[str, Any]:
-    """Where a summary's run ran: JAX's version, its backend, the devices used."""
-    return {"jax_version": jax.__version__, "backend": jax.default_backend(), "num_devices": out.num_devices}
+class PointView:
+    """One point of a stacked state, for `check_finite`'s parameter search."""
+
+    def __init__(self, trainer: Trainer, index: int) -> None:
+        self.trainer, self.index = trainer, index
+
+    def export_params(self, states: Any) -> Any:
+        return jax.tree.map(lambda x: x[self.index], self.trainer.export_params(states))
 
 
-def write_params(trainer: Trainer, state: Any, point_dirs: list[Path], points: bool) -> None:
-    """Each point's final parameters and observation statistics (flax msgpack) in its directory.
+def first_non_finite(tree: Any) -> str:
+    """Path of the first array of `tree` (on the host) holding a NaN or an infinity."""
+    for where, leaf in jax.tree_util.tree_flatten_with_path(jax.device_get(tree))[0]:
+        leaf = np.asarray(leaf)
+        if np.issubdtype(leaf.dtype, np.inexact) and not np.all(np.isfinite(leaf)):
+            return jax.tree_util.keystr(where)
+    return "?"
 
-    Several processes: every process must call it (the parameters are gathered from
-    all); only process 0 has directories to write to.
+
+def check_finite(
+    it: int,
+    metrics: dict[str, float],
+    params_ok: bool,
+    state: Any,
+    trainer: Trainer | PointView,
+    run_dir: Path | None,
+    saved: int,
+) -> None:
+    """Raises `DivergenceError` if a loss metric or a parameter is non-finite.
+
+    Losses are checked only when the iteration applied an update
+    (``train/updates_applied`` > 0, or absent): SAC reports NaN losses by design while
+    its replay buffer warms up. Parameters are always checked. `saved` is the
+    iteration of the last checkpoint written (the one a resume starts from).
     """
-    params = to_host(trainer.export_params(state))
-    for j, d in enumerate(point_dirs):
-        one = jax.tree.map(lambda x, j=j: x[j], params) if points else params
-        atomic_write(d / "params.msgpack", serialization.to_bytes(one))
+    updated = metrics.get("train/updates_applied", 1.0) > 0
+    bad = [k for k, v in metrics.items() if updated and "loss" in k and not math.isfinite(v)]
+    if not bad and params_ok:
+        return
+    if bad:
+        quantity = f"{bad[0]} = {metrics[bad[0]]}"
+    else:
+        quantity = f"parameter {first_non_finite(trainer.export_params(state))} is not finite"
+    kept = (
+        f"; last good checkpoint: iteration {saved} in {run_dir / CHECKPOINT}"
+        if run_dir and (run_dir / CHECKPOINT).exists()
+        else "; no checkpoint was written before it"
+    )
+    raise DivergenceError(f"diverged at iteration {it}: {quantity}{kept}")

@@ -1,16 +1,27 @@
-"""The host loop's records: what it runs (`Job`), a run in progress (`Session`), how it ended (`Outcome`)."""
+"""The host loop's records and what ends it early.
+
+What the loop runs (`Job`), a run in progress (`Session`, its compiled `Programs`), how it
+ended (`Outcome`); a request to stop after the current iteration, from SIGINT/SIGTERM or a
+callback (`StopRequest`), and a divergence (`DivergenceError`, raised by the loop's guard,
+`coherent_jax.run.loop.check_finite`). No JAX: the commands install the stop request before
+anything slow.
+"""
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import signal
+import sys
+import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
 from coherent_jax.agents.trainer import Trainer
 from coherent_jax.config import Config
-from coherent_jax.run.runs import LoopState
+from coherent_jax.run.checkpoint import LoopState
+from coherent_jax.run.rundir import PREFIX
 
 
 @dataclasses.dataclass(frozen=True)
@@ -28,9 +39,9 @@ class Job:
       hparams: a sweep's stacked hyperparameters (leading axis: points); None for a
         single run, whose state is not vmapped.
       label: how the start-up line names the job.
-      trackers: per point, a W&B run receiving each of its rows (`coherent_jax.run.tracking.WandbRun`,
+      trackers: per point, a W&B run receiving each of its rows (`coherent_jax.run.outputs.WandbRun`,
         ``wandb=true``); empty: none.
-      callbacks: a single run's `coherent_jax.run.callbacks.Callback`s, called with each row.
+      callbacks: a single run's `coherent_jax.run.outputs.Callback`s, called with each row.
     """
 
     cfg: Config
@@ -148,3 +159,57 @@ def to_float(x: Any) -> float | None:
     """A metric as JSON has it: a float, or None when not finite."""
     value = float(x)
     return value if math.isfinite(value) else None
+
+
+class DivergenceError(RuntimeError):
+    """A loss or a parameter became non-finite; the message names the iteration and the quantity."""
+
+
+CALLBACK = "callback"  # a summary's ``stopped_by`` when a callback stopped the run
+
+
+class StopRequest:
+    """Turns SIGINT/SIGTERM, or a callback's `request`, into a request to stop after the
+    current iteration.
+
+    Installed before anything slow (imports, compiles), so a Ctrl-C at any moment
+    ends the program cleanly instead of with a traceback. A second signal ends the
+    process at once, by the signal's default action. ``signum`` is the signal's number;
+    ``reason`` what a callback said (`coherent_jax.run.outputs`).
+    """
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+        self.reason: str | None = None
+        self._previous: dict[int, Any] = {}
+
+    def request(self, reason: str) -> None:
+        """A callback's request to stop after the current iteration (the first reason is kept)."""
+        if self.reason is None:
+            self.reason = reason
+
+    def __enter__(self) -> StopRequest:
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        if self.signum is not None:
+            signal.signal(signum, signal.SIG_DFL)
+            signal.raise_signal(signum)
+            return
+        self.signum = signum
+        print(
+            f"\n{PREFIX} {signal.Signals(signum).name}: stopping after the current step",
+            file=sys.stderr,
+            flush=True,
+        )
+
+    @property
+    def name(self) -> str | None:
+        return signal.Signals(self.signum).name if self.signum is not None else None
+
+    def __exit__(self, *exc: Any) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)

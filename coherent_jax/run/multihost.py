@@ -1,13 +1,13 @@
 """Several processes through `jax.distributed`: start-up, supervision, host copies, agreement.
 
 This module is the part the command line needs before JAX (supervision, the exit of
-a worker); the worker's JAX side is `coherent_jax.run.collective`.
+a worker); the worker's JAX side is `coherent_jax.run.devices`.
 
 ``distributed=true`` runs one process per host (or per device group): the same
 command everywhere, process 0 being JAX's coordinator and the only one that writes.
-This module holds what that needs beyond the device sharding of `coherent_jax.run.sharding`:
+This module holds what that needs beyond the device sharding of `coherent_jax.run.devices`:
 
-* **Start-up** (`coherent_jax.run.collective.initialize`): the CPU backend's cross-process collectives are
+* **Start-up** (`coherent_jax.run.devices.initialize`): the CPU backend's cross-process collectives are
   switched to gloo (JAX's CPU default has none), the coordinator, process count and
   id come from the cluster (SLURM, Open MPI, ...) or from ``JAX_COORDINATOR_ADDRESS``,
   ``JAX_NUM_PROCESSES``, ``JAX_PROCESS_ID``; the timeouts from `INIT_TIMEOUT_ENV`
@@ -22,10 +22,10 @@ This module holds what that needs beyond the device sharding of `coherent_jax.ru
   peer that dies is noticed as soon as its connection closes (about a second), one
   that hangs or loses its network after ``heartbeat`` seconds, an unreachable
   coordinator after ``init`` seconds.
-* **Host copies and placement** (`collective.to_host`, `collective.place`): a checkpoint needs the whole
+* **Host copies and placement** (`devices.to_host`, `devices.place`): a checkpoint needs the whole
   train state in host memory, although each process holds only its devices' rows
   of the per-env arrays; a restore puts a host copy back as the same global arrays.
-* **Agreement** (`collective.largest`, `collective.from_writer`): decisions that change which
+* **Agreement** (`devices.largest`, `devices.from_writer`): decisions that change which
   collectives run next (stop now, write a checkpoint) must be the same in every
   process, or one of them would wait for the others forever.
 """

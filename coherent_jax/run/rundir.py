@@ -1,28 +1,86 @@
-"""What kind of directory a command was given, and whether its logged rows are whole.
+"""A run's (or a sweep's) directory: what it holds beside the checkpoint, and who writes in it.
 
-* A sweep's root holds ``grid.json`` beside its shared ``config.yaml``; each point is a
-  sub-directory with a single run's ``config.yaml`` and rows but no checkpoint (the
-  sweep keeps one for the whole grid). `refuse_sweep_for_train` and `sweep_points`
-  let ``train`` and ``evaluate`` say which command or directory to use instead of
-  failing later on a shape mismatch.
-* `metrics_problem` compares a ``metrics.jsonl`` with the checkpoint's iteration: a
-  file truncated or damaged (a line that is not a metrics row) would otherwise be
-  reported as complete, or have its lost rows silently skipped by a resume.
-* `set_aside` keeps the rows of a resume that found no checkpoint (it starts over) as
-  ``metrics.jsonl.discarded-N``; `first_missing` and `discard_new_dir` remove a new run's
-  directory again when its start fails (W&B not starting).
+* Its files are written atomically (`atomic_write`: a temporary file, flushed, then renamed).
+* Its kind: a sweep's root holds ``grid.json`` beside its shared ``config.yaml``; each point
+  is a sub-directory with a single run's ``config.yaml`` and rows but no checkpoint (the
+  sweep keeps one for the whole grid). `refuse_sweep_for_train` and `sweep_points` let
+  ``train`` and ``evaluate`` say which command or directory to use instead of failing
+  later on a shape mismatch.
+* A new one is made writable before any work (`prepare_output_dir`); `first_missing` and
+  `discard_new_dir` remove it again when its start fails (W&B not starting).
+* One process at a time: the process that trains in a directory holds an exclusive
+  ``flock`` on ``DIR/run.lock``, a file holding its PID, from before it writes anything
+  until it exits; it removes the file when it is done. A second process, starting or
+  resuming in the same directory, is refused in one line naming the holder's PID. The
+  kernel drops a ``flock`` when its holder dies, so the file a SIGKILLed process leaves
+  behind is a stale lock: the next process takes it over (and writes its own PID into
+  it). A lock file is unlinked before it is unlocked, and a process that locked a file
+  checks that it is still the one at ``DIR/run.lock`` (else it retries), so two
+  processes can never both hold the lock of one directory.
+* Its rows, ``metrics.jsonl``: `metrics_problem` compares them with the checkpoint's
+  iteration (a file truncated or damaged, a line that is not a metrics row, would
+  otherwise be reported as complete, or have its lost rows silently skipped by a resume);
+  `set_aside` keeps the rows of a resume that found no checkpoint (it starts over) as
+  ``metrics.jsonl.discarded-N``.
+* Where its numbers came from, ``versions.json`` (`record_versions`): Python, the platform,
+  the versions of the packages a run's numbers depend on, and
+
+  - ``git_commit``, ``git_dirty``: the commit of the checkout this package was imported
+    from, and whether its tracked files differed from it. Untracked files do not count,
+    nor do the results under `RESULTS_DATA` (experiments/results/): a suite updates its
+    committed curves as each cell finishes, before they are committed, and that is data,
+    not code. Both null outside a git checkout of the project (an installed wheel, no
+    ``git``).
+  - ``cpu_model``: the processor's name (``model name`` of ``/proc/cpuinfo``, else
+    `platform.processor`).
+  - ``cpu_vector_isa``: the widest vector extension the CPU reports (``avx512f``, ``avx2``,
+    ``avx``, ``sse4_2``; null if none of these or unknown). XLA compiles for the host's
+    extensions, so two machines at different levels can round float32 sums differently.
+
+  The provenance is best effort: a failure gives null, never an error.
+
+The checkpoint and the stored config are `coherent_jax.run.checkpoint`'s. No JAX here.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
+import importlib.metadata
 import json
+import os
+import platform
 import shutil
+import subprocess
+import sys
 from pathlib import Path
+from typing import Any
 
 from coherent_jax.config import ConfigError
 
-GRID = "grid.json"  # a sweep's grid, in its root directory
+PREFIX = "[coherent_jax]"  # starts every line the command-line programs print
 CONFIG = "config.yaml"
+METRICS = "metrics.jsonl"
+VERSIONS = "versions.json"
+GRID = "grid.json"  # a sweep's grid, in its root directory
+LOCK = "run.lock"
+VERSIONED_PACKAGES = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "brax", "flax", "optax", "numpy", "chex")
+# Widest first: the first of these in the CPU's flags is its level.
+VECTOR_LEVELS = ("avx512f", "avx2", "avx", "sse4_2")
+PROJECT_ROOT = Path(__file__).resolve().parents[2]  # coherent_jax/run/rundir.py -> the checkout
+#: tracked results data that `git_state` does not count as a change of the checkout
+RESULTS_DATA = "experiments/results"
+
+
+def atomic_write(path: Path, data: bytes) -> None:
+    """Writes `data` to `path` through a temporary file and a rename (POSIX-atomic)."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
 
 
 def is_sweep(directory: Path) -> bool:
@@ -63,6 +121,174 @@ def refuse_sweep_for_train(directory: Path) -> None:
             f"{str(directory)} is a point of the sweep {str(root)}; resume the sweep with "
             f"python -m coherent_jax.sweep resume={root}"
         )
+
+
+def prepare_output_dir(path: Path, key: str = "run_dir") -> Path:
+    """Creates `path` as a new or empty, writable directory; raises `ConfigError` in one line otherwise.
+
+    Called before any work, so a read-only or invalid location is refused at once
+    rather than after the first hour of training; a directory created here is removed
+    again when it turns out unusable.
+    """
+    path = Path(path)
+    if path.exists() and (not path.is_dir() or any(path.iterdir())):
+        hint = f"; to continue the run in it: resume={path}" if (path / CONFIG).is_file() else ""
+        raise ConfigError(
+            f"invalid value for {key!r}: {str(path)!r} (allowed: a new or empty directory{hint})"
+        )
+    created = []
+    try:
+        for parent in [*reversed(path.parents), path]:
+            if not parent.exists():
+                parent.mkdir()
+                created.append(parent)
+        probe = path / ".write-check"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except (OSError, ValueError) as exc:
+        for made in reversed(created):
+            made.rmdir()
+        reason = getattr(exc, "strerror", None) or str(exc)
+        raise ConfigError(
+            f"invalid value for {key!r}: {str(path)!r} cannot be written ({reason}) "
+            "(allowed: a new or empty directory in a writable location)"
+        ) from None
+    return path
+
+
+def first_missing(path: Path) -> Path | None:
+    """The outermost of `path` and its parents that does not exist yet (None: `path` exists):
+    what `prepare_output_dir` creates, and what `discard_new_dir` removes again."""
+    path = Path(path)
+    return next((p for p in [*reversed(path.parents), path] if not p.exists()), None)
+
+
+def discard_new_dir(path: Path, created: Path | None) -> None:
+    """Undoes a new run's start: removes `created` (from `first_missing`, taken before
+    `prepare_output_dir`), or, when `path` existed (empty) before, only what is in it now."""
+    if created is not None:
+        shutil.rmtree(created, ignore_errors=True)
+        return
+    for entry in Path(path).iterdir():
+        if entry.is_dir() and not entry.is_symlink():
+            shutil.rmtree(entry, ignore_errors=True)
+        else:
+            entry.unlink(missing_ok=True)
+
+
+def _read_pid(fd: int) -> str:
+    os.lseek(fd, 0, os.SEEK_SET)
+    text = os.read(fd, 64).decode(errors="replace").strip()
+    return text if text.isdigit() else "unknown"
+
+
+def _in_use(directory: Path, key: str, pid: str) -> Exception:
+    return ConfigError(
+        f"invalid value for {key!r}: {str(directory)!r} is in use by process {pid} "
+        f"(allowed: a directory no running process trains in; {LOCK} names the holder)"
+    )
+
+
+class RunLock:
+    """A held lock; `release` (or leaving the ``with`` block) unlinks the file and unlocks it."""
+
+    def __init__(self, fd: int, path: Path) -> None:
+        self._fd: int | None = fd
+        self.path = path
+
+    def release(self) -> None:
+        if self._fd is None:
+            return
+        with contextlib.suppress(OSError):
+            self.path.unlink()
+        os.close(self._fd)  # closing the last descriptor drops the flock
+        self._fd = None
+
+    def __enter__(self) -> RunLock:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+
+def acquire(directory: Path, key: str) -> RunLock:
+    """Locks `directory` (an existing one) for this process; raises `ConfigError` naming the holder.
+
+    ``key`` is the setting the refusal names (``run_dir`` or ``resume``). A lock left by a
+    process that is gone is taken over; a directory where the lock file cannot be made is
+    refused too.
+    """
+    path = Path(directory) / LOCK
+    while True:
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise ConfigError(
+                f"invalid value for {key!r}: {str(directory)!r} cannot be written ({exc.strerror}) "
+                "(allowed: a directory this process can write in)"
+            ) from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            pid = _read_pid(fd)
+            os.close(fd)
+            raise _in_use(directory, key, pid) from None
+        try:
+            same = os.fstat(fd).st_ino == os.stat(path).st_ino
+        except FileNotFoundError:  # the holder unlinked it between our open and our flock
+            same = False
+        if same:
+            break
+        os.close(fd)
+    os.ftruncate(fd, 0)
+    os.lseek(fd, 0, os.SEEK_SET)
+    os.write(fd, f"{os.getpid()}\n".encode())
+    return RunLock(fd, path)
+
+
+def holder(directory: Path) -> str | None:
+    """The PID (as text) of the live process that holds `directory`'s lock, or None.
+
+    Creates nothing: a directory without a lock file, or with a stale one, has no holder.
+    """
+    path = Path(directory) / LOCK
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return _read_pid(fd)
+    finally:
+        os.close(fd)
+    return None
+
+
+def refuse_if_held(directory: Path, key: str) -> None:
+    """Raises `ConfigError` naming the PID when a live process holds `directory`'s lock."""
+    pid = holder(directory)
+    if pid is not None:
+        raise _in_use(directory, key, pid)
+
+
+def read_metrics(path: Path) -> list[dict[str, Any]]:
+    """Rows of a ``metrics.jsonl``; a partial last line (killed mid-write) is dropped."""
+    rows = []
+    if not Path(path).is_file():
+        return rows
+    for line in Path(path).read_text().splitlines():
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:
+            break
+    return rows
+
+
+def truncate_metrics(path: Path, iteration: int) -> None:
+    """Keeps the rows up to `iteration` (atomically): a resumed run rewrites the rest."""
+    rows = [r for r in read_metrics(path) if r["iteration"] <= iteration]
+    atomic_write(Path(path), "".join(json.dumps(r) + "\n" for r in rows).encode())
 
 
 def metrics_problem(path: Path, iteration: int, finished: bool) -> str | None:
@@ -110,26 +336,6 @@ def check_metrics(paths: list[Path], iteration: int, finished: bool) -> None:
             )
 
 
-def first_missing(path: Path) -> Path | None:
-    """The outermost of `path` and its parents that does not exist yet (None: `path` exists):
-    what `coherent_jax.run.runs.prepare_output_dir` creates, and what `discard_new_dir` removes again."""
-    path = Path(path)
-    return next((p for p in [*reversed(path.parents), path] if not p.exists()), None)
-
-
-def discard_new_dir(path: Path, created: Path | None) -> None:
-    """Undoes a new run's start: removes `created` (from `first_missing`, taken before
-    `prepare_output_dir`), or, when `path` existed (empty) before, only what is in it now."""
-    if created is not None:
-        shutil.rmtree(created, ignore_errors=True)
-        return
-    for entry in Path(path).iterdir():
-        if entry.is_dir() and not entry.is_symlink():
-            shutil.rmtree(entry, ignore_errors=True)
-        else:
-            entry.unlink(missing_ok=True)
-
-
 def set_aside(paths: list[Path]) -> tuple[int, list[Path]]:
     """Renames each existing one of `paths` (files or directories) to ``NAME.discarded-N``, one
     N for all, the smallest that renames over nothing; returns (N, the paths as renamed)."""
@@ -143,3 +349,91 @@ def set_aside(paths: list[Path]) -> tuple[int, list[Path]]:
         path.rename(target)
         moved.append(target)
     return n, moved
+
+
+def package_versions() -> dict[str, str]:
+    """Python, platform and the versions of the packages a run's numbers depend on, and the
+    project's commit and the CPU (`provenance`)."""
+    versions = {"python": sys.version.split()[0], "platform": platform.platform()}
+    for name in VERSIONED_PACKAGES:
+        try:
+            versions[name] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            versions[name] = "not installed"
+    try:
+        import jax  # lazy: this module loads without JAX (--help, bad input, dry runs)
+
+        versions["jax_backend"] = jax.default_backend()
+    except Exception:  # noqa: BLE001 - best effort: versions.json must not stop a run
+        pass
+    versions.update(provenance())
+    return versions
+
+
+def record_versions(run_dir: Path, resumed_at: int | None) -> None:
+    """Writes ``versions.json``; on resume, a ``versions-resumed-N.json`` beside it if they changed
+    (the platform string aside; a field the stored file lacks, such as the provenance of a run
+    recorded before it was kept, is not a change)."""
+    versions = package_versions()
+    if resumed_at is None:
+        atomic_write(run_dir / VERSIONS, json.dumps(versions, indent=2).encode())
+        return
+    stored = json.loads((run_dir / VERSIONS).read_text()) if (run_dir / VERSIONS).exists() else {}
+    # A versions.json written before the provenance fields existed does not count them as changed.
+    changed = [k for k, v in versions.items() if k != "platform" and stored.get(k, v) != v]
+    changed += [k for k in stored if k != "platform" and k not in versions]
+    if changed:
+        name = f"versions-resumed-{resumed_at}.json"
+        atomic_write(run_dir / name, json.dumps(versions, indent=2).encode())
+        print(f"{PREFIX} warning: {', '.join(changed)} differ from the run's; see {name}", flush=True)
+
+
+def _git(root: Path, *args: str) -> str | None:
+    try:
+        out = subprocess.run(
+            ["git", "-C", str(root), *args], capture_output=True, text=True, timeout=10, check=False
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip() if out.returncode == 0 else None
+
+
+def git_state(root: Path = PROJECT_ROOT) -> dict[str, Any]:
+    """``git_commit`` and ``git_dirty`` of the checkout at `root`; nulls if `root` is not one.
+
+    A checkout that merely encloses `root` (a virtualenv inside another project) is not
+    the project's: its top level must be `root` itself.
+    """
+    none = {"git_commit": None, "git_dirty": None}
+    top = _git(root, "rev-parse", "--show-toplevel")
+    if top is None or Path(top).resolve() != Path(root).resolve():
+        return none
+    commit = _git(root, "rev-parse", "HEAD")
+    code_only = ("--", ".", f":(exclude){RESULTS_DATA}")
+    status = _git(root, "status", "--porcelain", "--untracked-files=no", *code_only)
+    if commit is None or status is None:
+        return none
+    return {"git_commit": commit, "git_dirty": bool(status)}
+
+
+def cpu_info(cpuinfo: Path = Path("/proc/cpuinfo")) -> dict[str, Any]:
+    """``cpu_model`` and ``cpu_vector_isa`` from `cpuinfo` (Linux), else what `platform` says."""
+    model, flags = None, set()
+    try:
+        for line in cpuinfo.read_text(errors="replace").splitlines():
+            name, _, value = line.partition(":")
+            name = name.strip()
+            if name == "model name" and model is None:
+                model = value.strip()
+            elif name == "flags" and not flags:
+                flags = set(value.split())
+    except OSError:
+        pass
+    model = model or platform.processor() or None
+    level = next((lvl for lvl in VECTOR_LEVELS if lvl in flags), None)
+    return {"cpu_model": model, "cpu_vector_isa": level}
+
+
+def provenance() -> dict[str, Any]:
+    """The four fields of the module docstring."""
+    return {**git_state(), **cpu_info()}

@@ -1,5 +1,9 @@
 """TensorBoard event files, written synchronously so that a checkpoint is never ahead of them.
 
+A module apart: the loop imports it only with ``tensorboard=true``, because tensorboardX
+takes 0.2 s to import and loads numpy, which the JAX-free outputs of `coherent_jax.run.outputs`
+(on the path of ``--help``, bad input and dry runs) must not.
+
 tensorboardX's ``SummaryWriter`` hands events to a background thread through a queue,
 and its ``flush()`` flushes the file without waiting for that queue. A run killed just
 after writing its checkpoint could then lose the scalars of iterations the checkpoint
@@ -12,8 +16,7 @@ run leaves is whole records. An event file is a sequence of TFRecords,
     uint64 length | uint32 masked_crc32c(length) | Event (protobuf) | uint32 masked_crc32c(Event),
 
 little-endian, with CRC-32C (Castagnoli) masked as ``((c >> 15 | c << 17) + 0xa282ead8) mod 2^32``.
-The events and the CRC come from tensorboardX; the framing and the timing are ours. The
-loop imports this module only with ``tensorboard=true`` (tensorboardX takes 0.2 s to import).
+The events and the CRC come from tensorboardX; the framing and the timing are ours.
 
 A resumed run opens a new file whose first events are the file version and a
 ``SessionLog.START`` at ``purge_step``: TensorBoard then drops the events of earlier

@@ -1,4 +1,38 @@
-"""Weights & Biases mirror of a run: ``wandb=true`` (the optional extra ``pip install -e ".[wandb]"``).
+"""What a run gives out as it goes, beside its run directory's record: the user's callbacks,
+the Weights & Biases mirror, and the format of evaluation videos. No JAX.
+
+**Callbacks**: user code the training loop calls, to watch a run, log it elsewhere or stop it.
+
+    class StopAt(coherent_jax.Callback):
+        def on_evaluation(self, row):
+            self.best = row["eval/episode_return"]
+
+        def on_iteration(self, row):
+            return row.get("eval/episode_return", -inf) >= 100.0   # True: stop here
+
+    coherent_jax.learn(cfg, callbacks=[StopAt()])
+
+A `Callback`'s hooks, every one a no-op by default:
+
+* ``on_start(info)``: once, before the first iteration, with a `StartInfo` (the config, the run
+  directory, the iteration the run starts after: 0, or a resumed checkpoint's);
+* ``on_evaluation(row)``: on the rows that hold an evaluation (``eval/*`` keys), before
+  ``on_iteration`` of the same row;
+* ``on_iteration(row) -> bool | Stop | None``: after every iteration, with its row exactly as
+  ``metrics.jsonl`` holds it (``iteration``, ``env_steps``, ``time_s``, ``train/*``, ``eval/*``
+  on evaluation rows; None where a value was not finite). A true value or a `Stop` stops training
+  after this iteration, as SIGINT/SIGTERM do: a checkpoint is written, the summary's
+  ``stopped_by`` is ``"callback"`` and its ``stop_reason`` says why, and ``resume=`` continues
+  from there as if the run had not stopped;
+* ``on_end(summary)``: once, with the summary (also when a signal or a callback stopped the
+  run; not when it raised, e.g. on a divergence).
+
+Every callback sees every row, in the order given, even after an earlier one asked to stop.
+The ``call_on_*`` functions are what the loop calls; they run in the host loop, between compiled
+iterations, so a callback cannot change what the iteration computes: a run with callbacks
+that do not stop it is bit-identical to one without.
+
+**Weights & Biases**: ``wandb=true`` (the optional extra ``pip install -e ".[wandb]"``).
 
 A run with ``wandb=true`` logs to one W&B run per training run (per grid point in a
 sweep, grouped by the sweep's directory name):
@@ -14,13 +48,19 @@ is ``offline`` and everything stays in ``RUN_DIR/wandb/`` (``wandb sync RUN_DIR/
 uploads it later). W&B's own cache, data and artifact directories (and, offline, its
 config directory) are pointed there too (`wandb_environment`), unless the user set them,
 so nothing is written under the home directory. ``WANDB_MODE=online`` (after ``wandb login``)
-logs live: `preflight` refuses it without credentials before the run directory exists, and
+logs live: `wandb_preflight` refuses it without credentials before the run directory exists, and
 a server that does not answer within ``wandb_init_timeout`` seconds ends the run in one line.
 
 The W&B run id is drawn once and kept in ``RUN_DIR/wandb-run.json``; ``resume=RUN_DIR``
 and ``evaluate`` reopen the same id with ``resume="allow"``, so a resumed run continues
 the same W&B run. A resumed run recomputes the iterations after its checkpoint
 bit-identically, so rows logged again for those steps carry the values already logged.
+
+**Videos** (`coherent_jax.run.evaluation` renders and writes them): MP4 with ``ffmpeg`` on
+the PATH, else GIF (`video_suffix`, `check_video_path`).
+
+TensorBoard's event files are `coherent_jax.run.tb_events`'s, which the loop imports only
+with ``tensorboard=true``.
 """
 
 from __future__ import annotations
@@ -31,25 +71,114 @@ import json
 import netrc
 import os
 import secrets
-from collections.abc import Iterator, Mapping, Sequence
+import shutil
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 from urllib.parse import urlparse
 
-PROJECT = "coherent_jax"
-RUN_FILE = "wandb-run.json"
-INSTALL_HINT = 'wandb=true needs Weights & Biases: pip install -e ".[wandb]"'
-MODES = ("offline", "online", "disabled", "shared", "dryrun", "run")  # what W&B accepts
-ONLINE_MODES = ("online", "shared", "run")  # those that reach the server
-DEFAULT_SERVER = "https://api.wandb.ai"
-DEFAULT_INIT_TIMEOUT = 30.0  # seconds; the config's ``wandb_init_timeout``
+from coherent_jax.config import Config, ConfigError, cli
+
+WANDB_PROJECT = "coherent_jax"
+WANDB_RUN_FILE = "wandb-run.json"
+WANDB_INSTALL_HINT = 'wandb=true needs Weights & Biases: pip install -e ".[wandb]"'
+WANDB_MODES = ("offline", "online", "disabled", "shared", "dryrun", "run")  # what W&B accepts
+WANDB_ONLINE_MODES = ("online", "shared", "run")  # those that reach the server
+WANDB_SERVER = "https://api.wandb.ai"
+WANDB_INIT_TIMEOUT = 30.0  # seconds; the config's ``wandb_init_timeout``
+VIDEO_FORMATS = (".mp4", ".gif")
+VIDEO_PATH_ALLOWED = "a writable .gif path, or .mp4 when ffmpeg is on the PATH"
+
+
+# --- callbacks ------------------------------------------------------------------------------------
+
+
+class StartInfo(NamedTuple):
+    """What ``on_start`` receives: the run's config, its directory (None: no directory, a run
+    called with none) and the iteration it starts after (0 for a new run)."""
+
+    config: Config
+    run_dir: Path | None
+    start_iteration: int
+
+
+class Stop(NamedTuple):
+    """What ``on_iteration`` returns to stop training, with the reason the summary records."""
+
+    reason: str = "a callback asked to stop"
+
+
+class Callback:
+    """The base of a user's callback: override the hooks you need (see the module's docstring)."""
+
+    def on_start(self, info: StartInfo) -> None:
+        """Once, before the first iteration."""
+
+    def on_iteration(self, row: dict[str, Any]) -> bool | Stop | None:
+        """After every iteration; True or a `Stop` stops training after it."""
+        return None
+
+    def on_evaluation(self, row: dict[str, Any]) -> None:
+        """On each row that holds an evaluation (``eval/*``)."""
+
+    def on_end(self, summary: dict[str, Any]) -> None:
+        """Once, with the run's summary."""
+
+
+def checked_callbacks(callbacks: Iterable[Any] | None) -> tuple[Callback, ...]:
+    """`callbacks` as a tuple; anything but `Callback` instances is a `ConfigError` naming it."""
+    if callbacks is None:
+        return ()
+    if isinstance(callbacks, Callback) or not isinstance(callbacks, Iterable):
+        raise ConfigError(
+            f"invalid callbacks {callbacks!r} (allowed: a list of coherent_jax.Callback instances)"
+        )
+    found = tuple(callbacks)
+    for cb in found:
+        if not isinstance(cb, Callback):
+            raise ConfigError(
+                f"invalid callback {cb!r}: a {type(cb).__name__} "
+                "(allowed: instances of coherent_jax.Callback subclasses)"
+            )
+    return found
+
+
+def call_on_start(callbacks: Sequence[Callback], info: StartInfo) -> None:
+    """``on_start`` of each callback."""
+    for cb in callbacks:
+        cb.on_start(info)
+
+
+def call_on_iteration(callbacks: Sequence[Callback], row: dict[str, Any]) -> str | None:
+    """``on_evaluation`` (on an evaluation row) and ``on_iteration`` of each callback; the
+    reason to stop of the first that asked to (None: go on)."""
+    evaluated = any(k.startswith("eval/") for k in row)
+    reasons = []
+    for cb in callbacks:
+        if evaluated:
+            cb.on_evaluation(dict(row))
+        answer = cb.on_iteration(dict(row))  # each its own copy: one callback cannot change another's row
+        if isinstance(answer, Stop):
+            reasons.append(answer.reason)
+        elif answer is not None and bool(answer):
+            reasons.append(f"{type(cb).__name__}.on_iteration returned {answer!r}")
+    return reasons[0] if reasons else None
+
+
+def call_on_end(callbacks: Sequence[Callback], summary: dict[str, Any]) -> None:
+    """``on_end`` of each callback."""
+    for cb in callbacks:
+        cb.on_end(summary)
+
+
+# --- Weights & Biases -----------------------------------------------------------------------------
 
 
 class TrackingError(RuntimeError):
     """W&B was asked for and cannot be used (one line: what and how to fix it)."""
 
 
-def available() -> bool:
+def wandb_available() -> bool:
     """Whether the optional ``wandb`` package is importable."""
     try:
         import wandb  # noqa: F401  # lazy: optional dependency
@@ -59,31 +188,31 @@ def available() -> bool:
 
 
 def _wandb() -> Any:
-    """The optional ``wandb`` module (`require` says how to install it when it is missing)."""
+    """The optional ``wandb`` module (`require_wandb` says how to install it when it is missing)."""
     import wandb  # lazy: optional dependency
 
     return wandb
 
 
-def require() -> None:
+def require_wandb() -> None:
     """Raises `TrackingError` with the install command when ``wandb`` is missing."""
-    if not available():
-        raise TrackingError(INSTALL_HINT)
+    if not wandb_available():
+        raise TrackingError(WANDB_INSTALL_HINT)
 
 
-def mode() -> str:
+def wandb_mode() -> str:
     """``WANDB_MODE`` when the user set it, else ``offline``: a run never needs the network."""
     return os.environ.get("WANDB_MODE") or "offline"
 
 
-def check_mode(value: str) -> str:
+def check_wandb_mode(value: str) -> str:
     """`value` if W&B accepts it as a mode; else raises `TrackingError` naming the allowed ones."""
-    if value not in MODES:
-        raise TrackingError(f"invalid value for WANDB_MODE: {value!r} (allowed: {', '.join(MODES)})")
+    if value not in WANDB_MODES:
+        raise TrackingError(f"invalid value for WANDB_MODE: {value!r} (allowed: {', '.join(WANDB_MODES)})")
     return value
 
 
-def credentials(environ: Mapping[str, str]) -> str | None:
+def wandb_credentials(environ: Mapping[str, str]) -> str | None:
     """Where W&B would find credentials for its server, without asking it; None when nowhere.
 
     Looked up as ``wandb`` does: ``WANDB_API_KEY`` or ``WANDB_IDENTITY_TOKEN_FILE``, a
@@ -95,7 +224,7 @@ def credentials(environ: Mapping[str, str]) -> str | None:
         if environ.get(name):
             return name
     home = Path(environ.get("HOME") or Path.home())
-    host = urlparse(environ.get("WANDB_BASE_URL") or DEFAULT_SERVER).hostname or ""
+    host = urlparse(environ.get("WANDB_BASE_URL") or WANDB_SERVER).hostname or ""
     netrc_files = [Path(environ["NETRC"])] if environ.get("NETRC") else [home / ".netrc", home / "_netrc"]
     for path in netrc_files:
         with contextlib.suppress(OSError, netrc.NetrcParseError):
@@ -112,13 +241,13 @@ def credentials(environ: Mapping[str, str]) -> str | None:
     return None
 
 
-def preflight(environ: Mapping[str, str] | None = None) -> None:
+def wandb_preflight(environ: Mapping[str, str] | None = None) -> None:
     """What ``wandb=true`` needs, checked before anything is written: the package, a valid
     ``WANDB_MODE`` and, to log online, credentials. Raises `TrackingError` in one line."""
     environ = os.environ if environ is None else environ
-    require()
-    wanted = check_mode(environ.get("WANDB_MODE") or "offline")
-    if wanted in ONLINE_MODES and credentials(environ) is None:
+    require_wandb()
+    wanted = check_wandb_mode(environ.get("WANDB_MODE") or "offline")
+    if wanted in WANDB_ONLINE_MODES and wandb_credentials(environ) is None:
         raise TrackingError(
             f"WANDB_MODE={wanted} needs W&B credentials and none were found (allowed: run `wandb login` "
             "or set WANDB_API_KEY; or leave WANDB_MODE unset to log offline into RUN_DIR/wandb/)"
@@ -131,7 +260,7 @@ def wandb_environment(root: Path, environ: Mapping[str, str]) -> dict[str, str]:
     (online, the user's login and server settings live there)."""
     wanted = environ.get("WANDB_MODE") or "offline"
     dirs = {"WANDB_CACHE_DIR": "cache", "WANDB_DATA_DIR": "data", "WANDB_ARTIFACT_DIR": "artifacts"}
-    if wanted not in ONLINE_MODES:
+    if wanted not in WANDB_ONLINE_MODES:
         dirs["WANDB_CONFIG_DIR"] = "config"
     values = {
         "WANDB_MODE": wanted,
@@ -142,7 +271,7 @@ def wandb_environment(root: Path, environ: Mapping[str, str]) -> dict[str, str]:
 
 
 @contextlib.contextmanager
-def session(root: Path) -> Iterator[None]:
+def wandb_session(root: Path) -> Iterator[None]:
     """W&B's process-wide state for the runs of one directory `root`: the variables of
     `wandb_environment` set while inside, and W&B's service (started with them) torn down
     on leaving, so the next session starts its own. A W&B run the calling program had
@@ -163,11 +292,11 @@ def session(root: Path) -> Iterator[None]:
 
 
 def _identity(run_dir: Path, name: str, group: str | None) -> dict[str, Any]:
-    """The W&B run's id, name and group, drawn once and then read from ``RUN_FILE``."""
-    path = run_dir / RUN_FILE
+    """The W&B run's id, name and group, drawn once and then read from ``WANDB_RUN_FILE``."""
+    path = run_dir / WANDB_RUN_FILE
     if path.exists():
         return json.loads(path.read_text())
-    identity = {"id": secrets.token_hex(4), "project": PROJECT, "name": name, "group": group}
+    identity = {"id": secrets.token_hex(4), "project": WANDB_PROJECT, "name": name, "group": group}
     tmp = path.with_suffix(".tmp")
     tmp.write_text(json.dumps(identity, indent=1) + "\n")
     tmp.replace(path)
@@ -187,7 +316,7 @@ class WandbRun:
         config: Mapping[str, Any] | None,
         name: str,
         group: str | None = None,
-        init_timeout: float = DEFAULT_INIT_TIMEOUT,
+        init_timeout: float = WANDB_INIT_TIMEOUT,
     ) -> WandbRun:
         """Starts (or, with an id in ``run_dir/RUN_FILE``, resumes) the W&B run of ``run_dir``.
 
@@ -196,7 +325,7 @@ class WandbRun:
         seconds to start; any failure to start (no answer from the server, credentials
         it refuses) raises `TrackingError` in one line.
         """
-        require()
+        require_wandb()
         wandb = _wandb()
         identity = _identity(run_dir, name, group)
         settings = wandb.Settings(
@@ -209,7 +338,7 @@ class WandbRun:
                 name=identity["name"],
                 group=identity["group"],
                 dir=str(run_dir),
-                mode=check_mode(mode()),
+                mode=check_wandb_mode(wandb_mode()),
                 resume="allow",
                 config=dict(config) if config is not None else None,
                 settings=settings,
@@ -220,7 +349,7 @@ class WandbRun:
         except Exception as exc:  # noqa: BLE001 - whatever stops W&B from starting means the same here
             reason = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
             raise TrackingError(
-                f"W&B could not start the run of {str(run_dir)!r} (WANDB_MODE={mode()}, "
+                f"W&B could not start the run of {str(run_dir)!r} (WANDB_MODE={wandb_mode()}, "
                 f"wandb_init_timeout={init_timeout:g} s): {reason} "
                 "(allowed: a reachable W&B server, or WANDB_MODE unset to log offline)"
             ) from None
@@ -262,14 +391,14 @@ class Mirrors:
 def mirrored(
     points: Sequence[tuple[Path, Mapping[str, Any], str]],
     group: str | None = None,
-    init_timeout: float = DEFAULT_INIT_TIMEOUT,
+    init_timeout: float = WANDB_INIT_TIMEOUT,
 ) -> Iterator[Mirrors]:
     """Opens one `WandbRun` per (directory, config, name) of `points`, and finishes them all on exit.
 
     Finished with their summaries when the caller set them (the run completed), else
     without (stopped, diverged: a resume continues the same W&B runs); a run that fails
     to open finishes those opened before it. W&B's files go under the points' common
-    directory (`session`). Nothing is opened for no points, so a run without
+    directory (`wandb_session`). Nothing is opened for no points, so a run without
     ``wandb=true`` never imports ``wandb``.
     """
     mirrors = Mirrors([])
@@ -277,7 +406,7 @@ def mirrored(
         yield mirrors
         return
     root = Path(os.path.commonpath([str(Path(d).absolute()) for d, _, _ in points]))
-    with session(root):
+    with wandb_session(root):
         try:
             for d, config, name in points:
                 mirrors.runs.append(WandbRun.open(d, config, name, group, init_timeout))
@@ -285,3 +414,19 @@ def mirrored(
         finally:
             for j, run in enumerate(mirrors.runs):
                 run.finish(mirrors.summaries[j] if mirrors.summaries else None)
+
+
+# --- videos ---------------------------------------------------------------------------------------
+
+
+def video_suffix() -> str:
+    """``.mp4`` where ``ffmpeg`` is on the PATH, else ``.gif`` (Pillow writes those)."""
+    return ".mp4" if shutil.which("ffmpeg") else ".gif"
+
+
+def check_video_path(text: str) -> str:
+    """A ``video_path`` that can be written: ``.gif``, or ``.mp4`` with ``ffmpeg``; raises `ValueError`."""
+    suffix = Path(text).suffix.lower()
+    if suffix not in VIDEO_FORMATS or (suffix == ".mp4" and not shutil.which("ffmpeg")):
+        raise ValueError(text)
+    return cli.output_file(text)

@@ -1,4 +1,5 @@
-"""Spreading a run over JAX devices with `jax.sharding` (data parallel, SPMD).
+"""Where a train state lives: spread over JAX devices (`jax.sharding`, data parallel, SPMD),
+gathered from them to the host, and as a checkpoint's bytes.
 
 A training run shards its environments: every array of the per-env part of the
 train state (``env_state`` and the exploration ``carry``, leading axis
@@ -13,26 +14,44 @@ function as on one device (up to the order of float sums).
 A sweep instead shards its leading grid-point axis: each device runs whole
 points, with no communication at all.
 
-Several hosts: with ``distributed=true`` the CLIs call
-`jax.distributed.initialize()` first (coordinator, process count and id from the
+Several hosts: with ``distributed=true`` the CLIs call `initialize`
+(`jax.distributed.initialize()`) first (coordinator, process count and id from the
 usual ``JAX_COORDINATOR_ADDRESS``-style environment or the cluster's own, e.g.
 SLURM), after which `jax.devices()` lists every host's devices and the same mesh
 spans them; only process 0 writes files.
+
+A state on the host: `to_host` gathers a state spread over several processes (a
+collective), `place` puts a host copy back as the same global arrays, and
+`state_to_bytes` / `restore_state` are a checkpoint's ``state`` entry (the rest of the
+record is `coherent_jax.run.checkpoint`'s, which reads without JAX). Decisions that
+change which collectives run next (stop now, write a checkpoint) are agreed on by every
+process (`largest`, `from_writer`). The part of several processes that runs before JAX
+(the supervisor) is `coherent_jax.run.multihost`.
 """
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
 from typing import Any
 
 import jax
 import numpy as np
+from flax import serialization
+from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from coherent_jax.agents.trainer import Trainer
 from coherent_jax.config import ConfigError
 from coherent_jax.envs.registry import check_task
-from coherent_jax.run import collective
-from coherent_jax.run.collective import place
+from coherent_jax.run.checkpoint import CheckpointError
+from coherent_jax.run.multihost import (
+    DEFAULT_HEARTBEAT_TIMEOUT_S,
+    DEFAULT_INIT_TIMEOUT_S,
+    HEARTBEAT_TIMEOUT_ENV,
+    INIT_TIMEOUT_ENV,
+    _timeout,
+)
 from coherent_jax.sweep_axis import POINT_AXIS, vmap_points
 
 ENV_AXIS = "envs"
@@ -194,8 +213,8 @@ def check_devices(cfg: Any, split_envs: bool = True) -> bool:
     check_host_pool(cfg.env, cfg.num_devices, num_devices, cfg.distributed)
     if split_envs:
         check_env_split(cfg.num_envs, num_devices)
-        collective.check_device_split(num_devices)
-    return collective.is_writer()
+        check_device_split(num_devices)
+    return is_writer()
 
 
 def check_host_pool(env: str, requested: int, num_devices: int, distributed: bool) -> None:
@@ -216,6 +235,154 @@ def check_host_pool(env: str, requested: int, num_devices: int, distributed: boo
 
 
 def maybe_initialize_distributed(enabled: bool) -> None:
-    """`coherent_jax.run.collective.initialize` once, before any other JAX call, when ``enabled``."""
+    """`initialize` once, before any other JAX call, when ``enabled``."""
     if enabled:
-        collective.initialize()
+        initialize()
+
+
+# --- several processes: start-up (worker side) ----------------------------------------------------
+
+
+def initialize() -> None:
+    """`jax.distributed.initialize()` with gloo collectives on CPU and this module's timeouts.
+
+    Must run before any other JAX call. Raises `ConfigError` (one line) when JAX
+    cannot tell the coordinator, process count or id; an unreachable coordinator
+    ends the process from the runtime (see `coherent_jax.run.multihost.supervise`).
+    """
+    kwargs: dict[str, Any] = {}
+    for key, name in (("num_processes", "JAX_NUM_PROCESSES"), ("process_id", "JAX_PROCESS_ID")):
+        text = os.environ.get(name, "").strip()
+        if text:
+            if not text.isdigit():
+                raise ConfigError(f"invalid value for {name}: {text!r} (allowed: a whole number >= 0)")
+            kwargs[key] = int(text)
+    init_s = _timeout(INIT_TIMEOUT_ENV, DEFAULT_INIT_TIMEOUT_S)
+    heartbeat_s = _timeout(HEARTBEAT_TIMEOUT_ENV, DEFAULT_HEARTBEAT_TIMEOUT_S)
+    if "JAX_CPU_COLLECTIVES_IMPLEMENTATION" not in os.environ:
+        # Without it, a CPU computation across processes fails (no cross-process collectives).
+        jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    try:
+        jax.distributed.initialize(
+            initialization_timeout=init_s,
+            heartbeat_timeout_seconds=heartbeat_s,
+            # At a normal end all processes reach the shutdown barrier within one iteration.
+            shutdown_timeout_seconds=max(heartbeat_s, 10),
+            **kwargs,
+        )
+    except (ValueError, RuntimeError, TypeError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ConfigError(
+            f"invalid value for 'distributed': True ({first}) (allowed: false, or true on a cluster JAX "
+            "detects or with JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES and JAX_PROCESS_ID set)"
+        ) from None
+
+
+def is_writer() -> bool:
+    """Whether this process writes the run's files (process 0; the only process when not distributed)."""
+    return jax.process_index() == 0
+
+
+def check_device_split(num_devices: int) -> None:
+    """Several processes must all take part: the mesh has to span every process's devices."""
+    if jax.process_count() > 1 and num_devices != jax.device_count():
+        raise ConfigError(
+            f"invalid value for 'num_devices' with distributed=true: {num_devices} devices used of "
+            f"{jax.device_count()} (allowed: 0 = all devices of all {jax.process_count()} processes; "
+            "for a sweep, a number of grid points that is a multiple of them)"
+        )
+
+
+# --- host copies and placement --------------------------------------------------------------------
+
+
+def to_host(tree: Any) -> Any:
+    """The pytree's arrays as numpy arrays holding their whole global value.
+
+    An array whose rows are split over several processes is gathered from all of
+    them (a collective: every process must call this at the same point); arrays a
+    process holds whole (replicated, or single-process) are copied without one.
+    """
+
+    def whole(x: Any) -> Any:
+        if isinstance(x, jax.Array) and not (x.is_fully_addressable or x.is_fully_replicated):
+            return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+        return np.asarray(jax.device_get(x))
+
+    return jax.tree.map(whole, tree)
+
+
+def place(tree: Any, shardings: Any) -> Any:
+    """Host arrays (the same in every process) put on the devices as global arrays of `shardings`.
+
+    Each process fills only its own devices' pieces, so this works whether or not
+    the sharding spans other processes' devices.
+    """
+
+    def put(x: Any, sharding: Any) -> jax.Array:
+        host = np.asarray(x)
+        return jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
+
+    return jax.tree.map(put, tree, shardings)
+
+
+# --- a checkpoint's state as bytes ----------------------------------------------------------------
+
+
+def state_to_bytes(state: Any) -> bytes:
+    """The leaves of the state pytree, in tree order, as flax msgpack.
+
+    A state spread over several processes is gathered first: every process must call this.
+
+    Leaves rather than the tree itself: the physics state of an MJX environment is a
+    pytree that flax's serialisation does not know, and the tree structure is
+    rebuilt from the trainer's own template on restore.
+    """
+    leaves = jax.tree_util.tree_leaves(to_host(state))
+    return serialization.msgpack_serialize({str(i): np.asarray(x) for i, x in enumerate(leaves)})
+
+
+def restore_state(template: Any, state_bytes: bytes, path: Path) -> Any:
+    """The state pytree of a checkpoint, shaped like `template` (checked leaf by leaf).
+
+    `template` may hold arrays or ``jax.ShapeDtypeStruct``s (``jax.eval_shape`` of
+    the trainer's ``init``).
+    """
+    try:
+        stored = serialization.msgpack_restore(state_bytes)
+        leaves = [np.asarray(stored[str(i)]) for i in range(len(stored))]
+    except Exception as exc:  # noqa: BLE001
+        raise CheckpointError(f"checkpoint {str(path)!r}: unreadable state ({exc})") from None
+    flat_t, treedef = jax.tree_util.tree_flatten_with_path(template)
+    if len(flat_t) != len(leaves):
+        raise CheckpointError(
+            f"checkpoint {str(path)!r} has {len(leaves)} arrays, this trainer {len(flat_t)}"
+        )
+    for (where, t), s in zip(flat_t, leaves, strict=True):
+        if s.shape != tuple(t.shape) or s.dtype != t.dtype:
+            raise CheckpointError(
+                f"checkpoint {str(path)!r}: {jax.tree_util.keystr(where)} is {s.dtype}{list(s.shape)}, "
+                f"this trainer expects {t.dtype}{list(t.shape)}"
+            )
+    return jax.device_put(jax.tree_util.tree_unflatten(treedef, leaves))
+
+
+# --- agreement ------------------------------------------------------------------------------------
+
+
+def largest(value: int) -> int:
+    """The largest of the processes' `value`s, in every process (a collective when distributed).
+
+    E.g. the signal number of a stop request (0: none), so that all stop together.
+    """
+    if jax.process_count() == 1:
+        return int(value)
+    return int(np.max(multihost_utils.process_allgather(np.asarray([value], np.int32))))
+
+
+def from_writer(flag: bool) -> bool:
+    """Process 0's `flag`, in every process (a collective when distributed)."""
+
+    if jax.process_count() == 1:
+        return bool(flag)
+    return bool(multihost_utils.broadcast_one_to_all(np.asarray(flag, np.int32)))

@@ -1,4 +1,5 @@
-"""The run directory: checkpoints, the stored config, package versions, metrics rows.
+"""The checkpoint and the stored config a resume checks it against: ``checkpoint.msgpack``
+and ``config.yaml``, and how a resume reads them (`resume_config`, `resume_point`).
 
 A checkpoint is one file, ``checkpoint.msgpack``, replaced atomically (written to a
 temporary file, flushed to disk, then renamed over the old one), so a run killed at
@@ -8,7 +9,7 @@ It is a msgpack map (flax serialisation, never pickle) of
 * ``meta``: JSON text: format tag, the config fingerprint, the iteration, the env
   steps and the run loop's own state (evaluation PRNG key, timers, last metrics);
 * ``state``: the leaves of the trainer's whole state pytree
-  (`coherent_jax.run.state_bytes.state_to_bytes`);
+  (`coherent_jax.run.devices.state_to_bytes`);
 * ``host``, only in a run of a Gymnasium env (``env=gym:ID`` or the user's ``gymnasium.Env``):
   the state of the envs on the host, which the trainer's state cannot hold
   (`coherent_jax.envs.host_gym.HostPool.snapshot`: each env pickled with its random
@@ -23,18 +24,18 @@ The fingerprint is a hash of every config field that changes what a run computes
 directory is refused, naming the first key that differs. ``total_steps`` is not
 part of it: a run (or a sweep) may be resumed with a larger budget to extend it.
 A checkpoint holds one state pytree, a single run's or a sweep's stacked one.
+
+The rest of the run directory (rows, lock, versions) is `coherent_jax.run.rundir`'s; the
+state's bytes need JAX (`coherent_jax.run.devices.state_to_bytes`, `restore_state`), this
+module does not: ``--help``, bad input and dry runs read it without JAX.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import hashlib
-import importlib.metadata
 import json
 import math
-import os
-import platform
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -45,14 +46,10 @@ from omegaconf.errors import OmegaConfBaseException
 
 from coherent_jax.config import Config, ConfigError, from_stored, parse_overrides, to_dict, validate
 from coherent_jax.config.parse import flat_dict, modern_key
-from coherent_jax.run.provenance import provenance
+from coherent_jax.run.rundir import CONFIG, METRICS, atomic_write, read_metrics
 
-PREFIX = "[coherent_jax]"  # starts every line the command-line programs print
 CHECKPOINT = "checkpoint.msgpack"
 PARAMS = "params.msgpack"  # a finished run's final parameters (`coherent_jax.policy.net`)
-CONFIG = "config.yaml"
-METRICS = "metrics.jsonl"
-VERSIONS = "versions.json"
 FORMAT = "coherent_jax-checkpoint-1"
 # Fields that may differ between a run and its resumption: they change where and how
 # a run reports, or how long it goes on, never what its iterations compute.
@@ -70,22 +67,10 @@ RESUMABLE_KEYS = (
 # resume, at their own budget. (``wandb`` and ``wandb_init_timeout`` came later, never
 # fingerprinted.)
 _LEGACY_RESUMABLE_KEYS = tuple(k for k in RESUMABLE_KEYS if k != "total_steps")
-VERSIONED_PACKAGES = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "brax", "flax", "optax", "numpy", "chex")
 
 
 class CheckpointError(ValueError):
     """A checkpoint that cannot be used: missing, truncated, corrupted or from another run."""
-
-
-def atomic_write(path: Path, data: bytes) -> None:
-    """Writes `data` to `path` through a temporary file and a rename (POSIX-atomic)."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
 
 
 def fingerprint_fields(cfg: Config, resumable: tuple[str, ...] = RESUMABLE_KEYS) -> dict[str, Any]:
@@ -143,23 +128,20 @@ def load_config(run_dir: Path) -> Config:
         raise ConfigError(f"invalid {path}: {exc}") from None
 
 
-def package_versions() -> dict[str, str]:
-    """Python, platform and the versions of the packages a run's numbers depend on, and the
-    project's commit and the CPU (`coherent_jax.run.provenance`)."""
-    versions = {"python": sys.version.split()[0], "platform": platform.platform()}
-    for name in VERSIONED_PACKAGES:
-        try:
-            versions[name] = importlib.metadata.version(name)
-        except importlib.metadata.PackageNotFoundError:
-            versions[name] = "not installed"
-    try:
-        import jax  # lazy: this module loads without JAX (--help, bad input, dry runs)
+def stored_config(cfg: Config) -> dict[str, Any]:
+    """The run's resolved config as ``config.yaml`` records it (and W&B logs it): without
+    ``resume``, which says how a session began."""
+    return to_dict(dataclasses.replace(cfg, resume=""))
 
-        versions["jax_backend"] = jax.default_backend()
-    except Exception:  # noqa: BLE001 - best effort: versions.json must not stop a run
-        pass
-    versions.update(provenance())
-    return versions
+
+def config_text(cfg: Config) -> str:
+    """The text of ``config.yaml`` for `cfg` (`stored_config` as YAML)."""
+    return OmegaConf.to_yaml(stored_config(cfg))
+
+
+def write_config(run_dir: Path, cfg: Config) -> None:
+    """The run's resolved config as ``config.yaml`` (`config_text`)."""
+    atomic_write(run_dir / CONFIG, config_text(cfg).encode())
 
 
 @dataclasses.dataclass
@@ -284,56 +266,12 @@ def decode_checkpoint(path: Path, cfg: Config) -> Checkpoint:
     )
 
 
-def read_metrics(path: Path) -> list[dict[str, Any]]:
-    """Rows of a ``metrics.jsonl``; a partial last line (killed mid-write) is dropped."""
-    rows = []
-    if not Path(path).is_file():
-        return rows
-    for line in Path(path).read_text().splitlines():
-        try:
-            rows.append(json.loads(line))
-        except json.JSONDecodeError:
-            break
-    return rows
-
-
-def truncate_metrics(path: Path, iteration: int) -> None:
-    """Keeps the rows up to `iteration` (atomically): a resumed run rewrites the rest."""
-    rows = [r for r in read_metrics(path) if r["iteration"] <= iteration]
-    atomic_write(Path(path), "".join(json.dumps(r) + "\n" for r in rows).encode())
-
-
-def prepare_output_dir(path: Path, key: str = "run_dir") -> Path:
-    """Creates `path` as a new or empty, writable directory; raises `ConfigError` in one line otherwise.
-
-    Called before any work, so a read-only or invalid location is refused at once
-    rather than after the first hour of training; a directory created here is removed
-    again when it turns out unusable.
-    """
-    path = Path(path)
-    if path.exists() and (not path.is_dir() or any(path.iterdir())):
-        hint = f"; to continue the run in it: resume={path}" if (path / CONFIG).is_file() else ""
-        raise ConfigError(
-            f"invalid value for {key!r}: {str(path)!r} (allowed: a new or empty directory{hint})"
-        )
-    created = []
-    try:
-        for parent in [*reversed(path.parents), path]:
-            if not parent.exists():
-                parent.mkdir()
-                created.append(parent)
-        probe = path / ".write-check"
-        probe.write_bytes(b"")
-        probe.unlink()
-    except (OSError, ValueError) as exc:
-        for made in reversed(created):
-            made.rmdir()
-        reason = getattr(exc, "strerror", None) or str(exc)
-        raise ConfigError(
-            f"invalid value for {key!r}: {str(path)!r} cannot be written ({reason}) "
-            "(allowed: a new or empty directory in a writable location)"
-        ) from None
-    return path
+def split_resume(argv: list[str]) -> tuple[str | None, list[str]]:
+    """The ``resume=`` value (the last one; None if absent or empty) and the other arguments."""
+    resume_args = [a for a in argv if a.split("=", 1)[0].strip() == "resume"]
+    rest = [a for a in argv if a not in resume_args]
+    value = resume_args[-1].split("=", 1)[1].strip() if resume_args and "=" in resume_args[-1] else ""
+    return value or None, rest
 
 
 def resume_config(resume_dir: str, overrides: list[str]) -> tuple[Config, Path]:
@@ -393,45 +331,3 @@ def resume_point(run_dir: Path, cfg: Config, metrics: Path | None = None) -> Che
             f"(allowed: at least the {ckpt.env_steps} env steps already done)"
         )
     return ckpt
-
-
-def record_versions(run_dir: Path, resumed_at: int | None) -> None:
-    """Writes ``versions.json``; on resume, a ``versions-resumed-N.json`` beside it if they changed
-    (the platform string aside; a field the stored file lacks, such as the provenance of a run
-    recorded before it was kept, is not a change)."""
-    versions = package_versions()
-    if resumed_at is None:
-        atomic_write(run_dir / VERSIONS, json.dumps(versions, indent=2).encode())
-        return
-    stored = json.loads((run_dir / VERSIONS).read_text()) if (run_dir / VERSIONS).exists() else {}
-    # A versions.json written before the provenance fields existed does not count them as changed.
-    changed = [k for k, v in versions.items() if k != "platform" and stored.get(k, v) != v]
-    changed += [k for k in stored if k != "platform" and k not in versions]
-    if changed:
-        name = f"versions-resumed-{resumed_at}.json"
-        atomic_write(run_dir / name, json.dumps(versions, indent=2).encode())
-        print(f"{PREFIX} warning: {', '.join(changed)} differ from the run's; see {name}", flush=True)
-
-
-def stored_config(cfg: Config) -> dict[str, Any]:
-    """The run's resolved config as ``config.yaml`` records it (and W&B logs it): without
-    ``resume``, which says how a session began."""
-    return to_dict(dataclasses.replace(cfg, resume=""))
-
-
-def config_text(cfg: Config) -> str:
-    """The text of ``config.yaml`` for `cfg` (`stored_config` as YAML)."""
-    return OmegaConf.to_yaml(stored_config(cfg))
-
-
-def write_config(run_dir: Path, cfg: Config) -> None:
-    """The run's resolved config as ``config.yaml`` (`config_text`)."""
-    atomic_write(run_dir / CONFIG, config_text(cfg).encode())
-
-
-def split_resume(argv: list[str]) -> tuple[str | None, list[str]]:
-    """The ``resume=`` value (the last one; None if absent or empty) and the other arguments."""
-    resume_args = [a for a in argv if a.split("=", 1)[0].strip() == "resume"]
-    rest = [a for a in argv if a not in resume_args]
-    value = resume_args[-1].split("=", 1)[1].strip() if resume_args and "=" in resume_args[-1] else ""
-    return value or None, rest
