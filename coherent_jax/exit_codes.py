@@ -1,5 +1,8 @@
 """The exit statuses of every command, in one place.
 
+It stands alone, small, because every command (and its JAX-free start-up) imports it
+and it imports nothing of the package: a shared base of the layering.
+
 * 0: done (also: a resumed run that was already complete);
 * `EXIT_BAD_INPUT` (2): bad input, refused in one line before anything is written;
 * `EXIT_DIVERGED` (3): a loss or a parameter became non-finite (a run), or a grid

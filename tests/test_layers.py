@@ -221,3 +221,24 @@ def test_commands_start_refuse_and_dry_run_without_jax():
     )
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip().endswith("ok")
+
+
+#: Words with which a small module's docstring gives its reason for standing alone.
+REASON_MARKERS = ("stands alone", "module of its own", "module apart", "base apart")
+SMALL_MODULE_LINES = 80
+
+
+def test_small_modules_are_inits_command_shims_or_say_why():
+    """A module under 80 lines is an ``__init__``, a command's shim (``python -m``), or its
+    docstring says why it stands alone; otherwise it belongs in the module of its idea."""
+    unexplained = []
+    for name, path in modules().items():
+        source = path.read_text()
+        if path.name == "__init__.py" or len(source.splitlines()) >= SMALL_MODULE_LINES:
+            continue
+        if 'if __name__ == "__main__"' in source:
+            continue
+        doc = (ast.get_docstring(ast.parse(source)) or "").lower()
+        if not any(marker in doc for marker in REASON_MARKERS):
+            unexplained.append(f"{name} ({len(source.splitlines())} lines)")
+    assert not unexplained, "small modules without a reason at their top: " + ", ".join(unexplained)

@@ -4,6 +4,9 @@ Every trainer (`OnPolicyTrainer` for A2C/PPO, `SACTrainer`) has these pure,
 jit-able functions of an explicit train state, whatever the algorithm; the loop
 (`coherent_jax.run.loop`) jits, vmaps (a sweep's points) and shards them, and never
 looks inside the state except through `export_params`.
+
+It stands alone, small, because it is the one contract both algorithms' modules
+implement and the loop, sweeps and benchmarks read, without importing either.
 """
 
 from __future__ import annotations

@@ -4,6 +4,9 @@
 
 with a state-independent, learned ``log_std``. Every step's noise is independent
 (step-based exploration in action space, Figure 4.1 left).
+
+It stands alone, small, because each strategy is a module of its own
+(docs/strategies.md: a strategy is its module, one registry row, its settings group, its tests).
 """
 
 from __future__ import annotations

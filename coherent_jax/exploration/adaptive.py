@@ -10,6 +10,9 @@ of replay states,
 and sigma grows by alpha while d < delta, shrinks by alpha otherwise:
 
     sigma_{k+1} = alpha sigma_k   if d(pi, pi~) < delta,   sigma_k / alpha   otherwise  (4.51)
+
+It stands alone, small, because two strategies share it (PSNE and Coherent-SAC) and
+neither owns the other.
 """
 
 from __future__ import annotations
