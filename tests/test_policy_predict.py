@@ -41,10 +41,9 @@ def ppo_run(tmp_path_factory):
 
 
 def test_one_policy_class_and_one_load_policy_under_every_public_name():
-    """`Policy` and `load_policy` are the package's one policy and one loader; `TrainedPolicy`
-    and `PolicyFunction` are former names of the same class."""
-    assert coherent_jax.Policy is coherent_jax.TrainedPolicy is policy_package.TrainedPolicy is Policy
-    assert api.PolicyFunction is coherent_jax.PolicyFunction is Policy
+    """`Policy` and `load_policy` are the package's one policy and one loader (`TrainedPolicy`
+    and `PolicyFunction`, its former names, are tests/test_compat.py's)."""
+    assert coherent_jax.Policy is Policy
     assert coherent_jax.load_policy is api.load_policy is policy_package.load_policy
     assert not hasattr(policy_package, "read_policy") and "PolicyError" in policy_package.__all__
 

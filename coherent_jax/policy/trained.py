@@ -174,10 +174,6 @@ class Policy:
         return self.predict(obs)[0]
 
 
-#: the name of `Policy` before the policy package had one class (docs/api.md).
-TrainedPolicy = Policy
-
-
 def _action_map_of(cfg: Config) -> tuple[ActionMap, int, int]:
     env = VecEnv(cfg.env, 1, cfg.episode_length, cfg.physics, cfg.physics_threads)  # its sizes and map
     return ActionMap.of_physics(env.env, env.action_size), env.observation_size, env.action_size
