@@ -92,6 +92,7 @@ def test_predict_in_a_gymnasium_loop_returns_what_evaluate_reports(pendulum_run)
     returns = np.array(returns, np.float32)
     assert np.ptp(returns) > 0  # distinct episodes
     assert reported["episodes"] == episodes and reported["episode_length_mean"] == LENGTH
+    assert (reported["engine"], reported["physics"]) == ("gymnasium", "gym")  # what stepped it
     assert reported["return_mean"] == pytest.approx(float(returns.mean()), rel=1e-6)
     assert reported["return_std"] == pytest.approx(float(returns.std()), rel=1e-5)
 
