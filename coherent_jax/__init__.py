@@ -3,6 +3,8 @@
 import importlib as _importlib
 import os as _os
 
+from coherent_jax import compat as _compat
+
 # jaxlib's CPU Cholesky and triangular solves call scipy's OpenBLAS. Its own thread
 # pool competes with XLA's for the cores: a batched triangular solve of the coherent
 # loss's backward pass ran 100-200x slower (400 ms instead of 2 ms) with OpenBLAS
@@ -29,18 +31,48 @@ _LAZY = {
     "make_config": "coherent_jax.config",
     "load_policy": "coherent_jax.api",
     "TrainResult": "coherent_jax.api",
-    "PolicyFunction": "coherent_jax.api",
     "Policy": "coherent_jax.policy",
-    "TrainedPolicy": "coherent_jax.policy",
     "Callback": "coherent_jax.run.outputs",
+    "CallbackLike": "coherent_jax.run.outputs",
     "Stop": "coherent_jax.run.outputs",
 }
 __all__ = ["__version__", *_LAZY]
 
+# The names of before (docs/api.md, "Deprecated names"): each still answers, warning once
+# with its successor. Attributes of the package -> the new name's dotted path:
+_FORMER = {
+    "TrainedPolicy": "coherent_jax.policy.Policy",
+    "PolicyFunction": "coherent_jax.policy.Policy",
+    "runs": "coherent_jax.run.checkpoint",
+    "tracking": "coherent_jax.run.outputs",
+    "divergence": "coherent_jax.run.loop",
+    "presets": "coherent_jax.config.schema",
+}
+# Modules that moved, imported by their former names (``from coherent_jax.runs import ...``)
+# -> (the module now, {a renamed attribute: its name now}):
+_compat.install(
+    {
+        "coherent_jax.runs": ("coherent_jax.run.checkpoint", {}),
+        "coherent_jax.tracking": ("coherent_jax.run.outputs", {}),
+        "coherent_jax.divergence": ("coherent_jax.run.loop", {}),
+        "coherent_jax.presets": ("coherent_jax.config.schema", {}),
+        "coherent_jax.config.presets": ("coherent_jax.config.schema", {}),
+        "coherent_jax.run.policy": (
+            "coherent_jax.policy.net",
+            {"Policy": "PolicyNet", "load_policy": "read_policy"},
+        ),
+    }
+)
+_former = _compat.module_getattr("coherent_jax", _FORMER, stacklevel=4)  # called by __getattr__
+
 
 def __getattr__(name: str):
+    if name == "train":
+        # ``coherent_jax.train(config)`` was the API's function: the command-line module, which
+        # still answers a call (deprecated, see its `_CallableModule`). Importing it binds it here.
+        return _importlib.import_module("coherent_jax.train")
     if name not in _LAZY:
-        raise AttributeError(f"module 'coherent_jax' has no attribute {name!r}")
+        return _former(name)  # a former name (warns once), else AttributeError
     value = getattr(_importlib.import_module(_LAZY[name]), name)
     globals()[name] = value
     return value

@@ -24,17 +24,18 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
+from coherent_jax.compat import module_getattr
 from coherent_jax.config import Config, ConfigError, override_items
 from coherent_jax.config.parse import overrides_of
 from coherent_jax.policy import Policy, load_policy
 from coherent_jax.run.checkpoint import CHECKPOINT, PARAMS
 from coherent_jax.run.launch import RUN_SUMMARY, launch_train
 from coherent_jax.run.loop_state import StopRequest
-from coherent_jax.run.outputs import Callback, checked_callbacks
+from coherent_jax.run.outputs import CallbackLike, checked_callbacks
 from coherent_jax.run.rundir import METRICS, read_metrics
 
-#: the policy `load_policy` returns (``PolicyFunction`` before it had ``predict``).
-PolicyFunction = Policy
+#: ``PolicyFunction``, the policy `load_policy` returned before it had ``predict``, is `Policy`.
+__getattr__ = module_getattr(__name__, {"PolicyFunction": "coherent_jax.policy.Policy"})
 
 
 class TrainResult(NamedTuple):
@@ -75,13 +76,14 @@ def _items(config: Config | Mapping[str, Any] | None) -> list[str]:
 
 
 def learn(
-    config: Config | Mapping[str, Any] | None = None, callbacks: Sequence[Callback] | None = None
+    config: Config | Mapping[str, Any] | None = None, callbacks: Sequence[CallbackLike] | None = None
 ) -> TrainResult:
     """Trains as ``python -m coherent_jax.train`` does and returns the `TrainResult`.
 
-    ``callbacks``: `coherent_jax.Callback` instances whose hooks the run calls
-    (`coherent_jax.run.outputs`: ``on_start``, ``on_iteration`` with each metrics row,
-    which can stop the run with a checkpoint, ``on_evaluation``, ``on_end``).
+    ``callbacks``: objects with an ``on_iteration`` method (`coherent_jax.CallbackLike`, e.g.
+    `coherent_jax.Callback` subclasses) whose hooks the run calls (`coherent_jax.run.outputs`:
+    ``on_iteration`` with each metrics row, which can stop the run with a checkpoint, and where
+    the object has them ``on_start``, ``on_evaluation``, ``on_end``).
 
     ``config`` is a `Config` (`make_config`) or a mapping of overrides
     (``{"env": "hopper", "ppo.clip_eps": 0.1}``, a group's keys dotted or nested);

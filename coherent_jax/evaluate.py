@@ -35,6 +35,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from coherent_jax.compat import module_getattr
 from coherent_jax.config import ConfigError, cli
 from coherent_jax.config.checks import gymnasium_id
 from coherent_jax.config.schema import MAX_SEED, SEED_ALLOWED
@@ -44,6 +45,8 @@ from coherent_jax.run import outputs, rundir
 from coherent_jax.run.checkpoint import CHECKPOINT, PARAMS, CheckpointError, decode_checkpoint, load_config
 
 ENGINES = ("jax", "gymnasium")
+#: ``gymnasium_returns`` lived here before the evaluation moved to `coherent_jax.run.evaluation`.
+__getattr__ = module_getattr(__name__, {"gymnasium_returns": "coherent_jax.run.evaluation.gymnasium_returns"})
 GYMNASIUM_EXTRA = 'pip install -e ".[gym]"'
 
 KEYS: dict[str, cli.Key] = {

@@ -8,15 +8,15 @@ with the observation normalisation and the task's action map, ``obs`` [N, o] -> 
 batch size, serialized (``jax.export.deserialize(blob).call(obs)``, JAX alone).
 ``format=hub`` writes the folder ``RUN_DIR/hub`` (or ``out=DIR``) to upload with the
 Hub's own command-line tool: model card, config, parameters, the ONNX file and an
-evaluation video where the task renders (`coherent_jax.policy.hub`); nothing touches the
-network. An existing output is refused unless ``force=true``. See docs/deploy.md.
+evaluation video where the task renders (`coherent_jax.policy.hub`; where it does not, one
+line says why); nothing touches the network. The folder is written whole or not at all. An
+existing output is refused unless ``force=true``. See docs/deploy.md.
 """
 
 from __future__ import annotations
 
 import os
 import re
-import shutil
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -100,9 +100,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     try:
         if opts["format"] == "hub":
-            if out.exists():
-                shutil.rmtree(out)
-            figures = hub.write_hub(run_dir, out, opts["episodes"], opts["seed"])
+            figures = hub.write_hub(run_dir, out, opts["episodes"], opts["seed"], replace=opts["force"])
+            if figures["replay_skipped"]:
+                print(f"[coherent_jax] no replay video: {figures['replay_skipped']}", flush=True)
             print(
                 f"[coherent_jax] Hub folder {out}: return {figures['return_mean']:.2f} +- "
                 f"{figures['return_std']:.2f} over {opts['episodes']} episodes",

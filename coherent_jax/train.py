@@ -41,8 +41,12 @@ signal number when stopped by SIGINT/SIGTERM (resumable).
 from __future__ import annotations
 
 import sys
+import types
 from collections.abc import Sequence
+from typing import Any
 
+import coherent_jax
+from coherent_jax.compat import warn_once
 from coherent_jax.config import help_text, parse_overrides
 from coherent_jax.run import launch, multihost
 from coherent_jax.run.launch import describe_train, launch_train
@@ -70,6 +74,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:  # before the stop request took over
         return launch.interrupted()
 
+
+class _CallableModule(types.ModuleType):
+    """This module, callable as the function it was: ``coherent_jax.train(config)`` trained before
+    `coherent_jax.learn` had that name, and still does, warning once (removed in 0.3).
+
+    Why the module and not the package's ``__getattr__``: the package consults its
+    ``__getattr__`` only while ``coherent_jax.train`` is not an attribute, and importing this
+    module (``python -m coherent_jax.train``, ``from coherent_jax.train import main``) makes it
+    one, so the call has to reach the module object itself. Only the object's class changes:
+    the command line runs this file as before, word for word."""
+
+    def __call__(self, config: Any = None, callbacks: Any = None) -> Any:
+        warn_once("coherent_jax.train(config)", "coherent_jax.learn(config)")
+        return coherent_jax.learn(config, callbacks)  # the package's lazy attribute: JAX from here on
+
+
+sys.modules[__name__].__class__ = _CallableModule
 
 if __name__ == "__main__":
     sys.exit(multihost.run_cli(main))

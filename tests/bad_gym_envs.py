@@ -63,3 +63,18 @@ def good_factory() -> gymnasium.Env:
 
 
 gymnasium.register("BadGymEnvsGood-v0", entry_point=f"{__name__}:Good", max_episode_steps=30)
+
+
+class NanReset(_Base):
+    """Its reset's observation holds a NaN (refused, naming the entry)."""
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        return np.array([0.0, np.nan], np.float32), {}
+
+
+class InfStep(_Base):
+    """Its step's observation holds -inf and NaN (refused, naming both)."""
+
+    def step(self, action):
+        return np.array([-np.inf, np.nan], np.float32), 0.0, False, False, {}

@@ -141,6 +141,58 @@ def test_bad_callbacks_are_refused_before_anything_is_written(tmp_path):
     assert not run.exists()
 
 
+class OnlyIteration:
+    """A callback of the user's own, no subclass of `Callback`: ``on_iteration`` alone."""
+
+    def __init__(self):
+        self.rows = []
+
+    def on_iteration(self, row):
+        self.rows.append(row["iteration"])
+        return Stop("enough") if row["iteration"] == 2 else None
+
+
+class NoIteration:
+    def on_end(self, summary):
+        pass
+
+
+class BrokenHook(OnlyIteration):
+    on_end = "not a method"
+
+
+def test_any_object_with_on_iteration_is_a_callback():
+    """The protocol (`CallbackLike`): ``on_iteration`` required, the other hooks called where the
+    object has them; a `Callback` subclass is one too."""
+    duck, recorder = OnlyIteration(), Recorder()
+    assert isinstance(duck, coherent_jax.CallbackLike) and isinstance(recorder, outputs.CallbackLike)
+    assert outputs.checked_callbacks([duck, recorder]) == (duck, recorder)
+    info = outputs.StartInfo(config=None, run_dir=None, start_iteration=0)
+    outputs.call_on_start([duck, recorder], info)
+    row = {"iteration": 1, "env_steps": 8, "time_s": 0.1, "eval/episode_return": -3.0}
+    assert outputs.call_on_iteration([duck, recorder], row) is None
+    assert outputs.call_on_iteration([duck, recorder], {**row, "iteration": 2}) == "enough"
+    outputs.call_on_end([duck, recorder], {"final_eval_return": -3.0})
+    assert duck.rows == [1, 2]
+    assert [kind for kind, _ in recorder.calls] == ["start", *["evaluation", "iteration"] * 2, "end"]
+
+
+def test_an_object_that_is_no_callback_is_refused_in_one_line_naming_what_it_lacks(tmp_path):
+    run = tmp_path / "run"
+    for bad, problem in [
+        (NoIteration(), "a NoIteration without an on_iteration method"),
+        (OnlyIteration, "the class OnlyIteration, not an instance of it (OnlyIteration())"),
+        (BrokenHook(), "a BrokenHook whose on_end is not a method"),
+    ]:
+        with pytest.raises(ConfigError) as info:
+            coherent_jax.learn({**TINY, "run_dir": str(run)}, callbacks=[bad])
+        message = str(info.value)
+        assert message.startswith("invalid callback ") and problem in message and "\n" not in message
+    with pytest.raises(ConfigError, match=r"^invalid callbacks .*a list of callbacks"):
+        outputs.checked_callbacks(OnlyIteration())  # one callback, not a list
+    assert not run.exists()
+
+
 def test_a_sweep_takes_no_callbacks():
     job = Job(
         cfg=None,

@@ -101,6 +101,7 @@ def test_evaluate_prints_mean_and_std_of_returns(tmp_path, capsys):
     assert np.isfinite(result["return_mean"]) and result["return_mean"] < 0
     assert result["return_std"] > 0  # six episodes from different starts and goals
     assert result["episode_length_mean"] == 20
+    assert (result["engine"], result["physics"]) == ("jax", "jax")  # our VecEnv, a pure-JAX task
     assert "+-" in out[-2]
 
 

@@ -78,6 +78,8 @@ BAD = [
     ("bad_gym_envs:ResetFails", "reset(seed=0) raised ValueError: the reset is broken"),
     ("bad_gym_envs:StepFails", "step(sample action) raised KeyError: 'no such joint'"),
     ("bad_gym_envs:not_annotated", "annotated '-> gymnasium.Env'"),
+    ("bad_gym_envs:NanReset", "reset returned an observation with NaN at entry [1] (allowed: finite"),
+    ("bad_gym_envs:InfStep", "step returned an observation with NaN at entry [1] and -inf at entry [0]"),
 ]
 
 

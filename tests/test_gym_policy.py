@@ -4,6 +4,7 @@ and in the ONNX export, and `predict` in a hand-written Gymnasium loop returns w
 ``python -m coherent_jax.evaluate`` reports."""
 
 import contextlib
+import importlib.util
 import io
 import json
 
@@ -20,7 +21,7 @@ from coherent_jax.envs.host_gym import env_seeds
 from coherent_jax.envs.vec_env import VecEnv
 from coherent_jax.evaluate import main as evaluate_main
 from coherent_jax.export import main as export_main
-from coherent_jax.policy import load_policy
+from coherent_jax.policy import hub, load_policy
 
 LENGTH = 50
 TINY = {
@@ -91,8 +92,54 @@ def test_predict_in_a_gymnasium_loop_returns_what_evaluate_reports(pendulum_run)
     returns = np.array(returns, np.float32)
     assert np.ptp(returns) > 0  # distinct episodes
     assert reported["episodes"] == episodes and reported["episode_length_mean"] == LENGTH
+    assert (reported["engine"], reported["physics"]) == ("gymnasium", "gym")  # what stepped it
     assert reported["return_mean"] == pytest.approx(float(returns.mean()), rel=1e-6)
     assert reported["return_std"] == pytest.approx(float(returns.std()), rel=1e-5)
+
+
+def _export_hub(run_dir, out, *extra):
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        status = export_main([str(run_dir), "format=hub", f"out={out}", "episodes=2", *extra])
+    return status, printed.getvalue().splitlines()
+
+
+def test_hub_folder_of_a_gymnasium_env_skips_a_replay_it_cannot_render(pendulum_run, tmp_path):
+    """Pendulum-v1 renders through pygame: without it the folder has no replay and one line says
+    why (docs/deploy.md: "where the task renders"); with it, the replay is there. A retry with
+    force=true replaces the folder."""
+    out = tmp_path / "hub"
+    status, lines = _export_hub(pendulum_run, out)
+    assert status == 0, lines
+    renders = importlib.util.find_spec("pygame") is not None
+    notes = [line for line in lines if "no replay video" in line]
+    if renders:
+        assert not notes and any(p.name.startswith("replay.") for p in out.iterdir())
+    else:
+        assert len(notes) == 1 and "render() raised DependencyNotInstalled" in notes[0], lines
+        assert not any(p.name.startswith("replay.") for p in out.iterdir())
+    assert {"README.md", "config.yaml", "policy.msgpack", "policy.json", "policy.onnx"} <= {
+        p.name for p in out.iterdir()
+    }
+    assert load_policy(out).action_map.high.tolist() == [2.0]
+    assert _export_hub(pendulum_run, out, "force=true")[0] == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["hub"]  # no partial sibling left
+
+
+def test_a_failed_hub_export_leaves_no_folder(pendulum_run, tmp_path, monkeypatch):
+    def fail(policy, path):
+        raise ValueError("the ONNX writer broke")
+
+    monkeypatch.setattr(hub, "write_onnx", fail)
+    out = tmp_path / "new" / "hub"
+    status, _ = _export_hub(pendulum_run, out)
+    assert status == 2  # a ValueError: one line, exit 2
+    assert list(tmp_path.iterdir()) == []  # neither the folder nor the parent it made
+    (tmp_path / "old").mkdir()
+    assert _export_hub(pendulum_run, tmp_path / "old" / "hub")[0] == 2
+    assert [p.name for p in tmp_path.rglob("*")] == ["old"]  # an existing parent stays, empty
+    monkeypatch.undo()
+    assert _export_hub(pendulum_run, out)[0] == 0  # the retry is not blocked
 
 
 def test_user_gymnasium_env_policy_maps_onto_its_own_box():

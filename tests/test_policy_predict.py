@@ -41,10 +41,9 @@ def ppo_run(tmp_path_factory):
 
 
 def test_one_policy_class_and_one_load_policy_under_every_public_name():
-    """`Policy` and `load_policy` are the package's one policy and one loader; `TrainedPolicy`
-    and `PolicyFunction` are former names of the same class."""
-    assert coherent_jax.Policy is coherent_jax.TrainedPolicy is policy_package.TrainedPolicy is Policy
-    assert api.PolicyFunction is coherent_jax.PolicyFunction is Policy
+    """`Policy` and `load_policy` are the package's one policy and one loader (`TrainedPolicy`
+    and `PolicyFunction`, its former names, are tests/test_compat.py's)."""
+    assert coherent_jax.Policy is Policy
     assert coherent_jax.load_policy is api.load_policy is policy_package.load_policy
     assert not hasattr(policy_package, "read_policy") and "PolicyError" in policy_package.__all__
 
@@ -80,8 +79,22 @@ def test_predict_stochastic_is_seeded_and_resets_where_told(ppo_run):
     x1, _ = a.predict(obs, s1, episode_start=np.ones(3, bool), deterministic=False)
     x2, _ = a.predict(obs, a.initial_state(3, seed=7), episode_start=np.ones(3, bool), deterministic=False)
     np.testing.assert_array_equal(x1, x2)
-    with pytest.raises(ValueError, match=r"invalid episode_start of shape \[2\] \(allowed: \[3\]\)"):
+    with pytest.raises(
+        ValueError, match=r"invalid episode_start of shape \[2\] \(allowed: one bool, or \[3\]\)$"
+    ):
         a.predict(obs, s1, episode_start=[True, False], deterministic=False)
+
+
+@pytest.mark.parametrize("start", [True, False, np.True_, np.array(False)])
+def test_one_episode_start_bool_is_every_envs(start):
+    """``episode_start=True`` (one bool, as docs/api.md allows) with a batch of 100: every env
+    starts, as ``[True] * 100`` does; False: none does."""
+    policy = random_policy("ppo", "coherent", {})
+    obs = np.random.default_rng(5).normal(size=(100, OBS)).astype(np.float32)
+    state = policy.predict(obs, policy.initial_state(100, seed=1), deterministic=False)[1]
+    one, _ = policy.predict(obs, state, episode_start=start, deterministic=False)
+    each, _ = policy.predict(obs, state, episode_start=np.full(100, bool(start)), deterministic=False)
+    np.testing.assert_array_equal(one, each)
 
 
 # ------------------------------------------------------------ every strategy, stochastic

@@ -19,6 +19,9 @@ static Python values; the sweepable scalars (`SWEEPABLE`) become arrays inside t
 train state so that `jax.vmap` can run a grid of them as one program.
 """
 
+from typing import Any
+
+from coherent_jax.compat import warn_once
 from coherent_jax.config.checks import CROSS_CHECKS, ConfigError, validate
 from coherent_jax.config.groups import (
     COHERENT_GRADIENT,
@@ -64,6 +67,18 @@ from coherent_jax.config.schema import (
     with_values,
 )
 from coherent_jax.strategies import ALGOS, EXPLORES, ON_POLICY, REFUSED, SUPPORTED_ALGOS
+
+
+def _from_overrides(cls: type[Config], mapping: Any = None, /, **keys: Any) -> Config:
+    """Deprecated (removed in 0.3): `make_config`, which takes the same arguments."""
+    warn_once("coherent_jax.Config.from_overrides", "coherent_jax.make_config")
+    return make_config(mapping, **keys)
+
+
+# ``Config.from_overrides`` stays until 0.3, attached here: as a method written in schema.py it
+# would call the parser, which builds on schema.py (the import cycle `make_config` removed);
+# this package imports both, and every import of the config passes through it.
+Config.from_overrides = classmethod(_from_overrides)  # type: ignore[attr-defined]
 
 __all__ = [
     "ACTIVATIONS",

@@ -205,9 +205,23 @@ def check_gym_env(name: str, build: Callable[[], Any], episode_length: int | Non
 
 def _checked_obs(name: str, when: str, obs: Any, size: int) -> None:
     obs = np.asarray(obs)
-    if obs.shape != (size,) or not np.issubdtype(obs.dtype, np.number) or not np.all(np.isfinite(obs)):
-        got = f"{obs.dtype} of shape {obs.shape}"
-        refuse(name, f"{when} returned an observation {got} (allowed: finite numbers, shape ({size},))")
+    allowed = f"(allowed: finite numbers, shape ({size},))"
+    if obs.shape != (size,) or not np.issubdtype(obs.dtype, np.number):
+        refuse(name, f"{when} returned an observation {obs.dtype} of shape {obs.shape} {allowed}")
+    if not np.all(np.isfinite(obs)):
+        refuse(name, f"{when} returned an observation with {non_finite(obs)} {allowed}")
+
+
+def non_finite(x: np.ndarray, most: int = 8) -> str:
+    """Which entries of the flat `x` are not finite, by kind: ``NaN at entries [1, 3] and inf at
+    entry [0]`` (at most `most` indices of each kind, then ``...``)."""
+    parts = []
+    for label, bad in (("NaN", np.isnan(x)), ("inf", np.isposinf(x)), ("-inf", np.isneginf(x))):
+        at = np.flatnonzero(bad).tolist()
+        if at:
+            shown = ", ".join(map(str, at[:most])) + (", ..." if len(at) > most else "")
+            parts.append(f"{label} at {'entry' if len(at) == 1 else 'entries'} [{shown}]")
+    return " and ".join(parts)
 
 
 def registered_gym_env(name: str) -> GymSource:

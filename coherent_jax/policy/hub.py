@@ -9,13 +9,16 @@ strategy and its settings, mean ± std of ``evaluate`` over its episodes, the li
 version and commit, and the command that trained it), ``config.yaml`` (the run's),
 ``policy.msgpack`` and ``policy.json`` (the parameters and the action map, what
 `coherent_jax.policy.load_policy` reads back), ``policy.onnx``, and ``replay.mp4`` (or
-``.gif`` without ffmpeg) of an evaluation episode where the task renders (MuJoCo tasks).
+``.gif`` without ffmpeg) of an evaluation episode where the task renders (MuJoCo tasks; a
+Gymnasium env that renders ``rgb_array``), else none, and `write_hub` says why. The folder
+appears whole or not at all.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import shutil
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -29,7 +32,7 @@ from coherent_jax.envs.registry import check_task
 from coherent_jax.policy.formats import write_onnx
 from coherent_jax.policy.trained import META_FILE, POLICY_FILE, Policy, load_policy
 from coherent_jax.run import rundir
-from coherent_jax.run.evaluation import evaluate_run
+from coherent_jax.run.evaluation import evaluate_run, video_problem
 from coherent_jax.run.outputs import video_suffix
 
 ONNX_FILE = "policy.onnx"
@@ -158,12 +161,51 @@ Without JAX: `{ONNX_FILE}` under onnxruntime, input `obs` [N, {policy.obs_size}]
 """
 
 
-def write_hub(run_dir: Path, out: Path, episodes: int = 10, seed: int = 0) -> dict[str, Any]:
-    """Writes the Hub folder of the run at ``run_dir`` into ``out`` (created; must not exist)."""
+def replay_problem(env: str) -> str | None:
+    """None if the Hub folder can hold a replay of task `env`, else why not (one line): the
+    pure-JAX tasks have no MuJoCo model, and a JAX or Gymnasium env of the user's may not render
+    (`coherent_jax.run.evaluation.video_problem`, e.g. Pendulum-v1 without pygame)."""
+    if check_task(env).backend == "jax":
+        return "this task has no MuJoCo model to render"
+    return video_problem(env)
+
+
+def write_hub(
+    run_dir: Path, out: Path, episodes: int = 10, seed: int = 0, replace: bool = False
+) -> dict[str, Any]:
+    """Writes the Hub folder of the run at ``run_dir`` as ``out``, which must not exist unless
+    `replace`. The folder is built as a temporary sibling and renamed to ``out`` when complete, so
+    a failure leaves no partial folder (and an existing ``out`` as it was). The figures returned
+    hold ``replay_skipped``: why there is no replay video, or None."""
+    out = Path(out)
+    if out.exists() and not replace:
+        raise FileExistsError(f"{out} exists")
     policy = load_policy(run_dir)
+    skipped = replay_problem(policy.config.env)
+    made = next((p for p in reversed([out.parent, *out.parent.parents]) if not p.exists()), None)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    partial = out.parent / f".{out.name}.partial-{os.getpid()}"  # a sibling: the rename stays on its disk
+    if partial.exists():  # left by an earlier process of this id that was killed
+        shutil.rmtree(partial)
+    partial.mkdir()
+    try:
+        figures = _write_folder(run_dir, partial, policy, episodes, seed, skipped is None)
+        if out.exists():
+            shutil.rmtree(out)
+        partial.rename(out)
+    except BaseException:
+        shutil.rmtree(made or partial, ignore_errors=True)  # with the parent folders it created
+        raise
+    if figures["video_name"]:
+        figures["video"] = str(out / figures["video_name"])
+    return {**figures, "replay_skipped": skipped}
+
+
+def _write_folder(
+    run_dir: Path, out: Path, policy: Policy, episodes: int, seed: int, renders: bool
+) -> dict[str, Any]:
+    """The folder's files into the existing, empty ``out``; the evaluation's figures."""
     cfg = policy.config
-    renders = check_task(cfg.env).backend != "jax"
-    out.mkdir(parents=True)
     video_name = f"replay{video_suffix()}" if renders else ""
     opts = HubEval(episodes, "jax", renders, seed, str(out / video_name) if renders else "")
     figures = evaluate_run(run_dir, opts, mirror_wandb=False)

@@ -135,6 +135,18 @@ class Policy:
             )
         return (x[None], True) if x.ndim == 1 else (x, False)
 
+    @staticmethod
+    def _starts(episode_start: Any, n: int) -> np.ndarray:
+        """``episode_start`` as [n] bools: one bool is every env's (broadcast), else n bools ([n])."""
+        starts = np.asarray(episode_start)
+        if starts.ndim == 0:
+            return np.full((n,), bool(starts))
+        starts = starts.astype(bool).reshape(-1)
+        if starts.shape != (n,):
+            shape = list(np.shape(episode_start))
+            raise ValueError(f"invalid episode_start of shape {shape} (allowed: one bool, or [{n}])")
+        return starts
+
     def predict(
         self,
         obs: Any,
@@ -146,8 +158,8 @@ class Policy:
 
         ``deterministic=True`` returns the evaluation action and ``state`` unchanged.
         Otherwise ``state`` (None: a fresh `initial_state`, every env starting an episode)
-        carries the strategy's noise; ``episode_start`` [n] (or a bool for one obs) marks the
-        envs whose episode starts at ``obs`` (Stable-Baselines3's ``episode_start``; None:
+        carries the strategy's noise; ``episode_start`` [n] (or one bool, for every env) marks
+        the envs whose episode starts at ``obs`` (Stable-Baselines3's ``episode_start``; None:
         none, unless ``state`` is None). Pass the returned state to the next call.
         """
         x, single = self._obs(obs)
@@ -161,10 +173,7 @@ class Policy:
         else:
             first = np.zeros((n,), bool)
         if episode_start is not None:
-            starts = np.asarray(episode_start, bool).reshape(-1)
-            if starts.shape != (n,):
-                raise ValueError(f"invalid episode_start of shape {list(starts.shape)} (allowed: [{n}])")
-            first = first | starts
+            first = first | self._starts(episode_start, n)
         action, state = self._sample(self.policy, state, x, first)
         action = np.asarray(action)
         return (action[0] if single else action), state
@@ -172,10 +181,6 @@ class Policy:
     def __call__(self, obs: Any) -> np.ndarray:
         """The deterministic action for ``obs`` [o] or [n, o], in the env's action space."""
         return self.predict(obs)[0]
-
-
-#: the name of `Policy` before the policy package had one class (docs/api.md).
-TrainedPolicy = Policy
 
 
 def _action_map_of(cfg: Config) -> tuple[ActionMap, int, int]:

@@ -140,7 +140,10 @@ def evaluate_run(run_dir: Path, opts: Any, mirror_wandb: bool = True) -> dict[st
         "return_mean": float(metrics["eval/episode_return"]),
         "return_std": float(metrics["eval/episode_return_std"]),
         "episode_length_mean": float(metrics["eval/episode_length"]),
-        "engine": opts.engine,
+        # What stepped these episodes: a Gymnasium env's own step() on the host, else our VecEnv
+        # ("physics" names its engine: mjx, native, jax, ...) with Gymnasium's beside it on request.
+        "engine": "gymnasium" if host_pool(eval_env) is not None else opts.engine,
+        "physics": eval_env.physics,
     }
     if opts.engine == "gymnasium":
         returns, lengths = gymnasium_returns(policy, cfg.env, cfg.episode_length, opts.episodes, opts.seed)

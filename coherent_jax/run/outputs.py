@@ -12,7 +12,9 @@ the Weights & Biases mirror, and the format of evaluation videos. No JAX.
 
     coherent_jax.learn(cfg, callbacks=[StopAt()])
 
-A `Callback`'s hooks, every one a no-op by default:
+A callback is any object with an ``on_iteration`` method (`CallbackLike`); ``on_start``,
+``on_evaluation`` and ``on_end`` are called where it has them. `Callback` is a base class with
+all four, every one a no-op by default:
 
 * ``on_start(info)``: once, before the first iteration, with a `StartInfo` (the config, the run
   directory, the iteration the run starts after: 0, or a resumed checkpoint's);
@@ -74,7 +76,7 @@ import secrets
 import shutil
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Protocol, runtime_checkable
 from urllib.parse import urlparse
 
 from coherent_jax.config import Config, ConfigError, cli
@@ -125,38 +127,60 @@ class Callback:
         """Once, with the run's summary."""
 
 
-def checked_callbacks(callbacks: Iterable[Any] | None) -> tuple[Callback, ...]:
-    """`callbacks` as a tuple; anything but `Callback` instances is a `ConfigError` naming it."""
+@runtime_checkable
+class CallbackLike(Protocol):
+    """What the loop calls: any object with ``on_iteration``; ``on_start``, ``on_evaluation`` and
+    ``on_end`` are optional (called where the object has them). `Callback` is one."""
+
+    def on_iteration(self, row: dict[str, Any]) -> bool | Stop | None: ...
+
+
+HOOKS = ("on_start", "on_iteration", "on_evaluation", "on_end")
+_ALLOWED = "allowed: objects with an on_iteration method, e.g. coherent_jax.Callback subclasses"
+
+
+def _problem(cb: Any) -> str | None:
+    """Why `cb` is not a callback (one line), or None."""
+    if isinstance(cb, type):
+        return f"the class {cb.__name__}, not an instance of it ({cb.__name__}())"
+    if not isinstance(cb, CallbackLike):
+        return f"a {type(cb).__name__} without an on_iteration method"
+    not_callable = [h for h in HOOKS if hasattr(cb, h) and not callable(getattr(cb, h))]
+    return f"a {type(cb).__name__} whose {', '.join(not_callable)} is not a method" if not_callable else None
+
+
+def checked_callbacks(callbacks: Iterable[Any] | None) -> tuple[CallbackLike, ...]:
+    """`callbacks` as a tuple; anything but a list of objects with ``on_iteration`` (and hooks that
+    are methods) is a `ConfigError` naming the object and what it lacks."""
     if callbacks is None:
         return ()
-    if isinstance(callbacks, Callback) or not isinstance(callbacks, Iterable):
-        raise ConfigError(
-            f"invalid callbacks {callbacks!r} (allowed: a list of coherent_jax.Callback instances)"
-        )
+    if isinstance(callbacks, (CallbackLike, str)) or not isinstance(callbacks, Iterable):
+        raise ConfigError(f"invalid callbacks {callbacks!r} (allowed: a list of callbacks; {_ALLOWED})")
     found = tuple(callbacks)
     for cb in found:
-        if not isinstance(cb, Callback):
-            raise ConfigError(
-                f"invalid callback {cb!r}: a {type(cb).__name__} "
-                "(allowed: instances of coherent_jax.Callback subclasses)"
-            )
+        problem = _problem(cb)
+        if problem:
+            raise ConfigError(f"invalid callback {cb!r}: {problem} ({_ALLOWED})")
     return found
 
 
-def call_on_start(callbacks: Sequence[Callback], info: StartInfo) -> None:
-    """``on_start`` of each callback."""
+def call_on_start(callbacks: Sequence[CallbackLike], info: StartInfo) -> None:
+    """``on_start`` of each callback that has it."""
     for cb in callbacks:
-        cb.on_start(info)
+        hook = getattr(cb, "on_start", None)  # optional
+        if hook is not None:
+            hook(info)
 
 
-def call_on_iteration(callbacks: Sequence[Callback], row: dict[str, Any]) -> str | None:
-    """``on_evaluation`` (on an evaluation row) and ``on_iteration`` of each callback; the
-    reason to stop of the first that asked to (None: go on)."""
+def call_on_iteration(callbacks: Sequence[CallbackLike], row: dict[str, Any]) -> str | None:
+    """``on_evaluation`` (on an evaluation row, where a callback has it) and ``on_iteration`` of
+    each callback; the reason to stop of the first that asked to (None: go on)."""
     evaluated = any(k.startswith("eval/") for k in row)
     reasons = []
     for cb in callbacks:
-        if evaluated:
-            cb.on_evaluation(dict(row))
+        on_evaluation = getattr(cb, "on_evaluation", None)  # optional
+        if evaluated and on_evaluation is not None:
+            on_evaluation(dict(row))
         answer = cb.on_iteration(dict(row))  # each its own copy: one callback cannot change another's row
         if isinstance(answer, Stop):
             reasons.append(answer.reason)
@@ -165,13 +189,12 @@ def call_on_iteration(callbacks: Sequence[Callback], row: dict[str, Any]) -> str
     return reasons[0] if reasons else None
 
 
-def call_on_end(callbacks: Sequence[Callback], summary: dict[str, Any]) -> None:
-    """``on_end`` of each callback."""
+def call_on_end(callbacks: Sequence[CallbackLike], summary: dict[str, Any]) -> None:
+    """``on_end`` of each callback that has it."""
     for cb in callbacks:
-        cb.on_end(summary)
-
-
-# --- Weights & Biases -----------------------------------------------------------------------------
+        hook = getattr(cb, "on_end", None)  # optional
+        if hook is not None:
+            hook(summary)
 
 
 class TrackingError(RuntimeError):
