@@ -13,9 +13,12 @@ what cannot be the same is `NOT_IDENTICAL`) and times them alternately:
   ``iterations`` iterations per side, the order flipped every round so that a change of
   load hits both;
 - env steps/s and gradient updates/s of each side (the median iteration), their ratio
-  ours / SBX, and the ratio in every round with its median; SBX's collection and
-  training apart, its compile time as the time its warm-up iterations took above the
-  median.
+  ours / SBX, and the ratio in every round with its median;
+- where the time goes: SBX's collection and training, timed apart within each iteration;
+  ours' collection by the same program with its updates switched off (as the ``sac``
+  suite does), its updates as the difference; the ratios of each part;
+- compile times apart: ours' programs' compilation; SBX's the time its warm-up
+  iterations took above its median iteration.
 
 Settings are every training key (``algo=sac`` and ``explore=action`` are set by the suite)
 plus `KEYS`; `sbx_settings` maps ours to SBX's arguments. Results go to a JSON file
@@ -34,7 +37,7 @@ import jax
 
 from benchmarks import IGNORED, measure, sbx_process
 from coherent_jax.agents.sac import SACTrainer
-from coherent_jax.config import Config, ConfigError, cli, to_dict
+from coherent_jax.config import Config, ConfigError, cli, to_dict, with_values
 from coherent_jax.envs.registry import EPISODE_LENGTH, SHORT_NAMES, resolve_physics
 from coherent_jax.envs.vec_env import VecEnv
 
@@ -218,112 +221,129 @@ def held_mismatches(settings: dict[str, Any], held: dict[str, Any], action_size:
 
 
 def _ours(cfg: Config, warmup: int, log) -> dict[str, Any]:
-    """Our SAC iteration compiled and called ``warmup`` times untimed (`measure.warm_iteration`)."""
+    """Our SAC iteration, and the same program with the updates switched off (collection alone,
+    as in the ``sac`` suite), each compiled and called ``warmup`` times untimed."""
     env = VecEnv(cfg.env, cfg.num_envs, cfg.episode_length, cfg.physics, cfg.physics_threads)
-    trainer = SACTrainer(cfg, env=env, eval_env=env)
-    state = jax.jit(trainer.init)(jax.random.PRNGKey(cfg.seed))
-    ours = measure.warm_iteration(trainer.iteration, state, log, "our SAC iteration")
-    t0 = time.perf_counter()
-    for _ in range(warmup - 1):
-        ours["state"], _ = jax.block_until_ready(ours["step"](ours["state"]))
-    ours["warmup_call_s"] += time.perf_counter() - t0
-    ours["action_size"] = env.action_size
-    return ours
+    runs: dict[str, Any] = {"action_size": env.action_size}
+    for mode, values in (("iteration", {}), ("collect_only", {"sac.warmup_steps": 2**31 - 1})):
+        trainer = SACTrainer(with_values(cfg, values), env=env, eval_env=env)
+        state = jax.jit(trainer.init)(jax.random.PRNGKey(cfg.seed))
+        run = measure.warm_iteration(trainer.iteration, state, log, f"our SAC {mode.replace('_', ' ')}")
+        t0 = time.perf_counter()
+        for _ in range(warmup - 1):
+            run["state"], _ = jax.block_until_ready(run["step"](run["state"]))
+        run["warmup_call_s"] += time.perf_counter() - t0
+        runs[mode] = run
+    return runs
 
 
-def _time_ours(ours: dict[str, Any], iterations: int, updates: int) -> list[float]:
+def _time_ours(run: dict[str, Any], iterations: int, updates: int) -> list[float]:
+    """Seconds of each of ``iterations`` calls of ``run``'s program, which must apply ``updates`` updates."""
     times = []
     for _ in range(iterations):
         t0 = time.perf_counter()
-        ours["state"], metrics = jax.block_until_ready(ours["step"](ours["state"]))
+        run["state"], metrics = jax.block_until_ready(run["step"](run["state"]))
         times.append(time.perf_counter() - t0)
-        if float(metrics["train/updates_applied"]) != updates:
-            applied = float(metrics["train/updates_applied"])
+        applied = float(metrics["train/updates_applied"])
+        if applied != updates:
             raise RuntimeError(f"our iteration applied {applied} updates, not {updates}")
     return times
 
 
 def _alternate(ours, driver, cfg: Config, rounds: int, iterations: int, log) -> tuple[list, list]:
-    """``rounds`` rounds of ``iterations`` iterations per side, ours first in even rounds."""
+    """``rounds`` rounds of ``iterations`` iterations per side, ours first in even rounds.
+
+    Each side's record of a round: ``iteration_s`` and ``collect_s`` (ours: as many calls of
+    the collection alone; SBX: its collection within each iteration), and SBX's ``train_s``.
+    """
     steps, updates = cfg.steps_per_iteration, cfg.updates_per_iteration
-    ours_rounds: list[list[float]] = []
+    ours_rounds: list[dict[str, Any]] = []
     sbx_rounds: list[dict[str, Any]] = []
     for r in range(rounds):
         for side in ("ours", "sbx") if r % 2 == 0 else ("sbx", "ours"):
             if side == "ours":
-                ours_rounds.append(_time_ours(ours, iterations, updates))
-                took = sum(ours_rounds[-1])
+                record = {
+                    "iteration_s": _time_ours(ours["iteration"], iterations, updates),
+                    "collect_s": _time_ours(ours["collect_only"], iterations, 0),
+                }
+                ours_rounds.append(record)
             else:
                 record = driver.run(iterations)
                 if record["updates"] != iterations * updates or len(record["iteration_s"]) != iterations:
                     done = f"{record['updates']} updates in {len(record['iteration_s'])} iterations"
                     raise RuntimeError(f"SBX ran {done}, not {iterations * updates} in {iterations}")
                 sbx_rounds.append(record)
-                took = sum(record["iteration_s"])
+            took = sum(record["iteration_s"])
             rate = iterations * steps / took
             log(f"[bench] round {r + 1}/{rounds} {side}: {rate:,.1f} env steps/s ({took:.1f} s)")
     return ours_rounds, sbx_rounds
+
+
+def _side(steps: int, updates: int, rounds: list[dict[str, Any]]) -> dict[str, Any]:
+    """One side's medians and rates from its rounds' ``iteration_s`` and ``collect_s``."""
+    median = lambda key: statistics.median([t for r in rounds for t in r[key]])  # noqa: E731
+    t_iteration, t_collect = median("iteration_s"), median("collect_s")
+    # SBX times its training; ours is the iteration less its collection (as the sac suite's).
+    t_update = median("train_s") if "train_s" in rounds[0] else max(t_iteration - t_collect, 1e-9)
+    return {
+        "iteration_s": [r["iteration_s"] for r in rounds],
+        "collect_s": [r["collect_s"] for r in rounds],
+        "iteration_s_median": t_iteration,
+        "collect_s_median": t_collect,
+        "update_s_median": t_update,
+        "env_steps_per_s": steps / t_iteration,
+        "gradient_updates_per_s": updates / t_iteration,
+        "collect_env_steps_per_s": steps / t_collect,
+        "update_only_updates_per_s": updates / t_update,
+        "round_env_steps_per_s": [steps * len(r["iteration_s"]) / sum(r["iteration_s"]) for r in rounds],
+    }
 
 
 def summarize(
     steps: int,
     updates: int,
     ours: dict[str, Any],
-    ours_rounds: list[list[float]],
+    ours_rounds: list[dict[str, Any]],
     sbx_ready: dict[str, Any],
     sbx_rounds: list[dict[str, Any]],
 ) -> dict[str, Any]:
-    """The figures of both sides and their ratios from the timed iterations (pure).
+    """The figures of both sides and their ratios ours / SBX from the timed iterations (pure).
 
-    ``ours``: ``compile_s``, ``warmup_call_s`` and ``memory``; ``ours_rounds``: each
-    round's iteration seconds; ``sbx_ready``: the driver's ready record; ``sbx_rounds``:
-    its record of each round (``iteration_s``, ``collect_s``, ``train_s``).
+    ``ours``: each program's ``compile_s``, ``warmup_call_s`` and ``memory`` under
+    ``iteration`` and ``collect_only``; ``ours_rounds`` and ``sbx_rounds``: each round's
+    record (`_alternate`); ``sbx_ready``: the driver's ready record.
     """
-    ours_times = [t for r in ours_rounds for t in r]
-    sbx_times = [t for r in sbx_rounds for t in r["iteration_s"]]
-    t_ours, t_sbx = statistics.median(ours_times), statistics.median(sbx_times)
-    t_collect = statistics.median([t for r in sbx_rounds for t in r["collect_s"]])
-    t_train = statistics.median([t for r in sbx_rounds for t in r["train_s"]])
+    o, x = _side(steps, updates, ours_rounds), _side(steps, updates, sbx_rounds)
+    o.update(
+        compile_s=ours["iteration"]["compile_s"],
+        compile_collect_only_s=ours["collect_only"]["compile_s"],
+        warmup_call_s=ours["iteration"]["warmup_call_s"],
+        memory=ours["iteration"]["memory"],
+    )
     warm = sbx_ready["warmup"]["iteration_s"]
-    round_ratios = [sum(s["iteration_s"]) / sum(o) for o, s in zip(ours_rounds, sbx_rounds, strict=True)]
+    x.update(
+        train_s=[r["train_s"] for r in sbx_rounds],
+        # The warm-up iterations' time above the median iteration: the actor's and the
+        # updates' compilation (random-action iterations, cheaper, count as nothing).
+        compile_s=sum(max(0.0, t - x["iteration_s_median"]) for t in warm),
+        setup_s=sbx_ready["setup_s"],
+        warmup_iteration_s=warm,
+        versions=sbx_ready["versions"],
+        held=sbx_ready["held"],
+    )
+    pairs = zip(ours_rounds, sbx_rounds, strict=True)
+    round_ratios = [sum(b["iteration_s"]) / sum(a["iteration_s"]) for a, b in pairs]
+    ratio = x["iteration_s_median"] / o["iteration_s_median"]
     return {
         "env_steps_per_iteration": steps,
         "updates_per_iteration": updates,
-        "ours": {
-            "compile_s": ours["compile_s"],
-            "warmup_call_s": ours["warmup_call_s"],
-            "memory": ours["memory"],
-            "iteration_s": ours_rounds,
-            "iteration_s_median": t_ours,
-            "env_steps_per_s": steps / t_ours,
-            "gradient_updates_per_s": updates / t_ours,
-            "round_env_steps_per_s": [steps * len(r) / sum(r) for r in ours_rounds],
-        },
-        "sbx": {
-            # The warm-up iterations' time above the median iteration: the actor's and the
-            # updates' compilation (random-action iterations, cheaper, count as nothing).
-            "compile_s": sum(max(0.0, t - t_sbx) for t in warm),
-            "setup_s": sbx_ready["setup_s"],
-            "warmup_iteration_s": warm,
-            "iteration_s": [r["iteration_s"] for r in sbx_rounds],
-            "collect_s": [r["collect_s"] for r in sbx_rounds],
-            "train_s": [r["train_s"] for r in sbx_rounds],
-            "iteration_s_median": t_sbx,
-            "collect_s_median": t_collect,
-            "train_s_median": t_train,
-            "env_steps_per_s": steps / t_sbx,
-            "gradient_updates_per_s": updates / t_sbx,
-            "collect_env_steps_per_s": steps / t_collect,
-            "train_updates_per_s": updates / t_train,
-            "round_env_steps_per_s": [
-                steps * len(t) / sum(t) for t in (r["iteration_s"] for r in sbx_rounds)
-            ],
-            "versions": sbx_ready["versions"],
-            "held": sbx_ready["held"],
-        },
-        # The same per-iteration counts on both sides: the ratio of env steps/s and of updates/s alike.
-        "ratio_env_steps_per_s": t_sbx / t_ours,
-        "ratio_gradient_updates_per_s": t_sbx / t_ours,
+        "ours": o,
+        "sbx": x,
+        # The same counts per iteration on both sides: one ratio for env steps/s and updates/s.
+        "ratio_env_steps_per_s": ratio,
+        "ratio_gradient_updates_per_s": ratio,
+        "ratio_collect": x["collect_s_median"] / o["collect_s_median"],
+        "ratio_updates_alone": x["update_s_median"] / o["update_s_median"],
         "round_ratios": round_ratios,
         "round_ratio_median": statistics.median(round_ratios),
     }
@@ -365,7 +385,6 @@ def format_table(result: dict) -> str:
     cfg, tr, s = result["settings"]["config"], result["training"], result["sbx_settings"]
     hidden = lambda h: "[" + ",".join(map(str, h)) + "]"  # noqa: E731
     o, x = tr["ours"], tr["sbx"]
-    rounds = len(tr["round_ratios"])
     lines = [
         f"sbx bench: {s['env_id']} ({result['physics']} physics for ours), {cfg['num_envs']} envs x "
         f"{cfg['unroll_length']} steps = {tr['env_steps_per_iteration']} env steps and "
@@ -374,19 +393,25 @@ def format_table(result: dict) -> str:
         f"buffer {cfg['sac']['buffer_size']}, warm-up {cfg['sac']['warmup_steps']} steps",
         measure.machine_line(result),
         f"SBX {x['versions'].get('sbx-rl')} (SB3 {x['versions'].get('stable_baselines3')}, "
-        f"{x['held']['vec_env']}); {rounds} rounds x {len(o['iteration_s'][0])} iterations per side, "
-        "alternated; medians",
+        f"{x['held']['vec_env']}); {len(tr['round_ratios'])} rounds x {len(o['iteration_s'][0])} "
+        "iterations per side, alternated; medians",
         "",
         f"  {'':<6}{'compile s':>10}{'iter s':>9}{'env steps/s':>13}{'updates/s':>11}"
-        f"{'collect s':>11}{'train s':>9}",
-        f"  {'ours':<6}{o['compile_s']:>10.1f}{o['iteration_s_median']:>9.3f}{o['env_steps_per_s']:>13,.1f}"
-        f"{o['gradient_updates_per_s']:>11,.1f}{'-':>11}{'-':>9}",
-        f"  {'SBX':<6}{x['compile_s']:>10.1f}{x['iteration_s_median']:>9.3f}{x['env_steps_per_s']:>13,.1f}"
-        f"{x['gradient_updates_per_s']:>11,.1f}{x['collect_s_median']:>11.3f}{x['train_s_median']:>9.3f}",
-        f"  ours / SBX: {tr['ratio_env_steps_per_s']:.2f}x env steps/s, "
+        f"{'collect s':>11}{'update s':>10}",
+    ]
+    for label, e in (("ours", o), ("SBX", x)):
+        lines.append(
+            f"  {label:<6}{e['compile_s']:>10.1f}{e['iteration_s_median']:>9.3f}"
+            f"{e['env_steps_per_s']:>13,.1f}{e['gradient_updates_per_s']:>11,.1f}"
+            f"{e['collect_s_median']:>11.3f}{e['update_s_median']:>10.3f}"
+        )
+    lines += [
+        f"  ours / SBX: {tr['ratio_env_steps_per_s']:.2f}x env steps/s and "
         f"{tr['ratio_gradient_updates_per_s']:.2f}x updates/s; per round "
         + ", ".join(f"{r:.2f}" for r in tr["round_ratios"])
-        + f" (median {tr['round_ratio_median']:.2f}x)",
-        "  (what is identical and what is not: the JSON's 'identical' and 'not_identical')",
+        + f" (median {tr['round_ratio_median']:.2f}x); collection alone {tr['ratio_collect']:.2f}x, "
+        f"updates alone {tr['ratio_updates_alone']:.2f}x",
+        "  (ours' collection is the iteration without its updates, timed apart; what is identical "
+        "and what is not: the JSON's 'identical' and 'not_identical')",
     ]
     return "\n".join(lines)

@@ -9,6 +9,7 @@ import pytest
 from helpers import TINY_BENCH_SAC
 
 from benchmarks import sbx, sbx_process
+from coherent_jax.config import to_dict
 
 
 def settings(*items):
@@ -90,31 +91,57 @@ def test_held_mismatches_name_what_sbx_built_differently():
     assert [w.split(":")[0] for w in wrong] == ["gradient_steps", "n_critics"]
 
 
-def sbx_round(iteration_s, collect=0.1):
-    return {
-        "iteration_s": iteration_s,
-        "collect_s": [collect] * len(iteration_s),
-        "train_s": [t - collect for t in iteration_s],
-    }
+def timed(iteration_s, collect=0.1, train=True):
+    record = {"iteration_s": iteration_s, "collect_s": [collect] * len(iteration_s)}
+    if train:  # SBX times its training within the iteration
+        record["train_s"] = [t - collect for t in iteration_s]
+    return record
 
 
 def test_summary_ratios_are_ours_over_sbx():
-    ours = {"compile_s": 40.0, "warmup_call_s": 9.0, "memory": None}
-    ours_rounds = [[1.0, 1.0], [2.0, 2.0], [1.0, 3.0]]
-    sbx_rounds = [sbx_round([2.0, 2.0]), sbx_round([3.0, 3.0]), sbx_round([4.0, 4.0])]
+    ours = {
+        "iteration": {"compile_s": 40.0, "warmup_call_s": 9.0, "memory": None},
+        "collect_only": {"compile_s": 10.0, "warmup_call_s": 1.0, "memory": None},
+    }
+    ours_rounds = [
+        timed([1.0, 1.0], 0.05, False),
+        timed([2.0, 2.0], 0.05, False),
+        timed([1.0, 3.0], 0.05, False),
+    ]
+    sbx_rounds = [timed([2.0, 2.0]), timed([3.0, 3.0]), timed([4.0, 4.0])]
     ready = {"setup_s": 5.0, "warmup": {"iteration_s": [30.0, 9.0, 3.5]}, "versions": {}, "held": {}}
     tr = sbx.summarize(128, 64, ours, ours_rounds, ready, sbx_rounds)
-    assert tr["ours"]["iteration_s_median"] == 1.5 and tr["sbx"]["iteration_s_median"] == 3.0
-    assert tr["ours"]["env_steps_per_s"] == pytest.approx(128 / 1.5)
-    assert tr["ours"]["gradient_updates_per_s"] == pytest.approx(64 / 1.5)
-    assert tr["sbx"]["env_steps_per_s"] == pytest.approx(128 / 3.0)
+    o, x = tr["ours"], tr["sbx"]
+    assert o["iteration_s_median"] == 1.5 and x["iteration_s_median"] == 3.0
+    assert o["env_steps_per_s"] == pytest.approx(128 / 1.5)
+    assert o["gradient_updates_per_s"] == pytest.approx(64 / 1.5)
+    assert x["env_steps_per_s"] == pytest.approx(128 / 3.0)
     assert tr["ratio_env_steps_per_s"] == tr["ratio_gradient_updates_per_s"] == pytest.approx(2.0)
     assert tr["round_ratios"] == pytest.approx([2.0, 1.5, 2.0]) and tr["round_ratio_median"] == 2.0
-    assert tr["sbx"]["compile_s"] == pytest.approx(27.0 + 6.0 + 0.5)  # warm-up above the median
-    assert tr["sbx"]["collect_s_median"] == pytest.approx(0.1)
-    assert tr["sbx"]["train_updates_per_s"] == pytest.approx(64 / 2.9)
-    assert tr["ours"]["round_env_steps_per_s"] == pytest.approx([128.0, 64.0, 64.0])
+    assert o["compile_s"] == 40.0 and o["compile_collect_only_s"] == 10.0
+    assert x["compile_s"] == pytest.approx(27.0 + 6.0 + 0.5)  # warm-up above the median
+    # Where the time goes: SBX's training as timed, ours' updates as iteration less collection.
+    assert x["update_s_median"] == pytest.approx(2.9) and o["update_s_median"] == pytest.approx(1.45)
+    assert tr["ratio_collect"] == pytest.approx(2.0) and tr["ratio_updates_alone"] == pytest.approx(2.0)
+    assert x["update_only_updates_per_s"] == pytest.approx(64 / 2.9)
+    assert o["collect_env_steps_per_s"] == pytest.approx(128 / 0.05)
+    assert o["round_env_steps_per_s"] == pytest.approx([128.0, 64.0, 64.0])
     json.dumps(tr)  # what the suite writes
+    cfg, s = settings()
+    tr["sbx"].update(versions={"sbx-rl": "0.28.0"}, held={"vec_env": "DummyVecEnv"})
+    machine = {"jax_version": "0.9.2", "device": "cpu", "cpu": "x", "cpu_count": 2}
+    result = {
+        **machine,
+        "load_average_start": [1.0],
+        "load_average_end": [2.0],
+        "settings": {"config": to_dict(cfg)},
+        "training": tr,
+        "sbx_settings": s,
+        "physics": "native",
+    }
+    table = sbx.format_table(result)
+    assert "ours / SBX: 2.00x env steps/s and 2.00x updates/s" in table
+    assert "per round 2.00, 1.50, 2.00 (median 2.00x)" in table and "collection alone 2.00x" in table
 
 
 def test_driver_records_are_read_past_other_output():
