@@ -42,7 +42,7 @@ from coherent_jax.envs.registry import EPISODE_LENGTH, SHORT_NAMES, resolve_phys
 from coherent_jax.envs.vec_env import VecEnv
 
 # How long the suite takes at its defaults (`python -m benchmarks --help` prints it).
-COST = "~6 min once the venv exists (measured under load 7-13), and a few minutes of pip the first time"
+COST = "~8 min (449 s measured 2026-12-07, load average 11-12) once the venv exists; making it took 7.7 min"
 KEYS: dict[str, cli.Key] = {
     "rounds": cli.Key(
         3, cli.int_at_least(1), "an integer >= 1", "alternations of the two sides (the order flips)"
@@ -220,11 +220,11 @@ def held_mismatches(settings: dict[str, Any], held: dict[str, Any], action_size:
     return [f"{k}: SBX holds {held.get(k)!r}, not {v!r}" for k, v in want.items() if held.get(k) != v]
 
 
-def _ours(cfg: Config, warmup: int, log) -> dict[str, Any]:
-    """Our SAC iteration, and the same program with the updates switched off (collection alone,
-    as in the ``sac`` suite), each compiled and called ``warmup`` times untimed."""
-    env = VecEnv(cfg.env, cfg.num_envs, cfg.episode_length, cfg.physics, cfg.physics_threads)
-    runs: dict[str, Any] = {"action_size": env.action_size}
+def _ours(cfg: Config, env: VecEnv, warmup: int, log) -> dict[str, Any]:
+    """Our SAC iteration on ``env``, and the same program with the updates switched off
+    (collection alone, as in the ``sac`` suite), each compiled and called ``warmup`` times
+    untimed."""
+    runs: dict[str, Any] = {}
     for mode, values in (("iteration", {}), ("collect_only", {"sac.warmup_steps": 2**31 - 1})):
         trainer = SACTrainer(with_values(cfg, values), env=env, eval_env=env)
         state = jax.jit(trainer.init)(jax.random.PRNGKey(cfg.seed))
@@ -363,10 +363,11 @@ def run(items: Sequence[str], log: Callable[[str], None] = measure.print_log) ->
     with sbx_process.Driver(python, settings) as driver:
         warm_s = ", ".join(f"{t:.1f}" for t in driver.ready["warmup"]["iteration_s"])
         log(f"[bench]   ready: setup {driver.ready['setup_s']:.1f} s, warm-up iterations {warm_s} s")
-        ours = _ours(cfg, warmup, log)
-        wrong = held_mismatches(settings, driver.ready["held"], ours["action_size"])
+        env = VecEnv(cfg.env, cfg.num_envs, cfg.episode_length, cfg.physics, cfg.physics_threads)
+        wrong = held_mismatches(settings, driver.ready["held"], env.action_size)
         if wrong:
             raise RuntimeError("SBX's SAC differs from the settings: " + "; ".join(wrong))
+        ours = _ours(cfg, env, warmup, log)
         ours_rounds, sbx_rounds = _alternate(ours, driver, cfg, bench["rounds"], bench["iterations"], log)
     figures = {
         "training": summarize(
