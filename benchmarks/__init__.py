@@ -22,6 +22,8 @@ and ``format_table(result)``.
   (``distributed=true`` over loopback), each a fresh ``python -m coherent_jax.train``;
 * `gym`: Gymnasium envs stepped on the host (``env=gym:ID``) against Gymnasium's own
   ``SyncVectorEnv``, with where the time goes (the pool, the callback, training).
+* `sbx`: our SAC beside SBX's (``sbx-rl``, the JAX Stable-Baselines) at identical settings,
+  SBX in a venv of its own made on first use from ``benchmarks/sbx-requirements.txt``.
 
 `measure` holds what every suite records (times, memory, machine, JSON). Each suite's
 ``COST`` says how long it took at its defaults, and where (``--help`` prints it).
@@ -37,6 +39,7 @@ SUITES = (
     "gradient",
     "processes",
     "gym",
+    "sbx",
 )
 # Where each suite's ``COST`` (its wall time at its defaults) was measured; idle, it takes less.
 COST_MACHINE = "2026-12-06 on 2 cores of an Intel Xeon (avx512f) shared with other jobs (load average 3-12)"
