@@ -21,7 +21,9 @@ and ``format_table(result)``.
 * `processes`: one training process with N devices against N processes of one device
   (``distributed=true`` over loopback), each a fresh ``python -m coherent_jax.train``;
 * `gym`: Gymnasium envs stepped on the host (``env=gym:ID``) against Gymnasium's own
-  ``SyncVectorEnv``, with where the time goes (the pool, the callback, training).
+  ``SyncVectorEnv``, with where the time goes (the pool, the callback, training);
+* `overlap`: a probe: the rollout and the PPO iteration with the envs stepped as K
+  independent groups inside the scanned step, against one group (K = 1).
 
 `measure` holds what every suite records (times, memory, machine, JSON). Each suite's
 ``COST`` says how long it took at its defaults, and where (``--help`` prints it).
@@ -37,6 +39,7 @@ SUITES = (
     "gradient",
     "processes",
     "gym",
+    "overlap",
 )
 # Where each suite's ``COST`` (its wall time at its defaults) was measured; idle, it takes less.
 COST_MACHINE = "2026-12-06 on 2 cores of an Intel Xeon (avx512f) shared with other jobs (load average 3-12)"
