@@ -24,6 +24,8 @@ and ``format_table(result)``.
   ``SyncVectorEnv``, with where the time goes (the pool, the callback, training).
 * `sbx`: our SAC beside SBX's (``sbx-rl``, the JAX Stable-Baselines) at identical settings,
   SBX in a venv of its own made on first use from ``benchmarks/sbx-requirements.txt``.
+* `overlap`: a probe: the rollout and the PPO iteration with the envs stepped as K
+  independent groups inside the scanned step, against one group (K = 1).
 
 `measure` holds what every suite records (times, memory, machine, JSON). Each suite's
 ``COST`` says how long it took at its defaults, and where (``--help`` prints it).
@@ -40,6 +42,7 @@ SUITES = (
     "processes",
     "gym",
     "sbx",
+    "overlap",
 )
 # Where each suite's ``COST`` (its wall time at its defaults) was measured; idle, it takes less.
 COST_MACHINE = "2026-12-06 on 2 cores of an Intel Xeon (avx512f) shared with other jobs (load average 3-12)"
