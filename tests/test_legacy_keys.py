@@ -198,4 +198,4 @@ def test_every_key_of_before_maps_through_the_one_module():
             if helper in LEGACY_HELPERS:
                 assert module == "coherent_jax.config.legacy", (path, name)
                 users.append(path.name)
-    assert {"cli.py", "sweep.py", "resume.py", "runs.py", "cells.py", "verify.py"} <= set(users)
+    assert {"cli.py", "sweep.py", "resume.py", "runs.py", "cell.py", "verify.py"} <= set(users)
