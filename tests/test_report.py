@@ -1,5 +1,5 @@
 """experiments/report.py (RESULTS.md) and the compact results it reads through the package
-(`coherent_jax.study.curves`, `stats`, `tables`, `keep`): claims, verdicts, curves and what
+(`coherent_jax.study.curves`, `stats`, `tables`, `execute`): claims, verdicts, curves and what
 `--commit` adds. Cells are laid out as finished sweeps write them; no training runs.
 """
 
@@ -16,7 +16,7 @@ import pytest
 from cell_fakes import fake_sweep, reproduce
 from helpers import child_env, load_experiment
 
-from coherent_jax.study import cost, curves, keep, stats, tables
+from coherent_jax.study import cost, curves, execute, stats, tables
 from coherent_jax.study.cell import cell_state, progress
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -244,7 +244,7 @@ def test_commit_adds_only_the_compact_files(tmp_path, monkeypatch):
     for key, value in {"NAME": "test", "EMAIL": "test@example.com"}.items():
         monkeypatch.setenv(f"GIT_AUTHOR_{key}", value)
         monkeypatch.setenv(f"GIT_COMMITTER_{key}", value)
-    keep.commit_cell(cell, results / "thesis")
+    execute.commit_cell(cell, results / "thesis")
     committed = git("show", "--name-only", "--format=%s", "HEAD").stdout.split("\n")
     assert committed[0] == "results: thesis hopper/ppo/action"
     prefix = "experiments/results/thesis/"

@@ -4,6 +4,7 @@ plan (it writes nothing but its cache), and, marked slow, a killed study continu
 results as an uninterrupted one.
 """
 
+import ast
 import json
 import os
 import signal
@@ -297,6 +298,16 @@ def test_the_executor_interface_is_what_the_loop_uses(tmp_path, monkeypatch):
     assert failed == [] and all(cell_state(c, study.out) == "done" for c in study.cells())
 
 
+def test_the_study_imports_no_benchmark():
+    """A study runs sweeps; the benchmarks (``coherent_jax.bench``, ``benchmarks/``) are no part of it."""
+    for path in sorted((ROOT / "coherent_jax" / "study").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else []
+            if isinstance(node, ast.ImportFrom):
+                names = [node.module or "", *(f"{node.module}.{a.name}" for a in node.names)]
+            assert not any(n.startswith(("coherent_jax.bench", "benchmarks")) for n in names), path
+
+
 def test_spec_refuses_two_tasks_of_one_name():
     with pytest.raises(StudyError, match="two tasks are named 'Good'"):
         spec.make_study(
@@ -312,7 +323,7 @@ def test_a_plan_probes_each_distinct_program_once_and_writes_nothing_but_its_cac
     (tmp_path / "s.yaml").write_text(
         "tasks: [pointmass]\nalgos: [ppo]\nseeds: 1\ntotal_steps: 64\n"
         "strategies: {a: {explore: action}, b: {explore: action, settings: [lr=0.001]}}\n"
-        f"settings: [{', '.join(TINY)}]\n"
+        "settings:\n" + "".join(f"  - '{item}'\n" for item in TINY)
     )
     env = {**child_env(), "XDG_CACHE_HOME": str(tmp_path / "cache")}
     before = _tree(tmp_path)

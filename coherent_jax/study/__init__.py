@@ -7,6 +7,6 @@ executor (`execute`) into the study's folder, resumable, its cost estimated (`co
 before it runs, measured by probes (`plan`). The finished cells' curves go to the study's
 table (`curves`); the report (`report`, `stats`, `figures`) gives rliable's intervals, the
 probability of improvement and a verdict per claim. A stopped cell's state travels as one
-file (`carry`, `keep`), and `verify` checks that the code at HEAD still computes a finished
+file (`carry`), and `verify` checks that the code at HEAD still computes a finished
 cell bit for bit. The command is `command` (``python -m coherent_jax.study``).
 """

@@ -28,7 +28,7 @@ from typing import Any
 from coherent_jax import cli
 from coherent_jax.config import ConfigError
 from coherent_jax.exit_codes import EXIT_BAD_INPUT
-from coherent_jax.study import carry, cost, execute, keep, plan, spec, verify
+from coherent_jax.study import carry, cost, execute, plan, spec, verify
 from coherent_jax.study.cell import Cell, StudyError
 
 EXECUTORS = ("local",)  # a cluster's (ray) comes next, behind `execute.Executor`
@@ -138,8 +138,9 @@ def run(study: spec.Study, cells: list[Cell], settings: dict[str, Any], argv: Se
     with execute.holding(study.out):
         execute.write_record(study.out, record(study, study.cells(), argv))
         print(f"[study] {study.name}: {len(cells)} cells in {study.out}, workers={workers}", flush=True)
-        on_done = (lambda c: keep.commit_cell(c, study.out)) if settings["commit"] else None
-        failed = execute.run_cells(cells, study.out, study.base, executor, on_done=on_done)
+        on_done = (lambda c: execute.commit_cell(c, study.out)) if settings["commit"] else None
+        probed = plan.cached_rates(cells, study.base)  # a plan's probes, if one was made here
+        failed = execute.run_cells(cells, study.out, study.base, executor, on_done=on_done, probed=probed)
     print(cost.status(cells, study.out))
     if failed:
         print(f"[study] failed: {', '.join(failed)} (see their run.log)", file=sys.stderr)
@@ -163,7 +164,7 @@ def dispatch(study: spec.Study, cells: list[Cell], settings: dict[str, Any], arg
         command = f"python -m coherent_jax.study {file} verify=true cells={{cell}}"
         return verify.run(cells, study.out, settings["iterations"], cwd=study.base, command=command)
     if settings["pack"]:
-        return keep.pack_cells(cells, study.out, settings["commit"])
+        return execute.pack_cells(cells, study.out, settings["commit"])
     return run(study, cells, settings, argv)
 
 

@@ -6,7 +6,9 @@ loop (`run_cells`) keeps its slots full, finishes each ended cell (its rows in t
 curves table, its carry file dropped) and redraws the progress line (cells done, running,
 left; the compute left from `coherent_jax.study.cost`). `LocalExecutor` runs each sweep
 as a worker process on this machine; another executor (a cluster's) implements the same
-three methods.
+three methods. What git keeps of a study is committed here too: a finished cell's small
+files (``commit=true``, `commit_cell`), a stopped cell's state as its carry file
+(``pack=true``, `pack_cells`; `coherent_jax.study.carry`).
 
 A study's folder holds ``study.json`` (its name, the folder its sweeps run in, the command,
 its cells, metrics and claims: what ``report`` reads) and, while the study runs,
@@ -28,7 +30,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import IO, Protocol
 
@@ -42,6 +44,7 @@ from coherent_jax.study.cell import (
     cell_state,
     check_cell_dir,
     prepare,
+    progress,
     running_pid,
     sweep_env,
 )
@@ -244,21 +247,23 @@ def finish_cell(cell: Cell, out: Path) -> None:
     carry.drop(cell_dir(cell, out), out)
 
 
-def _wait_for_orphans(cells: Sequence[Cell], out: Path, progress: Progress) -> None:
+def _wait_for_orphans(cells: Sequence[Cell], out: Path, display: Progress) -> None:
     """Sweeps a killed study left running end with it (SIGTERM: they checkpoint); waits for them."""
     orphans = [c for c in cells if running_pid(c, out) is not None]
     if orphans:
-        progress.say(f"[study] waiting for {len(orphans)} sweep(s) of a stopped study to checkpoint and end")
+        display.say(f"[study] waiting for {len(orphans)} sweep(s) of a stopped study to checkpoint and end")
     while any(running_pid(c, out) is not None for c in orphans):
         time.sleep(0.5)
     for c in orphans:
         (cell_dir(c, out) / PID_FILE).unlink(missing_ok=True)
 
 
-def _seconds_left(pending: Sequence[Cell], active: Sequence[Cell], out: Path, workers: int) -> float:
+def _seconds_left(
+    pending: Sequence[Cell], active: Sequence[Cell], out: Path, workers: int, probed: Mapping[str, float]
+) -> float:
     """The compute the cells not done still need, over the cells that run at a time."""
     kin = finished_cells(out.parent)
-    need = sum(estimated_seconds(c, out, kin=kin) for c in [*pending, *active])
+    need = sum(estimated_seconds(c, out, probed, kin) for c in [*pending, *active])
     return need / max(1, min(workers, len(pending) + len(active)))
 
 
@@ -269,13 +274,15 @@ def run_cells(
     executor: Executor,
     stream: IO[str] | None = None,
     on_done: Callable[[Cell], None] | None = None,
+    probed: Mapping[str, float] | None = None,
 ) -> list[str]:
     """Runs every cell not done, `executor.slots` at a time, to the end (each finished cell
-    through `finish_cell`, then `on_done`); the names of those whose sweep failed. A
+    through `finish_cell`, then `on_done`); the names of those whose sweep failed. The time left
+    is estimated by `coherent_jax.study.cost.estimated_seconds` (``probed``: a plan's rates). A
     KeyboardInterrupt stops the running sweeps (checkpointed) first."""
     stream = sys.stdout if stream is None else stream
-    progress = Progress(out.name, stream, executor.slots)
-    _wait_for_orphans(cells, out, progress)
+    display = Progress(cells[0].suite if cells else out.name, stream, executor.slots)
+    _wait_for_orphans(cells, out, display)
     tabled = curves.tabled_cells(out)
     for cell in cells:  # a finished cell whose rows were not written (its study killed in between)
         if cell_state(cell, out) == "done" and cell.name not in tabled:
@@ -296,26 +303,65 @@ def run_cells(
                 d = cell_dir(cell, out)
                 executor.start(Job(cell, tuple(command), cwd, d / LOG, d / PID_FILE))
                 active[cell.name] = cell
-                progress.say(f"[study] {cell.name}: started")
+                display.say(f"[study] {cell.name}: started")
             for job, code in executor.wait(timeout=5.0):
                 cell = active.pop(job.cell.name)
                 if code == 0 and cell_state(cell, out) == "done":
                     finish_cell(cell, out)
                     if on_done is not None:
                         on_done(cell)
-                    progress.say(f"[study] {cell.name}: done")
+                    display.say(f"[study] {cell.name}: done")
                 else:
                     failed.append(cell.name)
-                    progress.say(
-                        f"[study] {cell.name}: failed (exit {code}; see {cell_dir(cell, out) / LOG})"
-                    )
-            left = _seconds_left(pending, list(active.values()), out, executor.slots)
-            progress.show(counts(), left)
+                    display.say(f"[study] {cell.name}: failed (exit {code}; see {cell_dir(cell, out) / LOG})")
+            left = _seconds_left(pending, list(active.values()), out, executor.slots, probed or {})
+            display.show(counts(), left)
     except KeyboardInterrupt:
         executor.stop()
-        progress.say("[study] stopped: the running cells checkpointed; the same command continues")
+        display.say("[study] stopped: the running cells checkpointed; the same command continues")
         raise
-    progress.show(counts(), 0.0, force=True)
-    if progress.tty:
+    display.show(counts(), 0.0, force=True)
+    if display.tty:
         stream.write("\n")
     return failed
+
+
+# ------------------------------------------------------------------ what git keeps
+def _git_commit(root: Path, files: Sequence[str], message: str) -> None:
+    subprocess.run(["git", "-C", str(root), "add", "--", *files], check=True)
+    subprocess.run(["git", "-C", str(root), "commit", "-q", "-m", message, "--", *files], check=False)
+
+
+def commit_cell(cell: Cell, study_dir: Path) -> None:
+    """Commits a finished cell's compact results: its study's curves table, updated from the
+    cell's per-seed logs, and the cell's small files (`curves.committed_files`). The logs
+    themselves stay local (experiments/results/.gitignore)."""
+    table = curves.update_table(study_dir, [cell.name])
+    files = [str(f) for f in curves.committed_files(cell_dir(cell, study_dir), table)]
+    files += carry.drop(cell_dir(cell, study_dir), study_dir)
+    _git_commit(study_dir, files, f"results: {cell.suite} {cell.name}")
+
+
+def pack_cells(cells: Sequence[Cell], study_dir: Path, commit: bool) -> int:
+    """``pack=true``: each stopped cell's carry file; none if a selected cell is running (exit 2).
+    A cell that cannot be carried (too large: SAC) is named and passed over (exit 1)."""
+    running = [c.name for c in cells if cell_state(c, study_dir) == "running"]
+    if running:
+        print(
+            f"error: cell {running[0]!r} is running (allowed: stopped cells; SIGTERM checkpoints it)",
+            file=sys.stderr,
+        )
+        return 2
+    packed, failed = [], 0
+    for cell in (c for c in cells if cell_state(c, study_dir) == "stopped"):
+        try:
+            packed.append(str(carry.pack(cell_dir(cell, study_dir))))
+        except carry.CarryError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            failed += 1
+            continue
+        size = Path(packed[-1]).stat().st_size / 1e6
+        print(f"[study] {cell.name}: {100 * progress(cell, study_dir)[0]:.1f}% done, packed in {size:.2f} MB")
+    if commit and packed:
+        _git_commit(study_dir, packed, f"results: carry {len(packed)} stopped cells of {cells[0].suite}")
+    return 1 if failed else 0

@@ -202,7 +202,11 @@ def plan_text(cells: Sequence[Cell], study_dir: Path, progs: list[Program], of, 
     return "\n".join(lines)
 
 
-def probed_rates(progs: list[Program], of) -> dict[str, float]:
-    """Cell name -> its program's probed env steps/s (what `coherent_jax.study.cost` reads)."""
-    rate = {p.key: p.probe["rate"] for p in progs if p.probe}
-    return {name: rate[key] for name, (key, _) in of.items() if key in rate}
+def cached_rates(cells: Sequence[Cell], cwd: Path) -> dict[str, float]:
+    """Cell name -> the env steps/s a cached probe of its program measured on this CPU model
+    (what `coherent_jax.study.cost` reads before the cell logs its own); no probe is run."""
+    known = _read_cache().get(cpu_info()["cpu_model"] or "unknown CPU", {})
+    if not known:
+        return {}
+    _, of = programs(cells, cwd)
+    return {name: known[key]["rate"] for name, (key, _) in of.items() if key in known}
