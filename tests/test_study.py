@@ -251,6 +251,10 @@ def test_a_study_runs_every_cell_with_its_workers_and_continues_where_it_stopped
     assert {p: p.stat().st_mtime_ns for p in done} == done
     study, _, _ = command.parse(items)
     assert all(cell_state(c, study.out) == "done" for c in study.cells())
+    # The curves table rebuilt from the logs is the one the cells wrote as they finished.
+    table = (tmp_path / "s" / curves.TABLE).read_bytes()
+    assert command.main(["curves", "s"]) == 0 and (tmp_path / "s" / curves.TABLE).read_bytes() == table
+    assert command.main(["curves", "nowhere"]) == 2 and "'nowhere'" in capsys.readouterr().err
     # Another specification of a cell in the same folder is refused, naming the cell.
     assert command.main([*items, "seeds=3"]) == 2
     assert "holds cell 'pointmass/ppo/action' of another specification" in capsys.readouterr().err

@@ -6,6 +6,7 @@
     python -m coherent_jax.study STUDY.yaml plan=true             # its cost, before it runs
     python -m coherent_jax.study STUDY.yaml status=true           # each cell's state
     python -m coherent_jax.study report DIR                       # REPORT.md and its figures
+    python -m coherent_jax.study curves DIR                       # its curves table, from the logs
 
 The study's keys (`coherent_jax.study.spec`): ``name``, ``out``, ``seeds``, ``total_steps``,
 ``env`` (its tasks), ``algo``, ``explore`` (its strategies), ``compare``, ``metrics``; with
@@ -28,7 +29,7 @@ from typing import Any
 from coherent_jax import cli
 from coherent_jax.config import ConfigError
 from coherent_jax.exit_codes import EXIT_BAD_INPUT
-from coherent_jax.study import carry, cost, execute, plan, spec, verify
+from coherent_jax.study import carry, cost, curves, execute, plan, spec, verify
 from coherent_jax.study.cell import Cell, StudyError
 
 EXECUTORS = ("local",)  # a cluster's (ray) comes next, behind `execute.Executor`
@@ -168,6 +169,23 @@ def dispatch(study: spec.Study, cells: list[Cell], settings: dict[str, Any], arg
     return run(study, cells, settings, argv)
 
 
+def rebuild_tables(folders: Sequence[str]) -> int:
+    """``curves DIR...``: each study's curves table rebuilt from the local logs of its finished cells."""
+    bad = [
+        f for f in folders if not (Path(f) / execute.RECORD).is_file() and not Path(f, curves.TABLE).is_file()
+    ]
+    if not folders or bad:
+        print(
+            f"error: invalid study folder {(bad or [''])[0]!r} (allowed: curves DIR..., a study's folders)",
+            file=sys.stderr,
+        )
+        return EXIT_BAD_INPUT
+    for folder in folders:
+        path = curves.build(Path(folder))
+        print(f"{path}: {len(curves.finished_cells(Path(folder)))} finished cells")
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if any(a in ("-h", "--help", "help") for a in argv) or not argv:
@@ -178,6 +196,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         from coherent_jax.study import report  # lazy: matplotlib and rliable, only for the report
 
         return report.main(argv[1:])
+    if argv[0] == "curves":
+        return rebuild_tables(argv[1:])
     try:
         study, settings, _ = parse(argv)
         cells = select(study.cells(), settings["cells"], study.name)
