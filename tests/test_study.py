@@ -260,6 +260,32 @@ def test_a_study_runs_every_cell_with_its_workers_and_continues_where_it_stopped
     assert "holds cell 'pointmass/ppo/action' of another specification" in capsys.readouterr().err
 
 
+def test_a_killed_studys_sweeps_end_with_it(tmp_path):
+    """SIGKILL of the study's process: its running sweeps get SIGTERM (they checkpoint and stop),
+    so that the same command can continue the study at once."""
+    code = (
+        "import sys\n"
+        "from coherent_jax.study import cell, command\n"
+        "cell.sweep_command = lambda c, d: [sys.executable, '-c', 'import time; time.sleep(300)']\n"
+        f"command.main(['env=pointmass', 'explore=[action,pink]', 'workers=2', 'out={tmp_path / 's'}'])\n"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code], env=child_env(), cwd=tmp_path, stdout=subprocess.DEVNULL
+    )
+    pids = tmp_path / "s" / "pointmass" / "ppo"
+    deadline = time.monotonic() + 120
+    while len(list(pids.glob("*/running.pid"))) < 2:
+        assert time.monotonic() < deadline and proc.poll() is None
+        time.sleep(0.2)
+    sweeps = [int(p.read_text()) for p in pids.glob("*/running.pid")]
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    deadline = time.monotonic() + 30
+    while any(study_cell._pid_alive(pid) for pid in sweeps):
+        assert time.monotonic() < deadline, "a sweep outlived its study"
+        time.sleep(0.2)
+
+
 def test_one_study_process_at_a_time(tmp_path, monkeypatch):
     with execute.holding(tmp_path / "s"):
         code = (

@@ -118,14 +118,18 @@ def check_cell_dir(cell: Cell, study_dir: Path) -> None:
 
 # ------------------------------------------------------------------ state of a cell
 def _pid_alive(pid: int) -> bool:
-    """Whether process ``pid`` exists (one of another user counts)."""
+    """Whether process ``pid`` exists (one of another user counts; a zombie, ended but not yet
+    reaped by its new parent, does not)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
     except PermissionError:
         return True
-    return True
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return True
 
 
 def running_pid(cell: Cell, study_dir: Path) -> int | None:

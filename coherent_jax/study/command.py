@@ -156,7 +156,11 @@ def dispatch(study: spec.Study, cells: list[Cell], settings: dict[str, Any], arg
         return 0
     if settings["plan"]:
         workers = settings["workers"] or execute.default_workers()
-        progs, of = plan.measure(cells, study.base, settings["probe"])
+        try:
+            progs, of = plan.measure(cells, study.base, settings["probe"])
+        except RuntimeError as exc:  # a probe's sweep failed: no estimate
+            print(f"error: {exc}", file=sys.stderr)
+            return 1
         print(f"study {study.name} ({study.out}):")
         print(plan.plan_text(cells, study.out, progs, of, workers))
         return 0

@@ -21,7 +21,6 @@ the study's process (SIGTERM, which checkpoints it).
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import dataclasses
 import fcntl
 import json
@@ -86,11 +85,20 @@ class Executor(Protocol):
         """Ends every running job (SIGTERM: a sweep checkpoints and stops) and waits for them."""
 
 
-def _end_with_parent() -> None:
-    """In the child, before exec: SIGTERM when the study's process ends, however it ends
-    (Linux; elsewhere a killed study's sweeps run on to their end)."""
-    with contextlib.suppress(OSError, AttributeError):
-        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+# Runs a sweep so that it ends with the study's process, however that ends: Linux's
+# PR_SET_PDEATHSIG (SIGTERM: the sweep checkpoints and stops) set before the sweep's exec
+# (no pre-exec hook in a parent that may hold threads); a study already gone ends it at once.
+# Elsewhere a killed study's sweeps run on to their end, and the study waits for them.
+WITH_PARENT = (
+    "import ctypes, os, signal, sys\n"
+    "try:\n"
+    f"    ctypes.CDLL(None).prctl({PR_SET_PDEATHSIG}, signal.SIGTERM)\n"
+    "except (OSError, AttributeError):\n"
+    "    pass\n"
+    "if os.getppid() != int(sys.argv[1]):\n"
+    "    sys.exit(128 + signal.SIGTERM)\n"
+    "os.execv(sys.argv[2], sys.argv[2:])\n"
+)
 
 
 class LocalExecutor:
@@ -102,13 +110,9 @@ class LocalExecutor:
 
     def start(self, job: Job) -> None:
         with open(job.log, "a") as log:
+            command = [sys.executable, "-c", WITH_PARENT, str(os.getpid()), *job.command]
             proc = subprocess.Popen(
-                job.command,
-                stdout=log,
-                stderr=subprocess.STDOUT,
-                cwd=job.cwd,
-                env=sweep_env(),
-                preexec_fn=_end_with_parent,
+                command, stdout=log, stderr=subprocess.STDOUT, cwd=job.cwd, env=sweep_env()
             )
         job.pid_file.write_text(f"{proc.pid}\n")
         self.running[proc.pid] = (job, proc)

@@ -35,7 +35,7 @@ from typing import Any
 from coherent_jax.config import SWEEPABLE, to_dict
 from coherent_jax.config.legacy import modern_items
 from coherent_jax.run.provenance import cpu_info
-from coherent_jax.study.cell import Cell, StudyError, cell_state, progress, sweep_env
+from coherent_jax.study.cell import Cell, cell_state, progress, sweep_env
 from coherent_jax.study.spec import working_dir
 from coherent_jax.sweep import parse_sweep
 
@@ -116,7 +116,7 @@ def probe(cell: Cell, cwd: Path, iterations: int, steps_per_iteration: int) -> d
         wall = time.perf_counter() - t0
         if done.returncode != 0:
             tail = (done.stderr or done.stdout).strip().splitlines()[-1:] or ["no output"]
-            raise StudyError(f"the probe of cell {cell.name!r} exited {done.returncode}: {tail[0]}")
+            raise RuntimeError(f"the probe of cell {cell.name!r} exited {done.returncode}: {tail[0]}")
         summary = json.loads((Path(scratch) / "sweep" / "sweep.json").read_text())
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
