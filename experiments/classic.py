@@ -24,9 +24,9 @@ Every cell therefore runs 16 envs (the same for every strategy): 2.6x the cohere
 cell's rate, and four PPO iterations per 4,096 env steps where 64 envs run one. The
 coherent grid cell itself (15 points vmapped, one episode cycle of 16 iterations) then
 ran at 990 env steps/s over all points, about one point's rate, after 35 s of
-compilation. At `CLASSIC_STEPS` = 200k steps per seed (about 12 episodes per env, 195
+compilation. At 200k steps per seed (experiments/studies/classic.yaml) (about 12 episodes per env, 195
 PPO iterations) that cell needs about 51 minutes, the six other cells about 6 together
-at `cells.STRATEGY_COST`, and compiling the seven sweeps at most 10: about 67 minutes
+at `coherent_jax.study.cost.STRATEGY_COST`, and compiling the seven sweeps at most 10: about 67 minutes
 for the suite (`estimated_minutes`), inside 60-90 with room for a busier machine. RL
 Baselines3 Zoo trains its tuned PPO (with gSDE) for 20k steps on this task, so 200k
 steps leave every strategy room to find the goal and to learn to reach it; a strategy
@@ -45,24 +45,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import curves  # beside this file (reproduce.py puts experiments/ on sys.path)
-from cells import Cell
+import reproduce  # beside this file (the suites' study files, experiments/studies/)
 
-from coherent_jax import strategies
+from coherent_jax.study import curves, stats, tables
+from coherent_jax.study.cell import Cell
+from coherent_jax.study.cost import STRATEGY_COST
 
-# What the report reads of the classic cells besides the returns (`curves.py` keeps them).
+# What the report reads of the classic cells besides the returns (`coherent_jax.study.curves`).
 GOAL_METRICS = (curves.EVAL_GOAL, curves.TRAIN_GOAL)
-CLASSIC_TASK = "mountain_car_continuous"
-# Every PPO strategy of the registry; coherent runs at `CLASSIC_BETAS`.
-CLASSIC_STRATEGIES = tuple(
-    s for s in strategies.EXPLORES if s != "coherent" and "ppo" in strategies.SUPPORTED_ALGOS[s]
-)
-CLASSIC_BETAS = (0.0, 0.01, 0.1)
-CLASSIC_COHERENT = ("coherent.gradient=episode",)
-CLASSIC_BETA_TAG = "beta-episode"  # not the sparse suite's "beta": another kind of cell
-CLASSIC_SEEDS = 5
-CLASSIC_STEPS = 200_000
-CLASSIC_SETTINGS = ("num_envs=16",)  # every cell (the module's docstring)
 # Env steps/s at 16 envs measured on this machine (the module's docstring): one seed of
 # action noise, and the coherent grid cell over all its points; minutes to compile a cell.
 CLASSIC_ACTION_RATE = 24_900.0
@@ -71,31 +61,24 @@ COMPILE_MINUTES = 1.5
 
 
 def classic_cells() -> list[Cell]:
-    """One cell per strategy (5 seeds), and coherent's three beta as one grid cell."""
-    base = [f"env={CLASSIC_TASK}", "algo=ppo"]
-    steps = (f"total_steps={CLASSIC_STEPS}", *CLASSIC_SETTINGS)
-    cells = [
-        Cell("classic", f"{CLASSIC_TASK}/ppo/{s}", (*base, f"explore={s}", *steps), CLASSIC_SEEDS)
-        for s in CLASSIC_STRATEGIES
-    ]
-    betas = "[" + ",".join(f"{b:g}" for b in CLASSIC_BETAS) + "]"
-    coherent = (*base, "explore=coherent", *steps, f"coherent.beta={betas}", *CLASSIC_COHERENT)
-    cells.append(Cell("classic", f"{CLASSIC_TASK}/ppo/coherent-{CLASSIC_BETA_TAG}", coherent, CLASSIC_SEEDS))
-    return cells
+    """The suite's cells (experiments/studies/classic.yaml): one per strategy (5 seeds), and
+    coherent's three beta as one grid cell."""
+    return reproduce.select("classic", [])
 
 
 def goal_rows(cell: Cell, results: Path, label) -> list[str]:
     """Table rows, per strategy (``label(cell, run)``) of a classic cell: the seeds that ever
     reached the goal in training, when they first did, and the seeds whose final policy
     reaches it (in at least one evaluation episode)."""
-    from stats import reach_summary  # the sparse suite's first reward, the same reading
-
-    final, train = (curves.load_runs(results, cell.suite, cell.name, m) for m in GOAL_METRICS)
+    final, train = (stats.load_runs(results / cell.suite, cell.name, m) for m in GOAL_METRICS)
     rows = []
-    for name in sorted({label(cell, r) for r in train}):
-        hit, n, first = reach_summary([r for r in train if label(cell, r) == name])
+    for row, name in zip(
+        tables.reach_rows(cell, train, label, task=False),
+        sorted({label(cell, r) for r in train}),
+        strict=True,
+    ):
         reaches = [bool(r.values[-1] > 0.0) for r in final if label(cell, r) == name]
-        rows.append(f"| {name} | {hit} of {n} | {first} | {sum(reaches)} of {len(reaches)} |")
+        rows.append(f"{row} {sum(reaches)} of {len(reaches)} |")
     return rows
 
 
@@ -117,13 +100,12 @@ def classic_lines(done: list[Cell], results: Path, label) -> list[str]:
 
 def estimated_minutes(action_rate: float = CLASSIC_ACTION_RATE) -> float:
     """Minutes the whole suite needs on this machine at the measured rates: the strategies'
-    cells at the action rate over their `cells.STRATEGY_COST`, coherent's at the episode
-    gradient's rate (vmapped points share the cores: a cell's rate is one point's), and
-    each cell's compilation."""
-    from cells import STRATEGY_COST
-
-    seconds = 60 * COMPILE_MINUTES * len(classic_cells())
-    for cell in classic_cells():
+    cells at the action rate over their `coherent_jax.study.cost.STRATEGY_COST`, coherent's at
+    the episode gradient's rate (vmapped points share the cores: a cell's rate is one
+    point's), and each cell's compilation."""
+    cells = classic_cells()
+    seconds = 60 * COMPILE_MINUTES * len(cells)
+    for cell in cells:
         explore = cell.setting("explore")
         cost = STRATEGY_COST.get(explore, 1.0)
         rate = CLASSIC_EPISODE_RATE if explore == "coherent" else action_rate / cost

@@ -1,7 +1,10 @@
 """RESULTS.md from the finished cells: ``python experiments/report.py [--results DIR] [--out FILE]``.
 
-Reads every finished cell under ``experiments/results/`` (see ``reproduce.py``) and
-writes ``experiments/RESULTS.md`` with its figures in ``experiments/results/figures/``:
+Reads every finished cell of the suites (``experiments/studies/*.yaml``, run by
+``reproduce.py``) under ``experiments/results/`` and writes ``experiments/RESULTS.md`` with
+its figures in ``experiments/results/figures/``; the tables and statistics are the package's
+(`coherent_jax.study.tables`, `coherent_jax.study.stats`), the suites' reading of each
+other here:
 
 * learning curves per suite, task and algorithm: the mean of the deterministic
   evaluation return over seeds and its 95% percentile-bootstrap interval, against
@@ -14,7 +17,8 @@ writes ``experiments/RESULTS.md`` with its figures in ``experiments/results/figu
   stratified-bootstrap intervals, and the probability that coherent exploration
   improves on each baseline, for final score and for area under the curve;
 * env steps/s and wall time per cell, and the compute spent in all; a † on the cells that
-  the code at HEAD no longer reproduces bit for bit (``RESULTS/verify.json``, `verify`);
+  the code at HEAD no longer reproduces bit for bit (``RESULTS/verify.json``,
+  `coherent_jax.study.verify`);
 * for each claim of the thesis, a verdict: *reproduced* when the 95% interval of the
   probability of improvement lies above 0.5, *not reproduced* when it lies below,
   *inconclusive* otherwise (on the sparse tasks and MountainCar, which the thesis did not
@@ -37,8 +41,6 @@ Missing cells are listed, never silently left out.
 from __future__ import annotations
 
 import argparse
-import importlib.util
-import json
 import os
 import sys
 from collections import defaultdict
@@ -48,22 +50,20 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+sys.path[:0] = [str(ROOT / "experiments"), str(ROOT)]
+
+import classic  # noqa: E402  (the classic suite's goal table)
+import reproduce  # noqa: E402  (the suites: experiments/studies/*.yaml)
 
 from coherent_jax import plot  # noqa: E402
-
-_spec = importlib.util.spec_from_file_location("reproduce", ROOT / "experiments" / "reproduce.py")
-reproduce = importlib.util.module_from_spec(_spec)
-sys.modules.setdefault("reproduce", reproduce)
-_spec.loader.exec_module(reproduce)
-import classic  # noqa: E402  (the classic suite's goal table)
-import curves  # noqa: E402  (beside reproduce.py, which put experiments/ on sys.path)
-import stats  # noqa: E402
-import verify  # noqa: E402
-from stats import REPS, aggregate, auc, interval, normalised, probability_of_improvement  # noqa: E402,F401
+from coherent_jax.study import stats, tables, verify  # noqa: E402
+from coherent_jax.study.cell import Cell, cell_state  # noqa: E402
+from coherent_jax.study.cost import estimated_seconds  # noqa: E402
+from coherent_jax.study.stats import REPS, normalised  # noqa: E402
 
 METRIC = "eval/episode_return"
 BASELINES = ("action", "noisynet", "psne")
+ABLATION_TASK = "halfcheetah"  # the ablations suite's task (experiments/studies/ablations.yaml)
 
 
 # On the sparse tasks the reward is 0 outside the target set, so a training episode with
@@ -74,20 +74,16 @@ REACH_METRIC = "train/episode_return"
 reached_reward = stats.first_positive
 
 
-def reach_rows(cell: reproduce.Cell, results: Path) -> list[str]:
+def reach_rows(cell: Cell, results: Path) -> list[str]:
     """Table rows: per strategy of a sparse cell, the seeds that ever reached the reward."""
-    runs = curves.load_runs(results, cell.suite, cell.name, REACH_METRIC)
-    rows = []
-    for label in sorted({_label(cell, r) for r in runs}):
-        hit, n, first = stats.reach_summary([r for r in runs if _label(cell, r) == label])
-        rows.append(f"| {cell.setting('env')} | {label} | {hit} of {n} | {first} |")
-    return rows
+    runs = stats.load_runs(results / cell.suite, cell.name, REACH_METRIC)
+    return tables.reach_rows(cell, runs, _label, task=True)
 
 
-def cell_runs(cell: reproduce.Cell, results: Path) -> list[plot.Run]:
+def cell_runs(cell: Cell, results: Path) -> list[plot.Run]:
     """The seeds' runs of a finished cell (one per sweep point): from the points' logs where
-    they are present, else from the suite's curves table (`curves.py`)."""
-    return curves.load_runs(results, cell.suite, cell.name, METRIC)
+    they are present, else from the suite's curves table (`coherent_jax.study.curves`)."""
+    return stats.load_runs(results / cell.suite, cell.name, METRIC)
 
 
 # Suites whose comparisons are claims of the thesis; the others' (sparse: tasks the
@@ -95,41 +91,16 @@ def cell_runs(cell: reproduce.Cell, results: Path) -> list[plot.Run]:
 THESIS_SUITES = ("thesis", "ablations", "protocol")
 
 
+def verdict_words(suite: str) -> tuple[str, str]:
+    """A thesis suite's claims are *reproduced* or not; the others' (our own questions) hold or not."""
+    return ("reproduced", "not reproduced") if suite in THESIS_SUITES else ("holds", "does not hold")
+
+
 def verdict(poi: dict[str, float], suite: str = "thesis") -> str:
-    yes, no = ("reproduced", "not reproduced") if suite in THESIS_SUITES else ("holds", "does not hold")
-    if poi["low"] > 0.5:
-        return yes
-    if poi["high"] < 0.5:
-        return no
-    return "inconclusive"
+    return tables.verdict(poi, *verdict_words(suite))
 
 
-def aggregate_table(
-    algo: str, what: str, table: dict[str, dict[str, np.ndarray]], norm, title: str = ""
-) -> list[str]:
-    """RESULTS.md lines: IQM and optimality gap of every strategy on the tasks all have finished;
-    `title` names the group of cells compared (a suite with several, `label_groups`)."""
-    agg = aggregate(norm)
-    common = sorted(set.intersection(*(set(by_task) for by_task in table.values())))
-    left_out = sorted({t for by_task in table.values() for t in by_task} - set(common))
-    lines = [
-        f"**{algo}, {what}{', ' + title if title else ''}**, "
-        f"normalised per task over {len(common)} task(s) ({', '.join(common)}"
-        + (f"; {', '.join(left_out)} left out until every strategy has finished it" if left_out else "")
-        + "):",
-        "",
-        "| strategy | IQM (95% CI) | optimality gap (95% CI) |",
-        "|---|---|---|",
-    ]
-    for k, v in sorted(agg.items()):
-        lines.append(
-            f"| {k} | {v['iqm']:.2f} ({v['iqm_low']:.2f}, {v['iqm_high']:.2f}) | "
-            f"{v['gap']:.2f} ({v['gap_low']:.2f}, {v['gap_high']:.2f}) |"
-        )
-    return [*lines, ""]
-
-
-def _label(cell: reproduce.Cell, run: plot.Run, suite: str | None = None) -> str:
+def _label(cell: Cell, run: plot.Run, suite: str | None = None) -> str:
     """The strategy (``coherent``, ``psne``, ``coherent-mc``...); the cells and grid points
     that vary beta by their beta, and so, in the ablations, the thesis's coherent cell
     (the default beta, which every other ablation keeps). In the protocol suite a cell's
@@ -160,10 +131,10 @@ def build(results: Path, out: Path, suites: Sequence[str] = SUITES) -> str:
     total_wall, missing, still_needed = 0.0, [], 0.0
     claims: list[tuple[str, str, dict[str, float]]] = []
     for suite in suites:
-        cells = reproduce.SUITES[suite]()
-        done = [c for c in cells if reproduce.cell_state(c, results) == "done"]
-        missing += [f"{suite}: {c.name} ({reproduce.cell_state(c, results)})" for c in cells if c not in done]
-        still_needed += sum(reproduce.estimated_seconds(c, results) for c in cells if c not in done)
+        cells = reproduce.select(suite, [], results)
+        done = [c for c in cells if cell_state(c, results / suite) == "done"]
+        missing += [f"{suite}: {c.name} ({cell_state(c, results / suite)})" for c in cells if c not in done]
+        still_needed += sum(estimated_seconds(c, results / suite) for c in cells if c not in done)
         if not done:
             continue
         done += _reference_cells(suite, done, results)
@@ -178,7 +149,7 @@ def build(results: Path, out: Path, suites: Sequence[str] = SUITES) -> str:
 
 def suite_section(
     suite: str,
-    done: list[reproduce.Cell],
+    done: list[Cell],
     results: Path,
     out: Path,
     claims: list[tuple[str, str, dict[str, float]]],
@@ -191,7 +162,7 @@ def suite_section(
         lines += curve_figures(name, members, runs, results / "figures", out)
     table, finals, aucs, walls = cell_table(suite, done, runs, results)
     lines += table
-    lines += verify.provenance_lines([c for c in done if c.suite == suite], results)
+    lines += verify.provenance_lines([c for c in done if c.suite == suite], study_dirs(results))
     if suite == "sparse":
         lines += sparse_lines(done, results)
     if suite == "classic":
@@ -202,7 +173,7 @@ def suite_section(
                 group = {k: per_label[k] for k in labels}
                 norm = normalised(group)
                 if len(norm) >= 2:
-                    lines += aggregate_table(algo, what, group, norm, title)
+                    lines += tables.aggregate_table(algo, what, group, norm, title)
             claims += suite_claims(suite, algo, what, per_label)
     return lines, walls
 
@@ -229,8 +200,8 @@ def label_groups(suite: str, labels) -> list[tuple[str, list[str]]]:
 
 
 def cell_groups(
-    suite: str, done: list[reproduce.Cell], runs: dict[str, list[plot.Run]]
-) -> list[tuple[str, list[reproduce.Cell]]]:
+    suite: str, done: list[Cell], runs: dict[str, list[plot.Run]]
+) -> list[tuple[str, list[Cell]]]:
     """(title, cells) per `label_groups` group, for its figures: a group's cells are those
     with its labels on the tasks its own labels (not one it shares) have run."""
     label = {c.name: _label(c, runs[c.name][0], suite) for c in done if runs[c.name]}
@@ -245,7 +216,7 @@ def cell_groups(
 
 
 def curve_figures(
-    suite: str, done: list[reproduce.Cell], runs: dict[str, list[plot.Run]], figures: Path, out: Path
+    suite: str, done: list[Cell], runs: dict[str, list[plot.Run]], figures: Path, out: Path
 ) -> list[str]:
     """The learning curves: one figure per algorithm, one panel per task; their image lines."""
     lines: list[str] = []
@@ -260,44 +231,20 @@ def curve_figures(
     return lines
 
 
-def cell_table(suite: str, done: list[reproduce.Cell], runs: dict[str, list[plot.Run]], results: Path):
-    """The table of cells (seeds, final return and area with 95% CIs, rate, wall time).
+def study_dirs(results: Path) -> dict[str, Path]:
+    """Each suite's folder: ``results/SUITE``."""
+    return {suite: results / suite for suite in reproduce.SUITES}
 
-    Returns its lines, the final returns and areas per algorithm, label and task (one
-    value per seed), and the wall times of the suite's own cells (a reference cell
-    counts in its own suite).
-    """
-    lines = [
-        "| cell | seeds | final return (95% CI) | area under curve (95% CI) | env steps/s | wall |",
-        "|---|---|---|---|---|---|",
-    ]
-    finals: dict[str, dict[str, dict[str, np.ndarray]]] = defaultdict(lambda: defaultdict(dict))
-    aucs: dict[str, dict[str, dict[str, np.ndarray]]] = defaultdict(lambda: defaultdict(dict))
-    walls: list[float] = []
+
+def cell_table(suite: str, done: list[Cell], runs: dict[str, list[plot.Run]], results: Path):
+    """The table of cells (`coherent_jax.study.tables.cell_table`), each run labelled as the
+    suite reads it (`_label`), a cell of another suite marked with its suite."""
+    label = lambda c, r: _label(c, r, suite)  # noqa: E731
     entries = verify.load(results)  # a cell HEAD no longer reproduces bit for bit is marked
-    for c in done:
-        rs = runs[c.name]
-        f = np.array([r.values[-1] for r in rs])
-        a = np.array([auc(r) for r in rs])
-        for label in sorted({_label(c, r, suite) for r in rs}):
-            keep = [i for i, r in enumerate(rs) if _label(c, r, suite) == label]
-            finals[c.setting("algo")][label][c.setting("env")] = f[keep]
-            aucs[c.setting("algo")][label][c.setting("env")] = a[keep]
-        summary = json.loads((reproduce.cell_dir(c, results) / "sweep" / "sweep.json").read_text())
-        wall = float(summary.get("wall_s", 0.0))
-        walls.append(wall if c.suite == suite else 0.0)
-        name = (c.name if c.suite == suite else f"{c.name} ({c.suite} suite)") + verify.mark(c, entries)
-        fm, fl, fh = interval(f)
-        am, al, ah = interval(a)
-        lines.append(
-            f"| {name} | {len(rs)} | {fm:.0f} ({fl:.0f}, {fh:.0f}) | {am:.0f} ({al:.0f}, {ah:.0f}) | "
-            f"{summary.get('sweep_env_steps_per_s', float('nan')):.0f} | {wall / 3600:.2f} h |"
-        )
-    lines += [*verify.footnote(done, entries), ""]
-    return lines, finals, aucs, walls
+    return tables.cell_table(done, runs, study_dirs(results), label, entries, suite)
 
 
-def sparse_lines(done: list[reproduce.Cell], results: Path) -> list[str]:
+def sparse_lines(done: list[Cell], results: Path) -> list[str]:
     """The sparse suite's table: the seeds that reached the reward, and when they first did."""
     lines = [
         "Seeds whose exploration ever reached the sparse reward (a training episode",
@@ -319,44 +266,39 @@ def suite_claims(
     suite: str, algo: str, what: str, per_label: dict[str, dict[str, np.ndarray]]
 ) -> list[tuple[str, str, dict[str, float]]]:
     """Each claim of the suite on the tasks both of its strategies have finished, with its verdict."""
-    claims = []
-    for coherent, baseline in _pairs(suite, per_label):
-        pair = normalised({coherent: per_label[coherent], baseline: per_label[baseline]})
-        if not pair:
-            continue
-        poi = probability_of_improvement(pair[coherent], pair[baseline])
-        tasks = pair[coherent].shape[1]
-        claims.append(
-            (
-                f"{suite}, {algo}, {what}: {coherent} improves on {baseline} ({tasks} task(s))",
-                verdict(poi, suite),
-                poi,
-            )
-        )
-    return claims
+    what = f"{suite}, {algo}, {what}"
+    pairs = (tables.claim(a, b, per_label, what, verdict_words(suite)) for a, b in _pairs(suite, per_label))
+    return [c for c in pairs if c is not None]
 
 
-def verdict_lines(claims: list[tuple[str, str, dict[str, float]]]) -> list[str]:
-    """The verdicts table (empty without claims)."""
-    if not claims:
-        return []
-    lines = ["## Verdicts", "", "| claim | P(improvement) (95% CI) | verdict |", "|---|---|---|"]
-    lines += [f"| {c} | {p['p']:.2f} ({p['low']:.2f}, {p['high']:.2f}) | {v} |" for c, v, p in claims]
-    lines.append("")
-    return lines
+RULE = (
+    "A claim is *reproduced* (on the tasks the thesis did not run and against the strategies it "
+    "did not compare: *holds*) when the 95% stratified-bootstrap interval of the probability of "
+    "improvement lies above 0.5, *not reproduced* (*does not hold*) when it lies below, and "
+    "*inconclusive* otherwise."
+)
+
+
+def verdict_lines(claims: list[tables.Claim]) -> list[str]:
+    """The verdicts table (empty without claims), after its rule."""
+    return tables.verdict_lines(claims, RULE)
 
 
 def compute_lines(total_wall: float, missing: list[str], still_needed: float) -> list[str]:
     """The compute section: wall time spent, the budget per cell, and the cells not finished."""
+    thesis = reproduce.load("thesis")
+    steps = thesis.grids[0].total_steps
+    sac = " ".join(thesis.grids[0].algos["sac"])
     lines = [
         "## Compute",
         "",
         f"Wall time of the finished cells: {total_wall / 3600:.1f} h on the 2-core CPU, two cells"
         " running side by side most of the time.",
         "",
-        f"Budget per cell: {reproduce.SEEDS} seeds of {reproduce.ONPOLICY_STEPS:,} env steps for"
-        f" A2C and PPO; SAC {reproduce.SAC_STEPS:,} env steps at {', '.join(reproduce.SAC_SETTINGS)}"
-        " (see `reproduce.py`: 1M steps at UTD 1 would take about 9 hours per SAC cell here).",
+        f"Budget per cell: {thesis.seeds} seeds of {steps['default']:,} env steps for"
+        f" A2C and PPO; SAC {steps['sac']:,} env steps at {sac}"
+        " (see `experiments/studies/thesis.yaml`: 1M steps at UTD 1 would take about 9 hours per"
+        " SAC cell here).",
         "",
     ]
     if missing:
@@ -369,7 +311,7 @@ def compute_lines(total_wall: float, missing: list[str], still_needed: float) ->
     return lines
 
 
-def _reference_cells(suite: str, done: list[reproduce.Cell], results: Path) -> list[reproduce.Cell]:
+def _reference_cells(suite: str, done: list[Cell], results: Path) -> list[Cell]:
     """The thesis suite's finished cells a suite is read beside. The ablations: the action
     and coherent cells of their task and algorithms, the defaults each ablation varies one
     component of (coherent: beta 0.01, analytic integration, the exact gradient). `beyond`:
@@ -378,36 +320,41 @@ def _reference_cells(suite: str, done: list[reproduce.Cell], results: Path) -> l
     if suite == "ablations":
         algos = {c.setting("algo") for c in done}
 
-        def keep(c: reproduce.Cell) -> bool:
+        def keep(c: Cell) -> bool:
             return (
-                c.setting("env") == reproduce.ABLATION_TASK
+                c.setting("env") == ABLATION_TASK
                 and c.setting("algo") in algos
                 and c.setting("explore") in ("action", "coherent")
             )
     elif suite == "beyond":
         runs = {(c.setting("env"), c.setting("algo")) for c in done}
 
-        def keep(c: reproduce.Cell) -> bool:
+        def keep(c: Cell) -> bool:
             return (c.setting("env"), c.setting("algo")) in runs
     elif suite == "protocol":
         return _chain_references(done, results)
     else:
         return []
-    return [c for c in reproduce.thesis_cells() if keep(c) and reproduce.cell_state(c, results) == "done"]
+    thesis = reproduce.select("thesis", [], results)
+    return [c for c in thesis if keep(c) and cell_state(c, results / c.suite) == "done"]
 
 
-def _chain_references(done: list[reproduce.Cell], results: Path) -> list[reproduce.Cell]:
+def _chain_references(done: list[Cell], results: Path) -> list[Cell]:
     """The protocol suite's chain-length cells (`coherent.gradient=episode`, ``stored``, at the
     library's defaults) are read beside the ``exact`` cells of their task, the thesis suite's
     PPO coherent cells, and HalfCheetah's stored one of the ablations suite."""
     tasks = {c.setting("env") for c in done if c.name.endswith(("/coherent-episode", "/coherent-stored"))}
-    stored = f"{reproduce.ABLATION_TASK}/ppo/coherent-stored"
+    stored = f"{ABLATION_TASK}/ppo/coherent-stored"
     candidates = [
-        *(c for c in reproduce.thesis_cells() if c.name in {f"{t}/ppo/coherent" for t in tasks}),
-        *(c for c in reproduce.ablation_cells() if c.name == stored),
+        *(
+            c
+            for c in reproduce.select("thesis", [], results)
+            if c.name in {f"{t}/ppo/coherent" for t in tasks}
+        ),
+        *(c for c in reproduce.select("ablations", [], results) if c.name == stored),
     ]
     keep = [c for c in candidates if c.setting("env") in tasks]
-    return [c for c in keep if reproduce.cell_state(c, results) == "done"]
+    return [c for c in keep if cell_state(c, results / c.suite) == "done"]
 
 
 def _pairs(suite: str, norm: dict) -> list[tuple[str, str]]:
@@ -428,7 +375,7 @@ def _pairs(suite: str, norm: dict) -> list[tuple[str, str]]:
         pairs += [("coherent-episode", "coherent-exact"), ("coherent-episode", "coherent-stored")]
         return [p for p in pairs if p[0] in norm and p[1] in norm]
     # beyond: only the newer strategies; the thesis suite's own comparisons are its verdicts.
-    newer = reproduce.BEYOND_LABELS
+    newer = tuple(reproduce.load("beyond").labels())
     candidates = newer if suite == "beyond" else (*BASELINES, *newer)
     others = [b for b in candidates if b in norm]
     if suite in ("sparse", "classic"):  # coherent at each beta of its grid against every baseline

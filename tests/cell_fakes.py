@@ -1,16 +1,19 @@
-"""A cell's files laid out as experiments/reproduce.py's sweeps write them, for the tests
-of the suites, their carried state and their report; and the one loaded reproduce module
-they share (report.py imports it by name)."""
+"""A cell's files laid out as a study's sweeps write them, for the tests of the suites, their
+carried state and their report; and the one loaded reproduce module they share (report.py
+imports it by name)."""
 
 import json
 
 from helpers import load_experiment
 
+from coherent_jax.study.cell import cell_dir
+
 reproduce = load_experiment("reproduce")
 
 
 def fake_sweep(cell, results, finished):
-    d = reproduce.cell_dir(cell, results)
+    """The cell's directory in its suite's folder under `results` (``results/SUITE/CELL``)."""
+    d = cell_dir(cell, results / cell.suite)
     point = d / "sweep" / "seed=0"
     point.mkdir(parents=True)
     (point / "config.yaml").write_text("seed: 0\n")

@@ -1,4 +1,5 @@
-"""experiments/carry.py through reproduce.py: a stopped cell packed, carried and resumed.
+"""`coherent_jax.study.carry` through experiments/reproduce.py: a stopped cell packed, carried
+and resumed.
 
 A cell's files are laid out as a sweep leaves them when stopped; no training runs.
 """
@@ -10,7 +11,11 @@ import sys
 import numpy as np
 import pytest
 from cell_fakes import fake_sweep, reproduce
-from helpers import commit_all, load_experiment
+from helpers import commit_all
+
+from coherent_jax.study import carry, cost, curves
+from coherent_jax.study import cell as study_cell
+from coherent_jax.study.cell import cell_dir, cell_state, progress, sweep_command
 
 
 def _stopped_cell_with_a_checkpoint(cell, results):
@@ -28,7 +33,6 @@ def _stopped_cell_with_a_checkpoint(cell, results):
 
 
 def test_a_stopped_cell_is_carried_by_its_packed_state_and_unpacked_whole(tmp_path):
-    carry = load_experiment("carry")
     stopped, finished = reproduce.select("protocol", ["hopper/a2c/action-thesis", "hopper/a2c/psne-thesis"])
     d = _stopped_cell_with_a_checkpoint(stopped, tmp_path)
     sweep = d / "sweep"
@@ -40,16 +44,16 @@ def test_a_stopped_cell_is_carried_by_its_packed_state_and_unpacked_whole(tmp_pa
     path = carry.pack(d)
     first = path.read_bytes()
     assert carry.pack(d).read_bytes() == first  # the same files, the same bytes
-    fraction = reproduce.progress(stopped, tmp_path)[0]
+    fraction = progress(stopped, tmp_path / stopped.suite)[0]
     shutil.rmtree(sweep)  # a clone elsewhere: the carry file, no sweep directory
-    assert reproduce.cell_state(stopped, tmp_path) == "carried"
-    assert reproduce.progress(stopped, tmp_path)[0] == fraction == pytest.approx(0.5 / 5)
-    assert "carried" in reproduce.status([stopped], tmp_path)
+    assert cell_state(stopped, tmp_path / stopped.suite) == "carried"
+    assert progress(stopped, tmp_path / stopped.suite)[0] == fraction == pytest.approx(0.5 / 5)
+    assert "carried" in cost.status([stopped], tmp_path / stopped.suite)
     assert carry.unpack(d) and not carry.unpack(d)  # once: the sweep directory is back
     after = {f.relative_to(sweep).as_posix(): f.read_bytes() for f in sweep.rglob("*") if f.is_file()}
     assert after == {k: v for k, v in before.items() if k in kept} and set(after) == kept
-    assert reproduce.cell_state(stopped, tmp_path) == "stopped"
-    assert any(a.startswith("resume=") for a in reproduce.sweep_command(stopped, tmp_path))
+    assert cell_state(stopped, tmp_path / stopped.suite) == "stopped"
+    assert any(a.startswith("resume=") for a in sweep_command(stopped, tmp_path / stopped.suite))
     # Refused, leaving the carry file as it was: a pack over the limit, a finished cell.
     with pytest.raises(carry.CarryError, match=r"packs to .* MB \(allowed: at most"):
         carry.pack(d, max_bytes=3000)  # 4.2 kB of files, 4.6 kB packed
@@ -67,7 +71,6 @@ def test_a_tracked_carry_file_is_removed_in_the_commit_also_when_the_finish_dele
     later commit must still commit that removal."""
     import subprocess
 
-    carry = load_experiment("carry")
     repo = tmp_path / "repo"
     cells = {}
     for name in ("finished-here", "finished-before"):
@@ -93,9 +96,8 @@ def test_a_carry_file_reaching_outside_its_sweep_is_refused_and_nothing_is_writt
     import io
     import tarfile
 
-    carry = load_experiment("carry")
     (cell,) = reproduce.select("protocol", ["hopper/a2c/action-thesis"])
-    d = reproduce.cell_dir(cell, tmp_path)
+    d = cell_dir(cell, tmp_path / cell.suite)
     d.mkdir(parents=True)
     with tarfile.open(carry.carry_path(d), "w:gz") as tar:
         for name in ("sweep/config.yaml", "sweep/../../escaped.txt"):
@@ -123,7 +125,6 @@ def test_pack_refuses_a_running_cell_and_packs_none(tmp_path, capsys):
     assert (a / "carry.tar.gz").exists() and (b / "carry.tar.gz").exists()
     # A cell too large to carry (as an SAC checkpoint with its replay buffer) is named and
     # passed over, before its archive is built; the others are packed.
-    carry = sys.modules["carry"]
     (b / "carry.tar.gz").unlink()
     big = b / "sweep" / "checkpoint.msgpack"
     with open(big, "r+b") as f:
@@ -136,21 +137,20 @@ def test_pack_refuses_a_running_cell_and_packs_none(tmp_path, capsys):
 
 
 def test_a_carried_cell_is_unpacked_before_its_sweep_resumes_and_its_carry_file_goes(tmp_path, monkeypatch):
-    carry = load_experiment("carry")
     (cell,) = reproduce.select("protocol", ["hopper/a2c/action-thesis"])
     d = _stopped_cell_with_a_checkpoint(cell, tmp_path)
     carry.pack(d)
     shutil.rmtree(d / "sweep")
     seen = []
 
-    def finishing_sweep(c, results):  # stands for `resume=`: records what it found, then finishes
-        sweep = reproduce.cell_dir(c, results) / "sweep"
+    def finishing_sweep(c, study_dir):  # stands for `resume=`: records what it found, then finishes
+        sweep = cell_dir(c, study_dir) / "sweep"
         seen.append(sorted(p.name for p in sweep.iterdir()))
         code = f"import pathlib; pathlib.Path({str(sweep / 'sweep.json')!r}).write_text('{{}}')"
         return [sys.executable, "-c", code]
 
-    monkeypatch.setattr(sys.modules["cells"], "sweep_command", finishing_sweep)
-    monkeypatch.setattr(reproduce.curves, "update_table", lambda *a: None)
+    monkeypatch.setattr(study_cell, "sweep_command", finishing_sweep)
+    monkeypatch.setattr(curves, "update_table", lambda *a: None)
     assert reproduce.main(["protocol", "--cells", cell.name, "--results", str(tmp_path)]) == 0
     assert seen and "checkpoint.msgpack" in seen[0] and "seed=0" in seen[0]
-    assert reproduce.cell_state(cell, tmp_path) == "done" and not carry.carry_path(d).exists()
+    assert cell_state(cell, tmp_path / cell.suite) == "done" and not carry.carry_path(d).exists()

@@ -77,7 +77,7 @@ def test_a_former_name_is_its_successor_and_warns_once(old):
 
 def test_a_moved_module_imports_in_every_form():
     with pytest.warns(
-        DeprecationWarning, match=r"^coherent_jax\.runs is deprecated: use coherent_jax\.run\.runs "
+        DeprecationWarning, match=r"^coherent_jax\.runs is deprecated: use coherent_jax\.run\.checkpoint "
     ):
         from coherent_jax.runs import CheckpointError  # the import is what is tested
     from coherent_jax.run.checkpoint import CheckpointError as now

@@ -344,7 +344,7 @@ FORMER_MODULES = (
 FOREIGN_FILES = {
     *("spinup/algos/pytorch/ppo/ppo.py", "vpg/vpg.py", "sac/sac.py", "ppo.py", "vpg.py"),
     *("pendulum.py", "continuous_mountain_car.py", "_v5.py", "src/models/distributions.py"),
-    *("path/to/file.py", "FILE.py"),
+    *("path/to/file.py", "FILE.py", "envs.py"),
 }
 DOTTED = re.compile(r"(?<![\w.])coherent_jax(?:\.[A-Za-z_]\w*)+")
 PY_PATH = re.compile(r"(?<![\w./-])((?:[\w.-]+/)*[\w-]+\.py)\b")

@@ -11,6 +11,8 @@ import numpy as np
 from cell_fakes import fake_sweep, reproduce
 from helpers import load_experiment
 
+from coherent_jax.study import verify
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -126,7 +128,6 @@ def test_row14_verify_names_the_first_differing_iteration_and_report_marks_the_c
     """`reproduce.py SUITE --verify` compares every committed value bit for bit and names
     the first iteration that differs; RESULTS.md's table marks that cell with a dagger;
     the committed verify.json and docs/development.md say what changed bits and when."""
-    verify = load_experiment("verify")
     committed = {("p000-seed=0", 4096, "x"): [1.5], ("p000-seed=0", 8192, "x"): [2.5]}
     same = verify.compare(committed, {k: list(v) for k, v in committed.items()}, 4096)
     assert same["result"] == "bit-identical" and same["values_compared"] == 2

@@ -198,4 +198,4 @@ def test_every_key_of_before_maps_through_the_one_module():
             if helper in LEGACY_HELPERS:
                 assert module == "coherent_jax.config.parse", (path, name)
                 users.append(path.name)
-    assert {"sweep.py", "checkpoint.py", "cells.py", "verify.py"} <= set(users)
+    assert {"sweep.py", "checkpoint.py", "cell.py", "verify.py"} <= set(users)

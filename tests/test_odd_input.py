@@ -466,7 +466,7 @@ def test_report_shows_commits_and_cpus_and_not_recorded_for_older_cells(tmp_path
     reproduce = report.reproduce
     old, new, resumed = (reproduce.select("thesis", [name])[0] for name in HOPPER_CELLS)
     for cell, fields in ((old, {}), (new, {"git_commit": "a" * 40, "git_dirty": False}), (resumed, {})):
-        d = reproduce.cell_dir(cell, tmp_path) / "sweep"
+        d = tmp_path / cell.suite / cell.name / "sweep"
         d.mkdir(parents=True)
         cpu = {"cpu_model": "Test CPU", "cpu_vector_isa": "avx2"} if fields else {}
         (d / "versions.json").write_text(json.dumps({"jax": "0.9.2", **fields, **cpu}))
@@ -474,7 +474,7 @@ def test_report_shows_commits_and_cpus_and_not_recorded_for_older_cells(tmp_path
     (d / "versions-resumed-7.json").write_text(
         json.dumps({"git_commit": "b" * 40, "git_dirty": True, "cpu_model": "Other", "cpu_vector_isa": None})
     )
-    line = report.verify.provenance_lines([old, new, resumed], tmp_path)[0]
+    line = report.verify.provenance_lines([old, new, resumed], {"thesis": tmp_path / "thesis"})[0]
     assert "`aaaaaaaaaaaa` (1 cell)" in line and "`bbbbbbbbbbbb` with uncommitted changes (1 cell)" in line
     assert "not recorded (2 cells)" in line.split("; on CPUs")[0]
     assert "Test CPU (avx2) (1 cell)" in line and "Other (no AVX/SSE4.2) (1 cell)" in line

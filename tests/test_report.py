@@ -1,5 +1,6 @@
-"""experiments/report.py and the compact results it reads: claims, verdicts, curves and
-what `--commit` adds. Cells are laid out as finished sweeps write them; no training runs.
+"""experiments/report.py (RESULTS.md) and the compact results it reads through the package
+(`coherent_jax.study.curves`, `stats`, `tables`, `execute`): claims, verdicts, curves and what
+`--commit` adds. Cells are laid out as finished sweeps write them; no training runs.
 """
 
 import gzip
@@ -14,6 +15,9 @@ import numpy as np
 import pytest
 from cell_fakes import fake_sweep, reproduce
 from helpers import child_env, load_experiment
+
+from coherent_jax.study import cost, curves, execute, stats, tables
+from coherent_jax.study.cell import cell_state, progress
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -94,7 +98,7 @@ def test_report_reads_the_protocol_suite_as_three_comparisons(tmp_path):
     and the ablations' stored cells) are aggregated and claimed each among themselves."""
     report = _report()
     run = types.SimpleNamespace(settings={"coherent.beta": 0.5})
-    label = {c.name: report._label(c, run, "protocol") for c in reproduce.protocol_cells()}
+    label = {c.name: report._label(c, run, "protocol") for c in reproduce.select("protocol", [])}
     assert label["hopper/ppo/psne-thesis"] == "psne"
     assert label["walker2d/a2c/coherent-thesis"] == "coherent"
     assert label["halfcheetah/a2c/coherent-thesis-beta0.5"] == "beta=0.5"
@@ -137,7 +141,7 @@ def test_report_aggregates_only_the_tasks_every_strategy_has_finished():
     np.testing.assert_allclose(norm["action"], [[0.0], [2 / 3]])
     np.testing.assert_allclose(norm["coherent"], [[1 / 3], [1.0]])
     # The table says which task it aggregates and which it leaves out, and why.
-    assert report.aggregate_table("ppo", "final return", scores, norm)[0] == (
+    assert tables.aggregate_table("ppo", "final return", scores, norm)[0] == (
         "**ppo, final return**, normalised per task over 1 task(s)"
         " (halfcheetah; hopper left out until every strategy has finished it):"
     )
@@ -145,7 +149,6 @@ def test_report_aggregates_only_the_tasks_every_strategy_has_finished():
 
 
 # ------------------------------------------------------------------ compact results
-curves = reproduce.curves
 
 
 def _fake_finished_cell(cell, results, seeds=2):
@@ -183,7 +186,7 @@ def _runs(cells, results, metric):
     return [
         (r.path.name, r.seed, r.steps.tolist(), r.values.tobytes(), r.settings)
         for c in cells
-        for r in curves.load_runs(results, c.suite, c.name, metric)
+        for r in stats.load_runs(results / c.suite, c.name, metric)
     ]
 
 
@@ -196,15 +199,15 @@ def test_curves_table_round_trips_what_the_report_reads(tmp_path):
         _fake_finished_cell(cell, tmp_path)
     from_logs = {m: _runs(cells, tmp_path, m) for m in sparse_metrics}
     reach = [row for c in cells for row in report.reach_rows(c, tmp_path)]
-    table = curves.build(tmp_path, "sparse")
+    table = curves.build(tmp_path / "sparse")
     data = table.read_bytes()
     assert data[4:8] == b"\0\0\0\0"  # gzip without a time stamp
     # Rebuilding, or building in another order, gives the same bytes.
-    curves.update_table(tmp_path, "sparse", [cells[1].name])
+    curves.update_table(tmp_path / "sparse", [cells[1].name])
     assert table.read_bytes() == data
     table.unlink()
     for cell in reversed(cells):
-        curves.update_table(tmp_path, "sparse", [cell.name])
+        curves.update_table(tmp_path / "sparse", [cell.name])
     assert table.read_bytes() == data
     rows = curves.read_table(table)
     assert rows == sorted(rows, key=lambda r: r[:3]) and len(rows) == 2 * 2 * 4  # row 1 logged neither
@@ -214,7 +217,7 @@ def test_curves_table_round_trips_what_the_report_reads(tmp_path):
     assert {m: _runs(cells, tmp_path, m) for m in sparse_metrics} == from_logs
     assert [row for c in cells for row in report.reach_rows(c, tmp_path)] == reach
     # A finished cell whose logs are gone keeps its rows when the table is rebuilt.
-    assert curves.build(tmp_path, "sparse").read_bytes() == data
+    assert curves.build(tmp_path / "sparse").read_bytes() == data
 
 
 def test_commit_adds_only_the_compact_files(tmp_path, monkeypatch):
@@ -222,7 +225,7 @@ def test_commit_adds_only_the_compact_files(tmp_path, monkeypatch):
     repo = tmp_path / "repo"
     results = repo / "experiments" / "results"
     d = _fake_finished_cell(cell, results)
-    listed = curves.committed_files(d, curves.table_path(results, "thesis"))
+    listed = curves.committed_files(d, curves.table_path(results / "thesis"))
     expected = [
         "cell.json",
         *(f"sweep/{f}" for f in ("config.yaml", "grid.json", "sweep.csv", "sweep.json", "versions.json")),
@@ -241,8 +244,7 @@ def test_commit_adds_only_the_compact_files(tmp_path, monkeypatch):
     for key, value in {"NAME": "test", "EMAIL": "test@example.com"}.items():
         monkeypatch.setenv(f"GIT_AUTHOR_{key}", value)
         monkeypatch.setenv(f"GIT_COMMITTER_{key}", value)
-    monkeypatch.setattr(reproduce, "ROOT", repo)
-    reproduce.commit_cell(cell, results)
+    execute.commit_cell(cell, results / "thesis")
     committed = git("show", "--name-only", "--format=%s", "HEAD").stdout.split("\n")
     assert committed[0] == "results: thesis hopper/ppo/action"
     prefix = "experiments/results/thesis/"
@@ -261,19 +263,19 @@ def test_a_cell_present_only_as_compact_data_is_done(tmp_path):
     report = _report()
     done, missing = reproduce.select("thesis", ["hopper/a2c/action", "hopper/a2c/psne"])
     d = _fake_finished_cell(done, tmp_path / "ran")
-    table = curves.update_table(tmp_path / "ran", "thesis", [done.name])
+    table = curves.update_table(tmp_path / "ran" / "thesis", [done.name])
     clone = tmp_path / "clone"
     for f in curves.committed_files(d, table):
         target = clone / f.relative_to(tmp_path / "ran")
         target.parent.mkdir(parents=True, exist_ok=True)
         shutil.copy(f, target)
     assert not list(clone.rglob("metrics.jsonl")) and not list(clone.rglob("run.log"))
-    assert reproduce.cell_state(done, clone) == "done"
-    assert reproduce.progress(done, clone) == (1.0, 1000.0)
-    assert reproduce.estimated_seconds(done, clone) == 0.0
-    assert [f.cell.name for f in reproduce._finished_cells(clone)] == [done.name]
-    assert reproduce.estimated_seconds(missing, clone) == pytest.approx(
-        missing.env_steps * reproduce.STRATEGY_COST["psne"] / 1000.0
+    assert cell_state(done, clone / "thesis") == "done"
+    assert progress(done, clone / "thesis") == (1.0, 1000.0)
+    assert cost.estimated_seconds(done, clone / "thesis") == 0.0
+    assert [f.cell.name for f in cost.finished_cells(clone)] == [done.name]
+    assert cost.estimated_seconds(missing, clone / "thesis") == pytest.approx(
+        missing.env_steps * cost.STRATEGY_COST["psne"] / 1000.0
     )
     proc = subprocess.run(
         [sys.executable, str(ROOT / "experiments" / "reproduce.py"), "thesis", "--status", "--cells",
@@ -317,13 +319,13 @@ def test_classic_report_counts_the_seeds_that_reach_mountain_cars_goal(tmp_path,
     of work, tested elsewhere): the probability of improvement is the plain one."""
     report = _report()
     monkeypatch.setattr(report, "curve_figures", lambda *args: [])
-    monkeypatch.setattr(report, "aggregate_table", lambda *args: [])
+    monkeypatch.setattr(tables, "aggregate_table", lambda *args: [])
 
     def plain_poi(x, y):
         p = float(np.mean(x[:, None, :] > y[None, :, :]))
         return {"p": p, "low": p, "high": p}
 
-    monkeypatch.setattr(report, "probability_of_improvement", plain_poi)
+    monkeypatch.setattr(stats, "probability_of_improvement", plain_poi)
     for name, reach in (("*/ppo/action", False), ("*/ppo/pink", True), ("*/ppo/coherent-beta-episode", True)):
         _fake_classic_cell(reproduce.select("classic", [name])[0], tmp_path, reach)
     text = report.build(tmp_path, tmp_path / "RESULTS.md", ["classic"])
@@ -335,7 +337,7 @@ def test_classic_report_counts_the_seeds_that_reach_mountain_cars_goal(tmp_path,
     assert "classic, ppo, final return: beta=0 improves on action (1 task(s)) | 1.00" in text
     assert "| holds |" in text and "beta=0.1 improves on pink" in text
     # The curves table keeps the goal columns: without the logs the report reads the same.
-    curves.update_table(tmp_path, "classic", [c.name for c in reproduce.select("classic", [])])
+    curves.update_table(tmp_path / "classic", [c.name for c in reproduce.select("classic", [])])
     for path in tmp_path.glob("classic/**/metrics.jsonl"):
         path.unlink()
     assert report.build(tmp_path, tmp_path / "RESULTS.md", ["classic"]) == text

@@ -10,7 +10,7 @@ to continue into ``CELL/carry.tar.gz``, which git keeps:
 * each point's ``config.yaml`` and ``metrics.jsonl`` (its curve so far).
 
 TensorBoard files, locks and ``run.log`` stay behind. `unpack` restores the sweep
-directory in a checkout that has the file and no sweep directory; ``reproduce.py``
+directory in a checkout that has the file and no sweep directory; a study (`coherent_jax.study.cell.prepare`)
 does so before it resumes the cell, which continues from the checkpoint as any stopped
 cell does (a resume on another machine or commit records ``versions-resumed-N.json``).
 A finished cell's carry file is dropped when the cell is committed.

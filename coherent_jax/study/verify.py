@@ -1,10 +1,10 @@
-"""Does the code at HEAD still compute the committed cells bit for bit?
+"""Does the code at HEAD still compute a study's finished cells bit for bit?
 
-``python experiments/reproduce.py SUITE --verify [CELL ...]`` re-runs each selected
-finished cell's first iterations at HEAD: the cell's own sweep (its overrides and
-seeds, one vmapped program, as `cells.sweep_command` runs it) with ``total_steps`` cut
-to a few iterations, in a scratch directory that is deleted afterwards. Every value the
-committed curves table (``RESULTS/SUITE/curves.csv.gz``) holds for those iterations is
+``python -m coherent_jax.study STUDY verify [CELL ...]`` re-runs each selected finished
+cell's first iterations at HEAD: the cell's own sweep (its overrides and seeds, one
+vmapped program, as `coherent_jax.study.cell.sweep_command` runs it) with ``total_steps``
+cut to a few iterations, in a scratch directory that is deleted afterwards. Every value
+the study's curves table (``STUDY_DIR/curves.csv.gz``) holds for those iterations is
 then compared, as a float, with what the re-run logged. Per cell it reports one of
 
 * ``bit-identical``: every compared value equal;
@@ -13,9 +13,10 @@ then compared, as a float, with what the re-run logged. Per cell it reports one 
   iterations, a training return once an episode has ended);
 
 with the commit and CPU the cell recorded (``commit unknown`` for a cell made before
-runs recorded their commit), and writes that to ``RESULTS/verify.json`` (`OUT`), one
-entry per cell, merged with the entries already there. `report.py` marks with † the
-cells whose entry says they differ.
+runs recorded their commit), and writes that to a ``verify.json`` (`OUT`: the study's, or
+for the suites of experiments/studies/ the one beside them, ``experiments/results/verify.json``),
+one entry per cell (``STUDY/CELL``), merged with the entries already there. The reports mark
+with † the cells whose entry says they differ.
 
 A cell made on another CPU may differ for that reason alone: XLA compiles for the
 host's vector extensions, and float32 sums round differently between them.
@@ -24,7 +25,6 @@ host's vector extensions, and float32 sums round differently between them.
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 import tempfile
@@ -34,18 +34,16 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import curves
-from cells import Cell, cell_dir, cell_state
-
 from coherent_jax.config.parse import modern_items
+from coherent_jax.study import curves
+from coherent_jax.study.cell import PACKAGE_ROOT, Cell, cell_dir, cell_state, sweep_env
 
-ROOT = Path(__file__).resolve().parents[1]
-OUT = "verify.json"  # beside the suites, in the results directory
+OUT = "verify.json"
 DEFAULT_ITERATIONS = 3
 MARK = "†"
 FOOTNOTE = (
     f"{MARK} The code at HEAD no longer reproduces this cell bit for bit "
-    "(`python experiments/reproduce.py SUITE --verify CELL`; experiments/results/verify.json)."
+    "(`python -m coherent_jax.study STUDY verify CELL`; its verify.json)."
 )
 
 Values = dict[tuple[str, int, str], list[float]]  # (point, env steps, metric) -> values in log order
@@ -108,15 +106,15 @@ def _yaml_int(path: Path, key: str) -> int:
     raise KeyError(f"{key!r} not in {path}")
 
 
-def steps_per_iteration(cell: Cell, results: Path) -> int:
+def steps_per_iteration(cell: Cell, study_dir: Path) -> int:
     """num_envs * unroll_length as the cell's first point resolved them."""
-    config = curves.point_dirs(cell_dir(cell, results) / "sweep")[0] / "config.yaml"
+    config = curves.point_dirs(cell_dir(cell, study_dir) / "sweep")[0] / "config.yaml"
     return _yaml_int(config, "num_envs") * _yaml_int(config, "unroll_length")
 
 
-def cell_provenance(cell: Cell, results: Path) -> dict[str, Any]:
+def cell_provenance(cell: Cell, study_dir: Path) -> dict[str, Any]:
     """The commit and CPU a cell recorded (its sweep's ``versions.json``) and its resumes' commits."""
-    sweep = cell_dir(cell, results) / "sweep"
+    sweep = cell_dir(cell, study_dir) / "sweep"
     try:
         v = json.loads((sweep / "versions.json").read_text())
     except (OSError, ValueError):
@@ -137,7 +135,7 @@ def cell_provenance(cell: Cell, results: Path) -> dict[str, Any]:
 
 
 def rerun_command(cell: Cell, run_dir: Path, total_steps: int) -> list[str]:
-    """The cell's sweep as `cells.sweep_command` starts it, cut to ``total_steps``."""
+    """The cell's sweep as `coherent_jax.study.cell.sweep_command` starts it, cut to ``total_steps``."""
     overrides = [f"total_steps={total_steps}" if o.startswith("total_steps=") else o for o in cell.overrides]
     return [
         sys.executable,
@@ -151,25 +149,33 @@ def rerun_command(cell: Cell, run_dir: Path, total_steps: int) -> list[str]:
     ]
 
 
-def verify_cell(cell: Cell, results: Path, iterations: int = DEFAULT_ITERATIONS, log=print) -> dict[str, Any]:
+def verify_cell(
+    cell: Cell,
+    study_dir: Path,
+    iterations: int = DEFAULT_ITERATIONS,
+    log=print,
+    cwd: Path = PACKAGE_ROOT,
+    command: str = "",
+) -> dict[str, Any]:
     """Re-runs a finished cell's first iterations at HEAD and compares them with its committed curves.
 
     At least ``iterations`` iterations, and as many as it takes to reach the first
     value the committed table holds (an evaluation every ``eval_every`` iterations).
+    The sweep runs in ``cwd`` (the study file's folder: a user's env file is named
+    relative to it); ``command`` is what the entry records as the way to repeat it.
     """
-    spi = steps_per_iteration(cell, results)
-    table = [r for r in curves.read_table(curves.table_path(results, cell.suite)) if r[0] == cell.name]
+    spi = steps_per_iteration(cell, study_dir)
+    table = [r for r in curves.read_table(curves.table_path(study_dir)) if r[0] == cell.name]
     if not table:
-        raise ValueError(f"cell {cell.name!r} has no rows in {curves.table_path(results, cell.suite)}")
+        raise ValueError(f"cell {cell.name!r} has no rows in {curves.table_path(study_dir)}")
     first_logged = min(r[2] for r in table) // spi
     n = max(iterations, first_logged)
     committed = _values([r for r in table if r[2] <= n * spi])
-    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     with tempfile.TemporaryDirectory(prefix="verify-") as scratch:
         cmd = rerun_command(cell, Path(scratch) / "sweep", n * spi)
         log(f"[verify] {cell.suite} {cell.name}: {n} iterations: {' '.join(cmd[1:-3])} ...")
         t0 = time.time()
-        done = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, env=env, check=False)
+        done = subprocess.run(cmd, capture_output=True, text=True, cwd=cwd, env=sweep_env(), check=False)
         wall = time.time() - t0
         if done.returncode != 0:
             tail = (done.stderr or done.stdout).strip().splitlines()[-1:] or ["no output"]
@@ -179,7 +185,7 @@ def verify_cell(cell: Cell, results: Path, iterations: int = DEFAULT_ITERATIONS,
         here = json.loads((Path(scratch) / "sweep" / "versions.json").read_text())
     return {
         **compare(committed, now, spi),
-        "cell": cell_provenance(cell, results),
+        "cell": cell_provenance(cell, study_dir),
         "verified_at": {
             "commit": here.get("git_commit"),
             "dirty": here.get("git_dirty"),
@@ -189,7 +195,7 @@ def verify_cell(cell: Cell, results: Path, iterations: int = DEFAULT_ITERATIONS,
         },
         "iterations_run": n,
         "wall_s": round(wall, 1),
-        "command": f"python experiments/reproduce.py {cell.suite} --verify {cell.name}",
+        "command": command or f"python -m coherent_jax.study {cell.suite} verify {cell.name}",
     }
 
 
@@ -200,15 +206,15 @@ def line(name: str, entry: dict[str, Any]) -> str:
     return f"{name}: {entry['result']} ({commit}, {c['cpu']}; {entry['values_compared']} values compared)"
 
 
-def load(results: Path) -> dict[str, Any]:
-    """``RESULTS/verify.json``'s entries by ``SUITE/CELL``; none if it does not exist."""
-    path = Path(results) / OUT
+def load(folder: Path) -> dict[str, Any]:
+    """``FOLDER/verify.json``'s entries by ``STUDY/CELL``; none if it does not exist."""
+    path = Path(folder) / OUT
     return json.loads(path.read_text())["cells"] if path.is_file() else {}
 
 
-def save(results: Path, entries: dict[str, Any]) -> Path:
-    """Writes the entries (sorted, atomically) to ``RESULTS/verify.json``."""
-    path = Path(results) / OUT
+def save(folder: Path, entries: dict[str, Any]) -> Path:
+    """Writes the entries (sorted, atomically) to ``FOLDER/verify.json``."""
+    path = Path(folder) / OUT
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps({"cells": dict(sorted(entries.items()))}, indent=1) + "\n")
     tmp.replace(path)
@@ -226,11 +232,20 @@ def footnote(cells: Sequence[Cell], entries: dict[str, Any]) -> list[str]:
     return ["", FOOTNOTE] if any(mark(c, entries) for c in cells) else []
 
 
-def run(cells: Sequence[Cell], results: Path, iterations: int = DEFAULT_ITERATIONS) -> int:
-    """``--verify``: each finished cell in turn, its entry saved as soon as it is known.
+def run(
+    cells: Sequence[Cell],
+    study_dir: Path,
+    iterations: int = DEFAULT_ITERATIONS,
+    record: Path | None = None,
+    cwd: Path = PACKAGE_ROOT,
+    command: str = "",
+) -> int:
+    """``verify``: each finished cell in turn, its entry saved to ``RECORD/verify.json`` (default:
+    the study's folder) as soon as it is known; ``command`` (with ``{cell}``) is how to repeat one.
 
     Exit status 0 when every verified cell is bit-identical, 1 otherwise, 2 for bad input.
     """
+    record = Path(study_dir) if record is None else Path(record)
     if iterations < 1:
         print(
             f"error: invalid value for '--iterations': {iterations} (allowed: an integer >= 1)",
@@ -240,35 +255,36 @@ def run(cells: Sequence[Cell], results: Path, iterations: int = DEFAULT_ITERATIO
     status = 0
     for cell in cells:
         name = f"{cell.suite}/{cell.name}"
-        if cell_state(cell, results) != "done":
+        if cell_state(cell, study_dir) != "done":
             print(f"{name}: not finished, not verified")
             status = 1
             continue
         try:
-            entry = verify_cell(cell, results, iterations)
+            entry = verify_cell(cell, study_dir, iterations, cwd=cwd, command=command.format(cell=cell.name))
         except (RuntimeError, ValueError, OSError, KeyError, IndexError) as exc:
             print(f"{name}: not verified: {exc}", file=sys.stderr)
             status = 1
             continue
-        save(results, {**load(results), name: entry})
+        save(record, {**load(record), name: entry})
         print(line(name, entry), flush=True)
         status |= entry["result"] != "bit-identical"
     return status
 
 
-def provenance_lines(cells: Sequence[Cell], results: Path) -> list[str]:
+def provenance_lines(cells: Sequence[Cell], study_dirs: dict[str, Path]) -> list[str]:
     """The commits and CPUs the cells' numbers came from, with how many cells each.
 
     Read from each cell's ``sweep/versions.json`` and the ``versions-resumed-*.json`` a resume
     on another commit or machine left beside it; a cell (or part of one) recorded before
     these were kept counts as "not recorded", one run outside a git checkout as "no git
-    checkout". A cell computed in parts counts once under each.
+    checkout". A cell computed in parts counts once under each. ``study_dirs``: each cell's
+    study (`Cell.suite`) -> its folder.
     """
     commits: dict[str, int] = defaultdict(int)
     cpus: dict[str, int] = defaultdict(int)
     for cell in cells:
         cell_commits, cell_cpus = set(), set()
-        for path in sorted((cell_dir(cell, results) / "sweep").glob("versions*.json")):
+        for path in sorted((cell_dir(cell, study_dirs[cell.suite]) / "sweep").glob("versions*.json")):
             try:
                 v = json.loads(path.read_text())
             except (OSError, ValueError):

@@ -1,12 +1,12 @@
-"""The curves the report reads, one compressed table per suite: ``RESULTS/SUITE/curves.csv.gz``.
+"""The curves a study's report reads, one compressed table per study: ``STUDY_DIR/curves.csv.gz``.
 
 A sweep writes each point's learning curve to its ``metrics.jsonl``: every metric of
-every iteration, about 160 kB per seed of 1M env steps. `report.py` reads four of its
-columns: the evaluation return (`EVAL`), the training return (`TRAIN`, for the sparse
-suite's first reward) and, on a task whose termination is its goal (the classic suite's
-MountainCar), the fractions of evaluation and training episodes that reached it
-(`EVAL_GOAL`, `TRAIN_GOAL`). A suite's table holds those of every point of its finished
-cells, one row per ``metrics.jsonl`` row that logged any of them::
+every iteration, about 160 kB per seed of 1M env steps. The report reads four of its
+columns: the evaluation return (`EVAL`), the training return (`TRAIN`, for a sparse
+task's first reward) and, on a task whose termination is its goal (MountainCar), the
+fractions of evaluation and training episodes that reached it (`EVAL_GOAL`,
+`TRAIN_GOAL`). A study's table holds those of every point of its finished cells, one
+row per ``metrics.jsonl`` row that logged any of them::
 
     cell,point,env_steps,eval/episode_return,train/episode_return,eval/goal_reached,train/goal_reached
     halfcheetah/ppo/action,p000-seed=0,4096,,-286.61676025390625,,
@@ -21,33 +21,32 @@ steps keep their order in the log), and the gzip stream carries no time stamp, s
 same logs always give the same bytes.
 
 What git keeps of a cell is `committed_files`: its specification, its sweep's summary
-and small records, each point's ``config.yaml`` and ``summary.json``, and its suite's
+and small records, each point's ``config.yaml`` and ``summary.json``, and its study's
 table. The per-seed logs stay where the cell ran (``experiments/results/.gitignore``;
 ``experiments/README.md`` names the commit that holds those of the earlier cells).
-
-    python experiments/curves.py [--results DIR] [SUITE...]   # rebuild from the local logs
+``python -m coherent_jax.study curves STUDY_DIR`` rebuilds a table from the local logs.
 """
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import csv
+import fcntl
 import gzip
 import io
-import json
 import os
-import sys
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
+
+from coherent_jax.run.rundir import read_metrics
 
 TABLE = "curves.csv.gz"
 EVAL = "eval/episode_return"
 TRAIN = "train/episode_return"
 EVAL_GOAL = "eval/goal_reached"
 TRAIN_GOAL = "train/goal_reached"
-METRICS = (EVAL, TRAIN, EVAL_GOAL, TRAIN_GOAL)  # report.py's METRIC, REACH_METRIC, GOAL_METRICS
+METRICS = (EVAL, TRAIN, EVAL_GOAL, TRAIN_GOAL)  # the returns, then the goal fractions
 HEADER = ("cell", "point", "env_steps", *METRICS)
 LEGACY_HEADER = HEADER[:5]  # the returns only
 LOG = "metrics.jsonl"
@@ -61,9 +60,9 @@ POINT_FILES = ("config.yaml", "summary.json")
 Row = tuple[Any, ...]  # (cell, point, env steps, *METRICS): str, str, int, then float or None each
 
 
-def table_path(results: Path, suite: str) -> Path:
-    """``results/SUITE/curves.csv.gz``."""
-    return Path(results) / suite / TABLE
+def table_path(study_dir: Path) -> Path:
+    """``STUDY_DIR/curves.csv.gz``."""
+    return Path(study_dir) / TABLE
 
 
 def point_dirs(sweep: Path) -> list[Path]:
@@ -88,9 +87,8 @@ def log_rows(cell: str, point: str, rows: Iterable[dict[str, Any]]) -> list[Row]
 
 
 def cell_rows(cell: str, sweep: Path) -> list[Row]:
-    """The table's rows of a cell from its points' local ``metrics.jsonl`` (none without logs)."""
-    from coherent_jax.run.rundir import read_metrics  # what plot.load_run reads the logs with
-
+    """The table's rows of a cell from its points' local ``metrics.jsonl`` (none without logs;
+    read as `coherent_jax.plot.load_run` reads them)."""
     rows: list[Row] = []
     for point in point_dirs(sweep):
         if (point / LOG).is_file():
@@ -163,8 +161,6 @@ def write_table(path: Path, rows: Iterable[Row]) -> bool:
 def _locked(directory: Path) -> Iterator[None]:
     """Holds an exclusive lock on `directory` (cells of a suite finish in parallel processes;
     locking the directory itself leaves no lock file behind)."""
-    import fcntl
-
     directory.mkdir(parents=True, exist_ok=True)
     fd = os.open(directory, os.O_RDONLY)
     try:
@@ -174,22 +170,27 @@ def _locked(directory: Path) -> Iterator[None]:
         os.close(fd)  # releases the lock
 
 
-def update_table(results: Path, suite: str, cells: Iterable[str], prune: bool = False) -> Path:
-    """Replaces the rows of `cells` (names in `suite`) with those of their local logs; a
+def update_table(study_dir: Path, cells: Iterable[str], prune: bool = False) -> Path:
+    """Replaces the rows of `cells` (names in the study) with those of their local logs; a
     cell without logs keeps its rows. With `prune`, cells not named lose theirs."""
-    path = table_path(results, suite)
+    path = table_path(study_dir)
     names = sorted(set(cells))
     with _locked(path.parent):
-        new = {name: cell_rows(name, Path(results) / suite / name / "sweep") for name in names}
+        new = {name: cell_rows(name, Path(study_dir) / name / "sweep") for name in names}
         fresh = {name for name, rows in new.items() if rows}
         keep = [r for r in read_table(path) if r[0] not in fresh and (not prune or r[0] in names)]
         write_table(path, keep + [r for name in sorted(fresh) for r in new[name]])
     return path
 
 
-def finished_cells(results: Path, suite: str) -> list[str]:
-    """Names of the cells of `suite` under `results` whose sweep finished."""
-    root = Path(results) / suite
+def tabled_cells(study_dir: Path) -> set[str]:
+    """The names of the cells the study's table holds rows of."""
+    return {r[0] for r in read_table(table_path(study_dir))}
+
+
+def finished_cells(study_dir: Path) -> list[str]:
+    """Names of the cells under `study_dir` whose sweep finished."""
+    root = Path(study_dir)
     return sorted(
         spec.parent.relative_to(root).as_posix()
         for spec in root.glob("**/cell.json")
@@ -197,61 +198,18 @@ def finished_cells(results: Path, suite: str) -> list[str]:
     )
 
 
-def build(results: Path, suite: str) -> Path:
-    """The suite's table from the logs of its finished cells (a finished cell whose logs
+def build(study_dir: Path) -> Path:
+    """The study's table from the logs of its finished cells (a finished cell whose logs
     are absent keeps its rows; rows of cells that are not finished are dropped)."""
-    return update_table(results, suite, finished_cells(results, suite), prune=True)
+    return update_table(study_dir, finished_cells(study_dir), prune=True)
 
 
 def committed_files(cell: Path, table: Path) -> list[Path]:
     """What git keeps of the finished cell in directory `cell`: its small files (`CELL_FILES`,
-    `SWEEP_FILES`, `RESUMED_VERSIONS`, each point's `POINT_FILES`) and its suite's `table`,
+    `SWEEP_FILES`, `RESUMED_VERSIONS`, each point's `POINT_FILES`) and its study's `table`,
     those that exist."""
     sweep = cell / "sweep"
     files = [cell / f for f in CELL_FILES] + [sweep / f for f in SWEEP_FILES]
     files += sorted(sweep.glob(RESUMED_VERSIONS))  # a cell resumed on another machine or commit
     files += [point / f for point in point_dirs(sweep) for f in POINT_FILES]
     return [f for f in [*files, table] if f.is_file()]
-
-
-def load_runs(results: Path, suite: str, cell: str, metric: str) -> list[Any]:
-    """The `coherent_jax.plot.Run` of `metric` of each point of a cell, sorted by point:
-    from the point's ``metrics.jsonl`` where it is present, else from the suite's table."""
-    from coherent_jax import plot
-    from coherent_jax.config import ConfigError
-
-    if metric not in METRICS:
-        raise ValueError(f"metric {metric!r} is not in the curves tables (allowed: {', '.join(METRICS)})")
-    table = table_path(results, suite)
-    runs = []
-    for point in point_dirs(Path(results) / suite / cell / "sweep"):
-        if (point / LOG).is_file():
-            runs.append(plot.load_run(point, metric))
-            continue
-        rows = table_runs(table).get((cell, point.name))
-        if rows is None:
-            raise ConfigError(
-                f"invalid run directory {str(point)!r}: no {LOG} and no rows in {str(table)!r} "
-                "(allowed: a point whose logs are present or in its suite's table; experiments/README.md "
-                "says where the earlier cells' logs are)"
-            )
-        runs.append(plot.run_from_rows(point, rows, metric, source=str(table)))
-    return runs
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """Rebuilds the tables of the suites named (all under ``--results`` by default)."""
-    parser = argparse.ArgumentParser(prog="python experiments/curves.py", description=__doc__.split("\n")[0])
-    parser.add_argument("suites", nargs="*", help="suites (default: those with a finished cell)")
-    parser.add_argument("--results", default=str(Path(__file__).resolve().parent / "results"))
-    args = parser.parse_args(argv)
-    results = Path(args.results).resolve()
-    suites = args.suites or [d.name for d in sorted(results.iterdir()) if finished_cells(results, d.name)]
-    for suite in suites:
-        path = build(results, suite)
-        print(json.dumps({"suite": suite, "table": str(path), "cells": len(finished_cells(results, suite))}))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
