@@ -19,7 +19,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from coherent_jax.run import loop, sharding
+from coherent_jax.run import devices as sharding, loop
 
 from coherent_jax import sweep, train
 from coherent_jax.agents import make_trainer

@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import child_env, load_experiment, tensorboard_scalars
+from helpers import child_env, tensorboard_scalars
 
 from coherent_jax.config import parse_overrides
 from coherent_jax.run.checkpoint import CHECKPOINT, LoopState, decode_checkpoint, encode_checkpoint
@@ -149,10 +149,11 @@ def test_sigterm_stops_after_the_iteration_with_a_checkpoint(tmp_path):
 @pytest.mark.slow
 def test_a_sweep_stopped_before_its_first_evaluation_and_carried_resumes_to_the_uninterrupted_one(tmp_path):
     """SIGTERM to a vmapped sweep before any evaluation: exit 128+15 with no traceback and no
-    sweep.json. Carried as experiments/reproduce.py carries a cell to another checkout (packed,
+    sweep.json. Carried as a study carries a cell to another checkout (packed,
     the sweep directory deleted, unpacked) and resumed, every point's metrics equal those of a
     sweep never stopped."""
-    carry = load_experiment("carry")
+    from coherent_jax.study import carry
+
     cell = tmp_path / "cell"
     sweep = cell / "sweep"
     args = [*(a for a in LONG if not a.startswith(("eval_every=", "checkpoint_every="))), "seeds=2"]
