@@ -430,7 +430,14 @@ def test_versions_json_records_commit_dirty_flag_and_cpu(tmp_path):
 
     record_versions(tmp_path, None)
     versions = json.loads((tmp_path / "versions.json").read_text())
-    assert versions["jax"] and {"git_commit", "git_dirty", "cpu_model", "cpu_vector_isa"} <= set(versions)
+    assert versions["jax"] and {
+        "git_commit",
+        "git_dirty",
+        "cpu_model",
+        "cpu_vector_isa",
+        "cpu_family",
+        "xla_flags",
+    } <= set(versions)
     head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True)
     if head.returncode == 0:
         assert versions["git_commit"] == head.stdout.strip() and isinstance(versions["git_dirty"], bool)
@@ -438,7 +445,12 @@ def test_versions_json_records_commit_dirty_flag_and_cpu(tmp_path):
     assert rundir.git_state(tmp_path) == {"git_commit": None, "git_dirty": None}
     cpuinfo = tmp_path / "cpuinfo"
     cpuinfo.write_text("processor\t: 0\nmodel name\t: Test CPU 3000\nflags\t\t: fpu sse4_2 avx avx2 fma\n")
-    assert rundir.cpu_info(cpuinfo) == {"cpu_model": "Test CPU 3000", "cpu_vector_isa": "avx2"}
+    info = rundir.cpu_info(cpuinfo)
+    assert {k: info[k] for k in ("cpu_model", "cpu_vector_isa", "cpu_family")} == {
+        "cpu_model": "Test CPU 3000",
+        "cpu_vector_isa": "avx2",
+        "cpu_family": None,  # not in this cpuinfo: null (tests/test_verify_cpu.py reads a full one)
+    }
 
 
 def test_results_data_do_not_make_the_checkout_dirty_but_code_does(tmp_path):

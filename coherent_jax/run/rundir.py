@@ -33,9 +33,14 @@
     ``git``).
   - ``cpu_model``: the processor's name (``model name`` of ``/proc/cpuinfo``, else
     `platform.processor`).
+  - ``cpu_vendor``, ``cpu_family``, ``cpu_model_number``, ``cpu_stepping``: the
+    processor's identity (``vendor_id``, ``cpu family``, ``model``, ``stepping``); the
+    name alone ("AMD EPYC") covers processors of several generations.
   - ``cpu_vector_isa``: the widest vector extension the CPU reports (``avx512f``, ``avx2``,
     ``avx``, ``sse4_2``; null if none of these or unknown). XLA compiles for the host's
     extensions, so two machines at different levels can round float32 sums differently.
+  - ``xla_cpu_isa``: the extension XLA compiles for (`xla_cpu_isa`): the host's, capped by
+    ``--xla_cpu_max_isa`` in ``XLA_FLAGS``; ``xla_flags``: ``XLA_FLAGS`` as the run saw it.
 
   The provenance is best effort: a failure gives null, never an error.
 
@@ -67,6 +72,9 @@ LOCK = "run.lock"
 VERSIONED_PACKAGES = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "brax", "flax", "optax", "numpy", "chex")
 # Widest first: the first of these in the CPU's flags is its level.
 VECTOR_LEVELS = ("avx512f", "avx2", "avx", "sse4_2")
+XLA_ISA = {"avx512f": "AVX512", "avx2": "AVX2", "avx": "AVX", "sse4_2": "SSE4_2"}  # XLA's names
+ISA_ORDER = ("SSE4_2", "AVX", "AVX2", "AVX512")  # narrowest first
+CPUINFO_FIELDS = ("model name", "vendor_id", "cpu family", "model", "stepping")
 PROJECT_ROOT = Path(__file__).resolve().parents[2]  # coherent_jax/run/rundir.py -> the checkout
 #: tracked results data that `git_state` does not count as a change of the checkout
 RESULTS_DATA = "experiments/results"
@@ -416,22 +424,57 @@ def git_state(root: Path = PROJECT_ROOT) -> dict[str, Any]:
     return {"git_commit": commit, "git_dirty": bool(status)}
 
 
+def xla_cpu_isa(host_level: str | None, xla_flags: str) -> str | None:
+    """The vector extension XLA's CPU compiler targets: the host's widest (`VECTOR_LEVELS`, as
+    XLA names it: ``AVX512``, ``AVX2``, ``AVX``, ``SSE4_2``), lowered to ``--xla_cpu_max_isa``
+    when `xla_flags` caps it below (an ``AVX512_*`` cap counts as ``AVX512``)."""
+    host = XLA_ISA.get(host_level or "")
+    cap = None
+    for flag in xla_flags.split():
+        name, _, value = flag.partition("=")
+        if name == "--xla_cpu_max_isa":
+            cap = value.upper()
+    if cap is None or host is None:
+        return host
+    cap = "AVX512" if cap.startswith("AVX512") or cap == "AMX" else cap
+    if cap not in ISA_ORDER:
+        return f"{host} (--xla_cpu_max_isa={cap})"
+    return min(host, cap, key=ISA_ORDER.index)
+
+
 def cpu_info(cpuinfo: Path = Path("/proc/cpuinfo")) -> dict[str, Any]:
-    """``cpu_model`` and ``cpu_vector_isa`` from `cpuinfo` (Linux), else what `platform` says."""
-    model, flags = None, set()
+    """The processor's name, identity and vector extensions from `cpuinfo` (Linux; else the
+    name `platform` gives and nulls), and the extension XLA compiles for under this
+    process's ``XLA_FLAGS``: the fields of the module docstring."""
+    fields: dict[str, str] = {}
+    flags: set[str] = set()
     try:
         for line in cpuinfo.read_text(errors="replace").splitlines():
             name, _, value = line.partition(":")
             name = name.strip()
-            if name == "model name" and model is None:
-                model = value.strip()
-            elif name == "flags" and not flags:
+            if name == "flags" and not flags:
                 flags = set(value.split())
+            elif name in CPUINFO_FIELDS and name not in fields:
+                fields[name] = value.strip()
     except OSError:
         pass
-    model = model or platform.processor() or None
+
+    def number(name: str) -> int | None:
+        value = fields.get(name, "")
+        return int(value) if value.isdigit() else None
+
     level = next((lvl for lvl in VECTOR_LEVELS if lvl in flags), None)
-    return {"cpu_model": model, "cpu_vector_isa": level}
+    xla_flags = " ".join(os.environ.get("XLA_FLAGS", "").split())
+    return {
+        "cpu_model": fields.get("model name") or platform.processor() or None,
+        "cpu_vendor": fields.get("vendor_id"),
+        "cpu_family": number("cpu family"),
+        "cpu_model_number": number("model"),
+        "cpu_stepping": number("stepping"),
+        "cpu_vector_isa": level,
+        "xla_cpu_isa": xla_cpu_isa(level, xla_flags),
+        "xla_flags": xla_flags,
+    }
 
 
 def provenance() -> dict[str, Any]:

@@ -12,14 +12,24 @@ then compared, as a float, with what the re-run logged. Per cell it reports one 
   iterations that logged a return can be compared: an evaluation every ``eval_every``
   iterations, a training return once an episode has ended);
 
+A difference is then told apart by the CPUs (`classify`): XLA compiles for the host's
+vector extensions, and float32 sums round differently between them, so a cell made on
+another CPU may differ for that reason alone. The verdict is one of
+
+* ``bit-identical``;
+* ``differs from iteration N on the same CPU``: the code (or a library's version, named)
+  changed the bits; the entry names the last commit marked ``Changes bits:`` since the
+  cell's (`last_changes_bits`), or says none is;
+* ``not comparable: made on CPU X, this is CPU Y``: the CPUs differ (vendor, family,
+  model, the extension XLA compiles for, or the XLA flags: `CPU_KEY`);
+* ``differs from iteration N; the cell records too little of its CPU ...``: a cell made
+  before runs recorded the CPU's identity (its name alone, "AMD EPYC", covers several).
+
 with the commit and CPU the cell recorded (``commit unknown`` for a cell made before
 runs recorded their commit), and writes that to a ``verify.json`` (`OUT`: the study's, or
 for the suites of experiments/studies/ the one beside them, ``experiments/results/verify.json``),
 one entry per cell (``STUDY/CELL``), merged with the entries already there. The reports mark
 with † the cells whose entry says they differ.
-
-A cell made on another CPU may differ for that reason alone: XLA compiles for the
-host's vector extensions, and float32 sums round differently between them.
 """
 
 from __future__ import annotations
@@ -35,10 +45,13 @@ from pathlib import Path
 from typing import Any
 
 from coherent_jax.config.parse import modern_items
+from coherent_jax.run.rundir import PROJECT_ROOT, VERSIONED_PACKAGES
 from coherent_jax.study import curves
 from coherent_jax.study.cell import PACKAGE_ROOT, Cell, cell_dir, cell_state, sweep_env
 
 OUT = "verify.json"
+# The fields of versions.json that must agree for bits to be comparable (coherent_jax.run.rundir).
+CPU_KEY = ("cpu_vendor", "cpu_family", "cpu_model_number", "xla_cpu_isa", "xla_flags")
 DEFAULT_ITERATIONS = 3
 MARK = "†"
 FOOTNOTE = (
@@ -113,7 +126,8 @@ def steps_per_iteration(cell: Cell, study_dir: Path) -> int:
 
 
 def cell_provenance(cell: Cell, study_dir: Path) -> dict[str, Any]:
-    """The commit and CPU a cell recorded (its sweep's ``versions.json``) and its resumes' commits."""
+    """The commit and CPU a cell recorded (its sweep's ``versions.json``) and its resumes' commits;
+    ``recorded``: the file's CPU fields and package versions, for `classify`."""
     sweep = cell_dir(cell, study_dir) / "sweep"
     try:
         v = json.loads((sweep / "versions.json").read_text())
@@ -131,7 +145,86 @@ def cell_provenance(cell: Cell, study_dir: Path) -> dict[str, Any]:
         "cpu": v.get("cpu_model") or "CPU unknown",
         "cpu_vector_isa": v.get("cpu_vector_isa"),
         "resumed_at": resumed,
+        "recorded": recorded(v),
     }
+
+
+def recorded(versions: dict[str, Any]) -> dict[str, Any]:
+    """The fields of a ``versions.json`` that decide whether two runs can be compared bit for
+    bit: the CPU's (`CPU_KEY`, its name and stepping) and the versioned packages'."""
+    keep = (*CPU_KEY, "cpu_model", "cpu_stepping", *VERSIONED_PACKAGES)
+    return {k: versions[k] for k in keep if k in versions}
+
+
+def cpu_label(v: dict[str, Any]) -> str:
+    """A CPU as a reader tells it apart: name, vendor, family, model, stepping, XLA's extension."""
+    name = v.get("cpu_model") or "unknown CPU"
+    if not all(k in v for k in CPU_KEY):
+        return f"{name} (identity not recorded)"
+    flags = f", XLA_FLAGS={v['xla_flags']!r}" if v["xla_flags"] else ""
+    return (
+        f"{name} ({v['cpu_vendor']} family {v['cpu_family']} model {v['cpu_model_number']} "
+        f"stepping {v.get('cpu_stepping')}, XLA for {v['xla_cpu_isa']}{flags})"
+    )
+
+
+def last_changes_bits(since: str | None, root: Path = PROJECT_ROOT) -> str:
+    """The last commit after `since` (a cell's commit) whose message has a ``Changes bits:`` line,
+    as ``HASH subject``; or why there is none to name."""
+    if not since or since == "commit unknown":
+        return "the cell's commit is unknown"
+    try:
+        done = subprocess.run(
+            [
+                "git",
+                "-C",
+                str(root),
+                "log",
+                "-1",
+                "--format=%h %s",
+                "--grep=^Changes bits:",
+                f"{since}..HEAD",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=30,
+            check=False,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return "git is not available"
+    if done.returncode != 0:
+        return f"the cell's commit {since[:12]} is not in this checkout"
+    return done.stdout.strip() or f"none since the cell's commit {since[:12]}"
+
+
+def classify(
+    entry: dict[str, Any], cell: dict[str, Any], here: dict[str, Any], commit: str | None
+) -> dict[str, Any]:
+    """The verdict of a compared cell (the module docstring's four), from what `compare` found,
+    the cell's recorded CPU and versions (`recorded`) and this machine's; adds ``changes_bits``
+    (`last_changes_bits`) to a difference on the same CPU."""
+    if entry["result"] == "bit-identical" or not entry["result"].startswith("differs"):
+        return entry
+    if not all(k in cell for k in CPU_KEY):
+        result = (
+            f"{entry['result']}; the cell records too little of its CPU (only "
+            f"{cell.get('cpu_model') or 'nothing'!r}) to tell a CPU change from a code change"
+        )
+        return {**entry, "result": result}
+    if any(cell[k] != here.get(k) for k in CPU_KEY):
+        return {
+            **entry,
+            "result": f"not comparable: made on CPU {cpu_label(cell)}, this is CPU {cpu_label(here)}",
+        }
+    result = f"{entry['result']} on the same CPU"
+    versions = [
+        f"{k} {here.get(k)} (the cell: {cell[k]})"
+        for k in VERSIONED_PACKAGES
+        if k in cell and cell[k] != here.get(k)
+    ]
+    if versions:
+        result += ", with " + ", ".join(versions)
+    return {**entry, "result": result, "changes_bits": last_changes_bits(commit)}
 
 
 def rerun_command(cell: Cell, run_dir: Path, total_steps: int) -> list[str]:
@@ -183,14 +276,19 @@ def verify_cell(
         now = _values(curves.cell_rows(cell.name, Path(scratch) / "sweep"))
         # What the re-run recorded of its code and machine (as every sweep does).
         here = json.loads((Path(scratch) / "sweep" / "versions.json").read_text())
+    provenance = cell_provenance(cell, study_dir)
+    verdict = classify(
+        compare(committed, now, spi), provenance["recorded"], recorded(here), provenance["commit"]
+    )
     return {
-        **compare(committed, now, spi),
-        "cell": cell_provenance(cell, study_dir),
+        **verdict,
+        "cell": provenance,
         "verified_at": {
             "commit": here.get("git_commit"),
             "dirty": here.get("git_dirty"),
             "cpu": here.get("cpu_model"),
             "cpu_vector_isa": here.get("cpu_vector_isa"),
+            "recorded": recorded(here),
             "date": time.strftime("%Y-%m-%d"),
         },
         "iterations_run": n,
@@ -203,7 +301,10 @@ def line(name: str, entry: dict[str, Any]) -> str:
     """One cell's result in one line: the verdict, the cell's commit and CPU."""
     c = entry["cell"]
     commit = c["commit"] if c["commit"] == "commit unknown" else f"commit {c['commit'][:12]}"
-    return f"{name}: {entry['result']} ({commit}, {c['cpu']}; {entry['values_compared']} values compared)"
+    bits = f"; last 'Changes bits:' commit: {entry['changes_bits']}" if entry.get("changes_bits") else ""
+    return (
+        f"{name}: {entry['result']} ({commit}, {c['cpu']}; {entry['values_compared']} values compared{bits})"
+    )
 
 
 def load(folder: Path) -> dict[str, Any]:
