@@ -65,6 +65,11 @@ def good_factory() -> gymnasium.Env:
 gymnasium.register("BadGymEnvsGood-v0", entry_point=f"{__name__}:Good", max_episode_steps=30)
 
 
+def limited_factory() -> gymnasium.Env:
+    """Its env wears the registered TimeLimit of 30 steps: no longer episode_length can outlast it."""
+    return gymnasium.make("BadGymEnvsGood-v0", disable_env_checker=True)
+
+
 class NanReset(_Base):
     """Its reset's observation holds a NaN (refused, naming the entry)."""
 

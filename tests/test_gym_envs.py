@@ -127,6 +127,21 @@ def test_registering_module_factory_and_class_are_taken(name, length, monkeypatc
     assert (env.physics, env.observation_size, env.action_size, env.episode_length) == ("gym", 2, 1, length)
 
 
+def test_episode_length_outlasts_the_registered_limit_but_not_a_limit_the_env_wears(monkeypatch):
+    """``gym:ID`` is built without its registered TimeLimit, so ``episode_length`` above it is
+    honoured (30 registered, 45 asked: the first truncation at step 45); an env whose own
+    builder wraps that TimeLimit cannot run longer and is refused in one line."""
+    monkeypatch.syspath_prepend(str(ROOT / "tests"))
+    env = VecEnv("gym:bad_gym_envs:BadGymEnvsGood-v0", 1, episode_length=45)
+    _, out = _rollout(env, jax.random.PRNGKey(0), jnp.zeros((50, 1, env.action_size)))
+    assert np.flatnonzero(np.asarray(out.truncated)[:, 0]).tolist() == [44]
+    assert parse_overrides(["env=bad_gym_envs:limited_factory"]).episode_length == 30
+    with pytest.raises(ConfigError) as err:
+        parse_overrides(["env=bad_gym_envs:limited_factory", "episode_length=45"])
+    message = str(err.value)
+    assert "\n" not in message and "'episode_length': 45" in message and "at most 30" in message, message
+
+
 def test_physics_mjx_is_refused_for_a_gymnasium_env():
     with pytest.raises(ConfigError, match="Gymnasium envs step on the host"):
         parse_overrides(["env=gym:Pendulum-v1", "physics=mjx"])

@@ -13,6 +13,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from helpers import child_env
 
@@ -384,7 +385,7 @@ def _metrics(study_dir: Path) -> dict[str, list[dict]]:
 def test_a_killed_study_continues_to_the_results_of_an_uninterrupted_one(tmp_path):
     """SIGKILL of the study's process mid-way (its sweeps end with it, checkpointed), then the
     same command: no finished cell is recomputed, and the curves and metrics are those of a study
-    that ran through."""
+    that ran through. Then `verify` on the finished study tells a code change from a CPU change."""
     items = ["env=pointmass", "explore=[action,pink]", "seeds=2", "total_steps=512", "checkpoint_every=1",
              "workers=1", "name=kill", *TINY]  # fmt: skip
     run = [sys.executable, "-m", "coherent_jax.study", *items]
@@ -409,3 +410,37 @@ def test_a_killed_study_continues_to_the_results_of_an_uninterrupted_one(tmp_pat
     assert (killed / "pointmass" / "ppo" / "action" / "sweep" / "sweep.json").stat().st_mtime_ns == first
     assert (killed / curves.TABLE).read_bytes() == (tmp_path / "whole" / curves.TABLE).read_bytes()
     assert _metrics(killed) == _metrics(tmp_path / "whole")
+    _verify_tells_a_code_change_from_a_cpu_change(run, tmp_path / "whole", env, tmp_path)
+
+
+def _verify_tells_a_code_change_from_a_cpu_change(run, study, env, cwd):
+    """``verify=true`` on a finished cell: bit-identical (exit 0); with one logged value moved
+    by one ulp, as a changed rounding would move it, "differs ... on the same CPU" (exit 1);
+    with that and the cell's CPU recorded as another family, "not comparable" (exit 0)."""
+    name = "pointmass/ppo/action"
+    argv = [*run, f"out={study}", "verify=true", f"cells=[{name}]", "iterations=2"]
+
+    def verify():
+        done = subprocess.run(argv, env=env, capture_output=True, text=True, cwd=cwd, timeout=900)
+        line = next((x for x in done.stdout.splitlines() if x.startswith(f"kill/{name}:")), done.stderr)
+        return done.returncode, line
+
+    status, line = verify()
+    assert status == 0 and "bit-identical" in line, line
+    table = curves.table_path(study)
+    rows = curves.read_table(table)
+    i = next(i for i, r in enumerate(rows) if r[0] == name and r[3] is not None)
+    rows[i] = (*rows[i][:3], float(np.nextafter(np.float32(rows[i][3]), np.float32(np.inf))), *rows[i][4:])
+    curves.write_table(table, rows)
+    status, line = verify()
+    assert status == 1 and "differs from iteration 2 on the same CPU" in line, line
+    assert "last 'Changes bits:' commit: " in line, line
+    versions = study / name / "sweep" / "versions.json"
+    recorded = json.loads(versions.read_text())
+    versions.write_text(json.dumps({**recorded, "cpu_family": recorded["cpu_family"] + 1}))
+    status, line = verify()
+    assert status == 0 and f"not comparable: made on CPU {recorded['cpu_model']} (" in line, line
+    assert (
+        f"family {recorded['cpu_family'] + 1} model" in line
+        and f"family {recorded['cpu_family']} model" in line
+    )

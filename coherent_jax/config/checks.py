@@ -186,6 +186,13 @@ def validate(cfg: Config) -> Config:
     if cfg.episode_length == 0:  # the task's registered time limit, written into the resolved config
         cfg = dataclasses.replace(cfg, episode_length=spec.episode_length)
     _declared(cfg)
+    limit = spec.max_episode_length
+    check(
+        limit is None or cfg.episode_length <= limit,
+        "episode_length",
+        cfg.episode_length,
+        f"at most {limit}, the TimeLimit the env wears (build it without one for longer episodes)",
+    )
     cfg = dataclasses.replace(cfg, preset="") if cfg.preset in NO_PRESET else cfg
     for rule in CROSS_CHECKS:
         rule(cfg)

@@ -63,6 +63,9 @@ class GymSource:
       renders: whether the env was built with ``render_mode="rgb_array"`` (video works).
       dt: seconds per step (the env's ``dt``, else ``1 / metadata["render_fps"]``, else 0.05).
       action_dtype: the action space's dtype, what the env receives.
+      own_limit: the ``max_episode_steps`` of a ``TimeLimit`` the built env already wears (a
+        builder that returns ``gymnasium.make(ID)``), which no longer ``episode_length`` can
+        outlast; None when it wears none (a registered id is built without its own).
     """
 
     name: str
@@ -74,6 +77,7 @@ class GymSource:
     renders: bool
     dt: float = 0.05
     action_dtype: Any = np.float32
+    own_limit: int | None = None
 
     @property
     def action_size(self) -> int:
@@ -139,7 +143,10 @@ def _registered(name: str) -> tuple[Callable[[], Any], int]:
     except Exception:  # an entry point that does not load is refused when the env is built
         modes = ()
     render = {"render_mode": "rgb_array"} if "rgb_array" in modes else {}
-    quiet = {"max_episode_steps": None, "disable_env_checker": True}
+    quiet = {
+        "max_episode_steps": -1,
+        "disable_env_checker": True,
+    }  # -1: no TimeLimit (None: the registered one)
     build = functools.partial(gymnasium.make, gym_id, **quiet, **render)
     build.__name__ = f"gymnasium.make({gym_id!r})"
     return build, int(length)
@@ -188,8 +195,9 @@ def check_gym_env(name: str, build: Callable[[], Any], episode_length: int | Non
     fps = (getattr(env, "metadata", None) or {}).get("render_fps")
     dt = float(getattr(env.unwrapped, "dt", None) or (1.0 / fps if fps else 0.05))
     env.close()
+    own_limit = worn_time_limit(env)
     if episode_length is None:
-        episode_length = getattr(env.spec, "max_episode_steps", None) or DEFAULT_EPISODE_LENGTH
+        episode_length = own_limit or DEFAULT_EPISODE_LENGTH
     return GymSource(
         name,
         build,
@@ -200,7 +208,18 @@ def check_gym_env(name: str, build: Callable[[], Any], episode_length: int | Non
         renders,
         dt,
         np.dtype(env.action_space.dtype),
+        own_limit,
     )
+
+
+def worn_time_limit(env: Any) -> int | None:
+    """The shortest ``max_episode_steps`` of the ``TimeLimit`` wrappers around `env`, or None."""
+    limits = []
+    while env is not None:
+        if isinstance(env, TimeLimit):
+            limits.append(int(env._max_episode_steps))
+        env = getattr(env, "env", None)
+    return min(limits) if limits else None
 
 
 def _checked_obs(name: str, when: str, obs: Any, size: int) -> None:

@@ -43,6 +43,8 @@ class TaskSpec:
         `coherent_jax.envs.native_ports`).
       goal: the task terminates exactly when it reaches its goal, so the fraction of episodes
         that terminate is logged as ``train/goal_reached`` and ``eval/goal_reached``.
+      max_episode_length: the longest ``episode_length`` the task can run (a Gymnasium env
+        that truncates its own episodes); None: any.
     """
 
     brax_name: str
@@ -54,6 +56,7 @@ class TaskSpec:
     playground_id: str = ""
     native: bool = False
     goal: bool = False
+    max_episode_length: int | None = None
 
 
 class UnknownTaskError(ValueError):

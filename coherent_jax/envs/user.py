@@ -354,6 +354,7 @@ def load_user_task(name: str) -> LoadedTask:
             episode_length=task.episode_length,
             description=f"a Gymnasium env of your own ({name}), stepped on the host",
             backend="gym",
+            max_episode_length=task.own_limit,
         )
         return LoadedTask(spec, None, task)
     fields = _checked_settings(name, task)

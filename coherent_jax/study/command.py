@@ -15,7 +15,8 @@ cell. The command's own keys are `KEYS` (``--plan``, ``--status`` and the like a
 flags). Bad input (a bad key or value in any cell, an unknown strategy, a refused (algo,
 explore) pair, a folder holding another study) is one line on stderr and exit status 2
 before anything runs or is written. Exit status 0 when every cell is done (``verify``:
-bit-identical), 1 when a cell's sweep failed.
+bit-identical, or not comparable: made on another CPU), 1 when a cell's sweep failed
+(``verify``: a cell differs).
 """
 
 from __future__ import annotations

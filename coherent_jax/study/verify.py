@@ -51,6 +51,7 @@ from coherent_jax.study.cell import PACKAGE_ROOT, Cell, cell_dir, cell_state, sw
 
 OUT = "verify.json"
 # The fields of versions.json that must agree for bits to be comparable (coherent_jax.run.rundir).
+NOT_COMPARABLE = "not comparable:"
 CPU_KEY = ("cpu_vendor", "cpu_family", "cpu_model_number", "xla_cpu_isa", "xla_flags")
 DEFAULT_ITERATIONS = 3
 MARK = "†"
@@ -214,7 +215,7 @@ def classify(
     if any(cell[k] != here.get(k) for k in CPU_KEY):
         return {
             **entry,
-            "result": f"not comparable: made on CPU {cpu_label(cell)}, this is CPU {cpu_label(here)}",
+            "result": f"{NOT_COMPARABLE} made on CPU {cpu_label(cell)}, this is CPU {cpu_label(here)}",
         }
     result = f"{entry['result']} on the same CPU"
     versions = [
@@ -228,8 +229,13 @@ def classify(
 
 
 def rerun_command(cell: Cell, run_dir: Path, total_steps: int) -> list[str]:
-    """The cell's sweep as `coherent_jax.study.cell.sweep_command` starts it, cut to ``total_steps``."""
-    overrides = [f"total_steps={total_steps}" if o.startswith("total_steps=") else o for o in cell.overrides]
+    """The cell's sweep as `coherent_jax.study.cell.sweep_command` starts it, cut to ``total_steps``,
+    quiet (its own ``progress`` and ``tensorboard``, which change no number, replaced)."""
+    overrides = [
+        f"total_steps={total_steps}" if o.startswith("total_steps=") else o
+        for o in cell.overrides
+        if not o.startswith(("progress=", "tensorboard="))
+    ]
     return [
         sys.executable,
         "-m",
@@ -344,7 +350,8 @@ def run(
     """``verify``: each finished cell in turn, its entry saved to ``RECORD/verify.json`` (default:
     the study's folder) as soon as it is known; ``command`` (with ``{cell}``) is how to repeat one.
 
-    Exit status 0 when every verified cell is bit-identical, 1 otherwise, 2 for bad input.
+    Exit status 0 when every verified cell is bit-identical or not comparable (made on another
+    CPU: no verdict on the code), 1 when one differs or is not finished, 2 for bad input.
     """
     record = Path(study_dir) if record is None else Path(record)
     if iterations < 1:
@@ -368,7 +375,7 @@ def run(
             continue
         save(record, {**load(record), name: entry})
         print(line(name, entry), flush=True)
-        status |= entry["result"] != "bit-identical"
+        status |= not (entry["result"] == "bit-identical" or entry["result"].startswith(NOT_COMPARABLE))
     return status
 
 
