@@ -340,7 +340,7 @@ def test_directory_locked_by_a_live_process_is_refused_naming_its_pid(tmp_path, 
     assert not (run / rundir.LOCK).exists() and rundir.holder(run) is None
 
 
-def test_stale_lock_of_a_dead_process_is_taken_over(tmp_path):
+def test_stale_lock_of_a_dead_process_is_taken_over(tmp_path, capsys):
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
     run = fake_run(tmp_path / "run", 3)
@@ -349,9 +349,14 @@ def test_stale_lock_of_a_dead_process_is_taken_over(tmp_path):
     rundir.refuse_if_held(run, "resume")
     with rundir.acquire(run, "resume"):
         assert (run / rundir.LOCK).read_text().strip() == str(os.getpid())
+        said = capsys.readouterr().out.strip().splitlines()
+        assert said == [f"[coherent_jax] {run / rundir.LOCK}: a stale lock of process {dead.pid}, "
+                        "which ended without releasing it, taken over"]  # fmt: skip
         with pytest.raises(ConfigError, match=f"in use by process {os.getpid()}"):
             rundir.acquire(run, "resume")  # a second holder, even in this process, is refused
     assert not (run / rundir.LOCK).exists()
+    with rundir.acquire(run, "resume"):  # a lock released as it should be leaves nothing to report
+        assert "stale" not in capsys.readouterr().out
 
 
 # ------------------------------------------------------------------ 10. messages that said the wrong thing

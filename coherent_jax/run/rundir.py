@@ -223,8 +223,8 @@ def acquire(directory: Path, key: str) -> RunLock:
     """Locks `directory` (an existing one) for this process; raises `ConfigError` naming the holder.
 
     ``key`` is the setting the refusal names (``run_dir`` or ``resume``). A lock left by a
-    process that is gone is taken over; a directory where the lock file cannot be made is
-    refused too.
+    process that is gone is taken over, and said so in one line; a directory where the lock
+    file cannot be made is refused too.
     """
     path = Path(directory) / LOCK
     while True:
@@ -248,6 +248,11 @@ def acquire(directory: Path, key: str) -> RunLock:
         if same:
             break
         os.close(fd)
+    stale = _read_pid(fd) if os.fstat(fd).st_size else None  # a holder unlinks its file on release
+    if stale is not None:
+        print(
+            f"{PREFIX} {path}: a stale lock of process {stale}, which ended without releasing it, taken over"
+        )
     os.ftruncate(fd, 0)
     os.lseek(fd, 0, os.SEEK_SET)
     os.write(fd, f"{os.getpid()}\n".encode())
