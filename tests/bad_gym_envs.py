@@ -1,6 +1,8 @@
 """Gymnasium envs of a user's that coherent_jax refuses, and three it takes (tests/test_gym_envs.py,
 tests/test_gym_policy.py)."""
 
+import os
+
 import gymnasium
 import numpy as np
 from gymnasium import spaces
@@ -83,3 +85,18 @@ class InfStep(_Base):
 
     def step(self, action):
         return np.array([-np.inf, np.nan], np.float32), 0.0, False, False, {}
+
+
+class BreaksLater(_Base):
+    """Its ``step`` raises from the N-th call of the process on (all its instances together)
+    while the environment variable BAD_GYM_BREAK_AT is N: an env that fails mid-run, and is
+    fixed by unsetting it."""
+
+    calls = 0
+
+    def step(self, action):
+        BreaksLater.calls += 1
+        at = os.environ.get("BAD_GYM_BREAK_AT")
+        if at and BreaksLater.calls >= int(at):
+            raise RuntimeError(f"the joint broke at call {BreaksLater.calls}")
+        return super().step(action)

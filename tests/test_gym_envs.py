@@ -19,6 +19,7 @@ from helpers import ROOT, child_env
 from coherent_jax.config import ConfigError, parse_overrides
 from coherent_jax.envs.host_gym import env_seeds
 from coherent_jax.envs.vec_env import VecEnv
+from coherent_jax.run.rundir import read_metrics
 
 EXAMPLE = "examples/train_gym_env.py:TargetLine"
 
@@ -92,8 +93,8 @@ def test_refused_env_is_named_with_its_problem(name, problem, monkeypatch):
     assert "\n" not in message and name in message and problem in message, message
 
 
-def _cli(args, cwd, timeout=900):
-    env = child_env()
+def _cli(args, cwd, timeout=900, extra=None):
+    env = {**child_env(), **(extra or {})}
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT / "tests"), env["PYTHONPATH"]])
     return subprocess.run(
         [sys.executable, *args], cwd=cwd, capture_output=True, text=True, env=env, timeout=timeout
@@ -250,3 +251,34 @@ def test_a_gymnasium_env_runs_on_one_device_of_several(tmp_path):
     )
     r = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, timeout=300)
     assert r.stdout.split() == ["2", "1", "2", "2"], r.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("command", ["coherent_jax.train", "coherent_jax.sweep"])
+def test_an_env_that_raises_mid_run_stops_in_one_line_and_resumes_once_fixed(tmp_path, command):
+    """A Gymnasium env whose ``step`` raises at iteration 3 (2 envs x 8 steps an iteration, one
+    step at the check before; in a sweep both points share one pool): one line naming the
+    iteration, the env and its error, exit status 1, the rows and the checkpoint of iteration 2
+    kept; unset the fault and ``resume=`` runs to the end."""
+    run = tmp_path / "run"
+    args = ["env=bad_gym_envs:BreaksLater", "num_envs=2", "unroll_length=8", "ppo.num_minibatches=1",
+            "total_steps=80", "episode_length=20", "eval_every=0", "eval_episodes=1", "checkpoint_every=1",
+            "policy_hidden=[8]", "value_hidden=[8]", "progress=false", "tensorboard=false"]  # fmt: skip
+    sweep = command.endswith("sweep")
+    args += ["seeds=2"] if sweep else []
+    # Step calls: 1 at the check, then 16 an iteration (32 in a sweep of 2 points): iteration 3's first.
+    at = 66 if sweep else 34
+    broken = _cli(["-m", command, *args, f"run_dir={run}"], tmp_path, extra={"BAD_GYM_BREAK_AT": str(at)})
+    assert broken.returncode == 1, broken.stderr
+    lines = broken.stderr.strip().splitlines()
+    assert len(lines) == 1, broken.stderr
+    assert lines[0].startswith(
+        "error: at iteration 3, bad_gym_envs:BreaksLater raised in step() of env 0 "
+    ), lines
+    assert f"RuntimeError: the joint broke at call {at}" in lines[0] and f"resume={run}" in lines[0], lines
+    assert "the checkpoint of iteration 2 is kept" in lines[0], lines
+    logs = sorted(run.glob("*/metrics.jsonl")) if sweep else [run / "metrics.jsonl"]
+    assert len(logs) == (2 if sweep else 1) and all(len(read_metrics(p)) == 2 for p in logs)
+    fixed = _cli(["-m", command, f"resume={run}"], tmp_path)
+    assert fixed.returncode == 0, fixed.stderr
+    assert all(len(read_metrics(p)) == 5 for p in logs)

@@ -46,6 +46,7 @@ from jax.experimental.buffer_callback import buffer_callback
 
 from coherent_jax.envs.action_map import ActionMap
 from coherent_jax.envs.gym_source import GymSource, quietly
+from coherent_jax.envs.spec import first_line
 
 
 @struct.dataclass
@@ -81,6 +82,7 @@ class HostPool:
         # Frames of env 0's first episode (``env.render()``) while a list: a video's source.
         self.frames: list[np.ndarray] | None = None
         self.max_frames = 0
+        self.failure: str | None = None  # what an env raised (`_call`), for the run's one line
 
     def reset(self, seeds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Fresh episodes, env i seeded with ``seeds[i]``; (obs [..., n, obs_size], tick [..., n])."""
@@ -91,7 +93,12 @@ class HostPool:
                 env.close()
             with quietly():
                 self.envs = [self.source.make(self.episode_length) for _ in range(flat.size)]
-        obs = np.stack([env.reset(seed=int(s))[0] for env, s in zip(self.envs, flat, strict=True)])
+        obs = np.stack(
+            [
+                self._call(i, "reset", env.reset, seed=int(s))[0]
+                for i, (env, s) in enumerate(zip(self.envs, flat, strict=True))
+            ]
+        )
         self.tick = 0
         self._recording = self.frames is not None
         self._record()
@@ -115,12 +122,12 @@ class HostPool:
         reward = np.empty(n, np.float32)
         terminated, truncated = np.zeros(n, bool), np.zeros(n, bool)
         for i, env in enumerate(self.envs):
-            o, r, term, trunc, _ = env.step(flat[i])
+            o, r, term, trunc, _ = self._call(i, "step", env.step, flat[i])
             final[i], reward[i], terminated[i], truncated[i] = o, r, term, trunc and not term
             if i == 0:
                 self._record()
                 self._recording = self._recording and not (term or trunc)
-            obs[i] = env.reset()[0] if term or trunc else o
+            obs[i] = self._call(i, "reset", env.reset)[0] if term or trunc else o
         self.tick += 1
 
         def shaped(x):
@@ -134,6 +141,18 @@ class HostPool:
             shaped(final),
             np.full(lead, self.tick, np.int32),
         )
+
+    def _call(self, i: int, what: str, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+        """``fn(*args)`` of env `i`; an error it raises is kept as ``failure`` (one line: the
+        env, the call and the error) for the run to report, since XLA's callback error that
+        carries it out of the jit wraps it in a long traceback."""
+        try:
+            return fn(*args, **kwargs)
+        except Exception as exc:
+            self.failure = (
+                f"{self.source.name} raised in {what}() of env {i} at step {self.tick + 1}: {first_line(exc)}"
+            )
+            raise
 
     def _record(self) -> None:
         if self._recording and len(self.frames) < self.max_frames:

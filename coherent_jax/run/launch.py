@@ -49,7 +49,7 @@ from coherent_jax.config import Config, ConfigError, cli, parse_overrides
 from coherent_jax.config.checks import warmup_warning
 from coherent_jax.envs.quiet import quiet_imports
 from coherent_jax.envs.registry import task_label
-from coherent_jax.exit_codes import EXIT_BAD_INPUT, EXIT_DIVERGED, EXIT_OK, signal_status
+from coherent_jax.exit_codes import EXIT_BAD_INPUT, EXIT_DIVERGED, EXIT_ENV_FAILED, EXIT_OK, signal_status
 from coherent_jax.run import multihost, rundir, sweep
 from coherent_jax.run.checkpoint import (
     Checkpoint,
@@ -61,7 +61,7 @@ from coherent_jax.run.checkpoint import (
     split_resume,
     write_config,
 )
-from coherent_jax.run.loop_state import CALLBACK, DivergenceError, StopRequest
+from coherent_jax.run.loop_state import CALLBACK, DivergenceError, EnvError, StopRequest
 from coherent_jax.run.outputs import Callback, TrackingError, wandb_preflight
 from coherent_jax.run.rundir import (
     METRICS,
@@ -85,8 +85,9 @@ HELP, DRY, RUN = "help", "dry_run", "run"
 
 # Bad input: reported in one line, exit status 2, nothing written.
 BAD_INPUT = (ConfigError, CheckpointError, TrackingError)
-# What ends a command with one line on stderr: bad input, and a single run's divergence.
-REFUSED = (*BAD_INPUT, DivergenceError)
+# What ends a command with one line on stderr: bad input, a single run's divergence, and a
+# task's own env raising mid-run.
+REFUSED = (*BAD_INPUT, DivergenceError, EnvError)
 TRAIN_MODULE = "coherent_jax.train"  # ``python -m MODULE``, which the supervisor of a distributed run starts
 SWEEP_MODULE = "coherent_jax.sweep"  # the same for a sweep
 RUN_SUMMARY = "summary.json"  # written last: a resumed run holding it (and at its budget) is complete
@@ -134,8 +135,11 @@ def print_answer(text: str) -> int:
 
 
 def refuse(exc: Exception) -> int:
-    """One of `REFUSED` as one line on stderr; its exit status (2 bad input, 3 diverged)."""
+    """One of `REFUSED` as one line on stderr; its exit status (2 bad input, 3 diverged, 1 an env
+    raised)."""
     print(f"error: {exc}", file=sys.stderr, flush=True)
+    if isinstance(exc, EnvError):
+        return EXIT_ENV_FAILED
     return EXIT_DIVERGED if isinstance(exc, DivergenceError) else EXIT_BAD_INPUT
 
 

@@ -65,6 +65,7 @@ from coherent_jax.run.loop_state import (
     Programs,
     Session,
     StopRequest,
+    env_error,
     to_float,
 )
 from coherent_jax.run.outputs import call_on_iteration
@@ -395,7 +396,13 @@ def run_loop(
             for i in range(run.start, cfg.num_iterations):
                 if run.stopping or stop.reason:
                     break
-                metrics = iterate(run, i)
+                try:
+                    metrics = iterate(run, i)
+                except Exception:
+                    failed = env_error(run, i + 1)
+                    if failed is None:
+                        raise
+                    raise failed from None
                 rows = sink_metrics(run, i + 1, metrics)
                 run.done = i + 1
                 if progress_fn:

@@ -20,6 +20,7 @@ from typing import Any, NamedTuple
 
 from coherent_jax.agents.trainer import Trainer
 from coherent_jax.config import Config
+from coherent_jax.envs.host_gym import host_pool
 from coherent_jax.run.checkpoint import LoopState
 from coherent_jax.run.rundir import PREFIX
 
@@ -163,6 +164,30 @@ def to_float(x: Any) -> float | None:
 
 class DivergenceError(RuntimeError):
     """A loss or a parameter became non-finite; the message names the iteration and the quantity."""
+
+
+class EnvError(RuntimeError):
+    """A task's own env raised mid-run (a Gymnasium env on the host); the message names the env,
+    the iteration and the env's error, and the checkpoint a resume starts from."""
+
+
+def env_error(run: Session, it: int) -> EnvError | None:
+    """`EnvError` in one line if a Gymnasium env of the run (training's or evaluation's host
+    pool) raised during iteration `it`, naming the env, the iteration, its error and the
+    checkpoint a resume starts from; None if the failure was not an env's."""
+    trainer = run.job.trainer
+    pools = (host_pool(getattr(trainer, "env", None)), host_pool(getattr(trainer, "eval_env", None)))
+    failure = next((p.failure for p in pools if p is not None and p.failure), None)
+    if failure is None:
+        return None
+    where = run.job.run_dir
+    if where is None:
+        kept = ""
+    elif run.saved > 0:
+        kept = f"; the checkpoint of iteration {run.saved} is kept: fix the env, then resume={where}"
+    else:
+        kept = f"; no checkpoint yet: fix the env, then resume={where} starts it over"
+    return EnvError(f"at iteration {it}, {failure}{kept}")
 
 
 CALLBACK = "callback"  # a summary's ``stopped_by`` when a callback stopped the run
