@@ -49,12 +49,14 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-from brax.envs.base import Env, State
 
 from coherent_jax.envs.action_map import to_bounds
 from coherent_jax.envs.jax_env import JAX_ENV_BACKEND, jax_env
-from coherent_jax.envs.quiet import quiet_stdio
+from coherent_jax.envs.quiet import quiet_imports, quiet_stdio
 from coherent_jax.envs.registry import SHORT_NAMES, UnknownTaskError, check_task
+
+quiet_imports()  # MJX before Brax imports it: muted, without its Warp engine
+from brax.envs.base import Env, State  # noqa: E402
 
 
 def make_brax_env(name: str, **kwargs: Any):

@@ -18,6 +18,8 @@ from __future__ import annotations
 import os
 import sys
 
+WARP_VAR = "COHERENT_JAX_MJX_WARP"  # 1: MJX imports its Warp engine (`quiet_imports`)
+
 
 class quiet_stdio:
     """Silences file descriptors 1 and 2 inside a ``with`` block.
@@ -54,6 +56,24 @@ class quiet_stdio:
 
 
 def quiet_imports() -> None:
-    """Imports MJX once with its output muted: it prints lines when its optional `warp` backend is missing."""
+    """Imports MJX once, muted, and without its optional Warp backend unless `WARP_VAR` is 1.
+
+    MJX imports NVIDIA Warp and its own Warp engine (``impl="warp"``, a GPU engine) whenever
+    ``warp`` is installed, as MuJoCo Playground installs it; that is most of the time MJX takes
+    to import (about half of a run's start-up before JAX compiles). This package steps MJX
+    with ``impl="jax"`` only, so `quiet_imports`, called before anything imports MJX (Brax
+    does), hides ``warp`` for the length of MJX's import: MJX then skips its Warp engine
+    (and prints that it did, muted here). ``warp`` itself stays importable afterwards. A
+    process that imported MJX before, or ``COHERENT_JAX_MJX_WARP=1``, keeps MJX's Warp engine.
+    """
+    if "mujoco.mjx" in sys.modules:
+        return
+    hide = "warp" not in sys.modules and os.environ.get(WARP_VAR) != "1"
     with quiet_stdio(force=True):
-        import mujoco.mjx  # noqa: F401  # lazy: importing it muted is this function's purpose
+        if hide:
+            sys.modules["warp"] = None  # an import of it raises ImportError
+        try:
+            import mujoco.mjx  # noqa: F401  # lazy: importing it so is this function's purpose
+        finally:
+            if hide and "warp" in sys.modules and sys.modules["warp"] is None:
+                del sys.modules["warp"]
