@@ -12,6 +12,7 @@ import os
 import shutil
 import tempfile
 
+import cpu_budget
 import jax
 import pytest
 import schedule
@@ -28,7 +29,8 @@ def pytest_configure(config):
     again (a run and its resume, the same seed twice, a sweep point and its single run),
     and XLA's compiles are most of the suite's time. The controller makes the directory;
     xdist's workers inherit it through the environment, and the tests' subprocesses
-    through `helpers.child_env`."""
+    through `helpers.child_env`. Registers `cpu_budget`, the everyday subset's budget."""
+    config.pluginmanager.register(cpu_budget, "cpu_budget")
     if not os.environ.get("PYTEST_XDIST_WORKER"):
         os.environ[_CACHE_VAR] = tempfile.mkdtemp(prefix="coherent_jax_test_compile_cache_")
     cache = os.environ[_CACHE_VAR]
