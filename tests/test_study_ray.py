@@ -1,7 +1,8 @@
 """``executor=ray``: its refusals (no Ray installed, a bad executor or address: one line, exit
-status 2, nothing written) and, marked slow, a study on a Ray head of its own on loopback
-whose worker is killed mid-cell: the study finishes, the killed cell resumes from its
-checkpoint, and every cell's metrics are those of the same study on the local executor.
+status 2, nothing written), a cell running on another machine seen by its folder's lock, and,
+marked slow, a study on a Ray head of its own on loopback whose worker is killed mid-cell: the
+study finishes, the killed cell resumes from its checkpoint, and every cell's metrics are those
+of the same study on the local executor.
 """
 
 import contextlib
@@ -19,15 +20,23 @@ from pathlib import Path
 import pytest
 from helpers import child_env
 
+from coherent_jax.run import rundir
 from coherent_jax.study import command, curves
+from coherent_jax.study.cell import PID_FILE, Cell, cell_dir, cell_state, running_pid
 
 TINY = (
     "num_envs=4", "unroll_length=8", "num_minibatches=2", "episode_length=32", "eval_episodes=2",
     "eval_every=2", "policy_hidden=[16,16]", "value_hidden=[16,16]", "progress=false", "tensorboard=false",
 )  # fmt: skip
 # Ray on this machine only: with its cluster mode off, every address it uses is on loopback
-# (else it resolves 127.0.0.1 to the machine's network address); no usage reports.
-LOOPBACK = {"RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0", "RAY_USAGE_STATS_ENABLED": "0"}
+# (else it resolves 127.0.0.1 to the machine's network address); no usage reports; no token
+# authentication, for the head and the study alike (a head would turn it on when a token is in
+# ~/.ray, and a study given the head's address would not).
+LOOPBACK = {
+    "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0",
+    "RAY_USAGE_STATS_ENABLED": "0",
+    "RAY_AUTH_MODE": "disabled",
+}
 
 
 def _tree(path: Path) -> list[str]:
@@ -43,6 +52,7 @@ def _tree(path: Path) -> list[str]:
         (["executor=ray"], 'needs the ray package, which is not installed (allowed: local; or install it: '
                            'pip install -e ".[ray]")'),
     ],
+    ids=["bad executor", "bad address", "bad cpus_per_cell", "no ray"],
 )  # fmt: skip
 def test_a_bad_executor_and_executor_ray_without_ray_are_refused(tmp_path, monkeypatch, capsys, items, said):
     monkeypatch.chdir(tmp_path)
@@ -51,6 +61,20 @@ def test_a_bad_executor_and_executor_ray_without_ray_are_refused(tmp_path, monke
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("error: ") and said in err, err
     assert _tree(tmp_path) == []
+
+
+def test_a_sweep_on_another_machine_runs_while_it_holds_its_folders_lock(tmp_path):
+    """``running.pid`` written by a cluster's node names it: a pid of another machine cannot be
+    looked up here, so the sweep's folder lock (on the shared filesystem) says whether it runs."""
+    cell = Cell("s", "pointmass/ppo/action", ("env=pointmass",), 1)
+    d = cell_dir(cell, tmp_path)
+    (d / "sweep").mkdir(parents=True)
+    (d / PID_FILE).write_text(f"{os.getpid()} elsewhere.example\n")
+    assert running_pid(cell, tmp_path) is None and cell_state(cell, tmp_path) == "stopped"
+    with rundir.acquire(d / "sweep", "run_dir"):
+        assert running_pid(cell, tmp_path) == os.getpid() and cell_state(cell, tmp_path) == "running"
+    (d / PID_FILE).write_text(f"{os.getpid()} {socket.gethostname()}\n")  # this machine: by its pid
+    assert running_pid(cell, tmp_path) == os.getpid()
 
 
 # ------------------------------------------------------------------ slow: a Ray head of its own
