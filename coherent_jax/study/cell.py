@@ -8,7 +8,8 @@ A cell's directory is ``STUDY_DIR/CELL/`` (``CELL`` is ``TASK/ALGO/LABEL``):
   of the specification); a directory written for another specification is refused;
 * ``sweep/``: the sweep's directory (``sweep.json`` once finished, one run directory per
   point with ``config.yaml``, ``metrics.jsonl``, ``summary.json``; ``versions.json``);
-* ``run.log``: the sweep's output; ``running.pid``: the sweep's process while it runs.
+* ``run.log``: the sweep's output; ``running.pid``: the sweep's process while it runs (and
+  the machine it runs on, for a cluster's).
 """
 
 from __future__ import annotations
@@ -17,11 +18,13 @@ import dataclasses
 import hashlib
 import json
 import os
+import socket
 import sys
 from pathlib import Path
 from typing import Any
 
 from coherent_jax.config.parse import modern_items
+from coherent_jax.run.rundir import holder
 from coherent_jax.study import carry
 from coherent_jax.study.curves import point_dirs
 
@@ -133,12 +136,19 @@ def _pid_alive(pid: int) -> bool:
 
 
 def running_pid(cell: Cell, study_dir: Path) -> int | None:
-    """The live process ``running.pid`` names (the cell's sweep), or None."""
+    """The live process ``running.pid`` names (the cell's sweep), or None.
+
+    The file holds the pid and, when a cluster's node wrote it (``executor=ray``), that
+    machine's name: a sweep on another machine counts as running while it holds its folder's
+    lock (`coherent_jax.run.rundir.holder`, a lock on the shared filesystem)."""
     lock = cell_dir(cell, study_dir) / PID_FILE
     try:
-        pid = int(lock.read_text().split()[0])
+        fields = lock.read_text().split()
+        pid = int(fields[0])
     except (ValueError, IndexError, OSError):
         return None
+    if len(fields) > 1 and fields[1] != socket.gethostname():
+        return pid if holder(cell_dir(cell, study_dir) / "sweep") is not None else None
     return pid if _pid_alive(pid) else None
 
 

@@ -3,6 +3,7 @@
     python -m coherent_jax.study STUDY.yaml                       # run it (or continue it)
     python -m coherent_jax.study env=[gym:Pusher-v5,hopper] explore=[action,coherent,pink] \\
         algo=ppo seeds=10 total_steps=500000 out=studies/pusher
+    python -m coherent_jax.study STUDY.yaml executor=ray ray.address=HEAD:6379  # on a Ray cluster
     python -m coherent_jax.study STUDY.yaml plan=true             # its cost, before it runs
     python -m coherent_jax.study STUDY.yaml status=true           # each cell's state
     python -m coherent_jax.study report DIR                       # REPORT.md and its figures
@@ -29,15 +30,29 @@ from typing import Any
 
 from coherent_jax.config import ConfigError, cli
 from coherent_jax.exit_codes import EXIT_BAD_INPUT
-from coherent_jax.study import carry, cost, curves, execute, plan, spec, verify
+from coherent_jax.study import carry, cost, curves, execute, plan, ray_executor, spec, verify
 from coherent_jax.study.cell import Cell, StudyError
 
-EXECUTORS = ("local",)  # a cluster's (ray) comes next, behind `execute.Executor`
+EXECUTORS = ("local", "ray")  # this machine's worker processes; a Ray cluster's tasks (ray_executor)
 KEYS: dict[str, cli.Key] = {
     "workers": cli.Key(
-        0, cli.int_at_least(0), "an integer >= 0", "cells at a time (0: as many as fit cores and memory)"
+        0,
+        cli.int_at_least(0),
+        "an integer >= 0",
+        "cells at a time (0: as many as fit cores and memory; with ray, the cluster's CPUs)",
     ),
-    "executor": cli.Key("local", cli.choice(EXECUTORS), ", ".join(EXECUTORS), "what runs the cells"),
+    "executor": cli.Key(
+        "local",
+        cli.choice(EXECUTORS),
+        ", ".join(EXECUTORS),
+        "what runs the cells: worker processes here, or Ray tasks on a cluster",
+    ),
+    "ray.address": cli.Key(
+        "auto", ray_executor.parse_address, ray_executor.ADDRESSES, "executor=ray: the Ray cluster's address"
+    ),
+    "ray.cpus_per_cell": cli.Key(
+        1.0, cli.positive_float, "a number > 0", "executor=ray: the CPUs each cell's Ray task reserves"
+    ),
     "plan": cli.Key(
         False, cli.boolean, "true or false", "list the cells and programs, probe each program, estimate"
     ),
@@ -132,16 +147,33 @@ def record(study: spec.Study, cells: Sequence[Cell], argv: Sequence[str]) -> dic
     }
 
 
+def make_executor(settings: dict[str, Any]) -> tuple[execute.Executor, str]:
+    """The executor the settings ask for, and how the start line names it. ``executor=ray``
+    connects to its cluster here: no Ray, or no cluster at ``ray.address``, is a `StudyError`."""
+    if settings["executor"] == "ray":
+        address, cpus = settings["ray.address"], settings["ray.cpus_per_cell"]
+        executor = ray_executor.RayExecutor(address, cpus, settings["workers"])
+        return (
+            executor,
+            f"executor=ray at {address}, {executor.slots} cells at a time, ray.cpus_per_cell={cpus:g}",
+        )
+    workers = settings["workers"] or execute.default_workers()
+    return execute.LocalExecutor(workers), f"workers={workers}"
+
+
 def run(study: spec.Study, cells: list[Cell], settings: dict[str, Any], argv: Sequence[str]) -> int:
     """Runs every cell not done to the end; the exit status."""
-    workers = settings["workers"] or execute.default_workers()
-    executor = execute.LocalExecutor(workers)
-    with execute.holding(study.out):
-        execute.write_record(study.out, record(study, study.cells(), argv))
-        print(f"[study] {study.name}: {len(cells)} cells in {study.out}, workers={workers}", flush=True)
-        on_done = (lambda c: execute.commit_cell(c, study.out)) if settings["commit"] else None
-        probed = plan.cached_rates(cells, study.base)  # a plan's probes, if one was made here
-        failed = execute.run_cells(cells, study.out, study.base, executor, on_done=on_done, probed=probed)
+    executor, how = make_executor(settings)
+    try:
+        with execute.holding(study.out):
+            execute.write_record(study.out, record(study, study.cells(), argv))
+            print(f"[study] {study.name}: {len(cells)} cells in {study.out}, {how}", flush=True)
+            on_done = (lambda c: execute.commit_cell(c, study.out)) if settings["commit"] else None
+            probed = plan.cached_rates(cells, study.base)  # a plan's probes, if one was made here
+            failed = execute.run_cells(cells, study.out, study.base, executor, on_done=on_done, probed=probed)
+    finally:
+        if isinstance(executor, ray_executor.RayExecutor):
+            executor.close()
     print(cost.status(cells, study.out))
     if failed:
         print(f"[study] failed: {', '.join(failed)} (see their run.log)", file=sys.stderr)

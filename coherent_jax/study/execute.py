@@ -1,14 +1,15 @@
 """Running a study's cells to the end: an executor of cell sweeps, its one progress display,
 the study's folder (its record and lock) and what a finished cell leaves.
 
-An `Executor` starts a cell's sweep (`Job`) and reports the jobs that ended; the study's
-loop (`run_cells`) keeps its slots full, finishes each ended cell (its rows in the study's
-curves table, its carry file dropped) and redraws the progress line (cells done, running,
-left; the compute left from `coherent_jax.study.cost`). `LocalExecutor` runs each sweep
-as a worker process on this machine; another executor (a cluster's) implements the same
-three methods. What git keeps of a study is committed here too: a finished cell's small
-files (``commit=true``, `commit_cell`), a stopped cell's state as its carry file
-(``pack=true``, `pack_cells`; `coherent_jax.study.carry`).
+An `Executor` starts a cell's sweep (`Job`) and reports the jobs that ended; the study's loop
+(`run_cells`) keeps its slots full, finishes each ended cell (its rows in the study's curves
+table, its carry file dropped) and redraws the progress line (cells done, running, left; the
+compute left from `coherent_jax.study.cost`). `LocalExecutor` runs each sweep as a worker
+process on this machine; another executor implements the same three methods
+(`coherent_jax.study.ray_executor.RayExecutor`: each sweep a Ray task on a cluster). What git
+keeps of a study is committed here too: a finished cell's small files (``commit=true``,
+`commit_cell`), a stopped cell's state as its carry file (``pack=true``, `pack_cells`;
+`coherent_jax.study.carry`).
 
 A study's folder holds ``study.json`` (its name, the folder its sweeps run in, the command,
 its cells, metrics and claims: what ``report`` reads) and, while the study runs,
