@@ -8,8 +8,8 @@ short tests fill the gaps at the end (longest-processing-time scheduling). Tests
 `LONG_S` keep collection order, after the long ones.
 
 The expected time of a test is its measured wall time in ``tests/durations.json`` (test id
--> seconds, from ``python -m pytest -n 2 --junitxml=FILE`` on CI's 2-core machine, made by
-``python tests/schedule.py FILE``); a test not in it (new, or renamed) counts
+-> seconds: the slowest tests of a CI run, or every test of ``python -m pytest -n 2
+--junitxml=FILE`` through ``python tests/schedule.py FILE``); a test not in it counts
 `UNKNOWN_SLOW_S` seconds when marked ``slow`` and `UNKNOWN_S` otherwise. Only the order
 changes: every test still runs, each with its own fixtures. Every xdist worker collects
 and orders the tests alike (the file and the sort are deterministic), as xdist requires.
@@ -70,7 +70,8 @@ def main(argv: list[str]) -> int:
         print("usage: python tests/schedule.py JUNIT.xml (a report of pytest --junitxml)", file=sys.stderr)
         return 2
     seconds = from_junit(Path(argv[0]))
-    DURATIONS.write_text(json.dumps({"seconds": dict(sorted(seconds.items()))}, indent=0) + "\n")
+    doc = {"measured": f"every test of {Path(argv[0]).name}", "seconds": dict(sorted(seconds.items()))}
+    DURATIONS.write_text(json.dumps(doc, indent=0) + "\n")
     print(f"{len(seconds)} tests, {sum(seconds.values()) / 60:.1f} min in all -> {DURATIONS}")
     return 0
 
