@@ -20,7 +20,6 @@ from typing import Any, NamedTuple
 
 from coherent_jax.agents.trainer import Trainer
 from coherent_jax.config import Config
-from coherent_jax.envs.host_gym import host_pool
 from coherent_jax.run.checkpoint import LoopState
 from coherent_jax.run.rundir import PREFIX
 
@@ -175,6 +174,8 @@ def env_error(run: Session, it: int) -> EnvError | None:
     """`EnvError` in one line if a Gymnasium env of the run (training's or evaluation's host
     pool) raised during iteration `it`, naming the env, the iteration, its error and the
     checkpoint a resume starts from; None if the failure was not an env's."""
+    from coherent_jax.envs.host_gym import host_pool  # lazy: this module loads without JAX (launch)
+
     trainer = run.job.trainer
     pools = (host_pool(getattr(trainer, "env", None)), host_pool(getattr(trainer, "eval_env", None)))
     failure = next((p.failure for p in pools if p is not None and p.failure), None)
