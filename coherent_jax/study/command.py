@@ -15,7 +15,8 @@ cell. The command's own keys are `KEYS` (``--plan``, ``--status`` and the like a
 flags). Bad input (a bad key or value in any cell, an unknown strategy, a refused (algo,
 explore) pair, a folder holding another study) is one line on stderr and exit status 2
 before anything runs or is written. Exit status 0 when every cell is done (``verify``:
-bit-identical), 1 when a cell's sweep failed.
+bit-identical), 1 when a cell's sweep failed. A study with a ``tune:`` block tunes its
+strategies first (`coherent_jax.study.tune_run`); ``plan`` and ``status`` show both stages.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from typing import Any
 
 from coherent_jax.config import ConfigError, cli
 from coherent_jax.exit_codes import EXIT_BAD_INPUT
-from coherent_jax.study import carry, cost, curves, execute, plan, spec, verify
+from coherent_jax.study import carry, cost, curves, execute, plan, spec, tune_run, verify
 from coherent_jax.study.cell import Cell, StudyError
 
 EXECUTORS = ("local",)  # a cluster's (ray) comes next, behind `execute.Executor`
@@ -128,6 +129,7 @@ def record(study: spec.Study, cells: Sequence[Cell], argv: Sequence[str]) -> dic
         "metrics": list(study.metrics),
         "compare": [str(c) for c in study.comparisons],
         "cells": [c.spec() for c in cells],
+        "tune": tune_run.record(study),
     }
 
 
@@ -136,6 +138,13 @@ def run(study: spec.Study, cells: list[Cell], settings: dict[str, Any], argv: Se
     workers = settings["workers"] or execute.default_workers()
     executor = execute.LocalExecutor(workers)
     with execute.holding(study.out):
+        if study.tune is not None:  # the tuning first, then the cells at the values it chose
+            study, failed = tune_run.run_stage(study, executor)
+            if failed:
+                print(f"[study] tuning failed: {', '.join(failed)} (see their run.log)", file=sys.stderr)
+                return 1
+            cells = tune_run.selected(study, cells)
+            execute.check_folder(study.out, study.name, cells)
         execute.write_record(study.out, record(study, study.cells(), argv))
         print(f"[study] {study.name}: {len(cells)} cells in {study.out}, workers={workers}", flush=True)
         on_done = (lambda c: execute.commit_cell(c, study.out)) if settings["commit"] else None
@@ -151,11 +160,14 @@ def run(study: spec.Study, cells: list[Cell], settings: dict[str, Any], argv: Se
 def dispatch(study: spec.Study, cells: list[Cell], settings: dict[str, Any], argv: Sequence[str]) -> int:
     """The mode the settings choose: status, plan, verify, pack, or a run."""
     if settings["status"]:
+        if study.tune is not None:
+            print(tune_run.status_text(study))
         print(cost.status(cells, study.out))
         return 0
     if settings["plan"]:
         workers = settings["workers"] or execute.default_workers()
         try:
+            cells = [*tune_run.plan_cells(study), *cells]
             progs, of = plan.measure(cells, study.base, settings["probe"])
         except RuntimeError as exc:  # a probe's sweep failed: no estimate
             print(f"error: {exc}", file=sys.stderr)
@@ -203,10 +215,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return rebuild_tables(argv[1:])
     try:
         study, settings, _ = parse(argv)
+        study = tune_run.resolve(study)  # at the values its tuning chose, once it is done
         cells = select(study.cells(), settings["cells"], study.name)
         spec.check(study, cells)
         if not settings["status"] and not settings["verify"]:
             execute.check_folder(study.out, study.name, study.cells())
+            tune_run.check_folder(study)
         return dispatch(study, cells, settings, argv)
     except (StudyError, ConfigError, carry.CarryError) as exc:
         print(f"error: {exc}", file=sys.stderr)
