@@ -139,6 +139,7 @@ def run(study: spec.Study, cells: list[Cell], settings: dict[str, Any], argv: Se
     executor = execute.LocalExecutor(workers)
     with execute.holding(study.out):
         if study.tune is not None:  # the tuning first, then the cells at the values it chose
+            execute.write_record(study.out, record(study, study.cells(), argv))
             study, failed = tune_run.run_stage(study, executor)
             if failed:
                 print(f"[study] tuning failed: {', '.join(failed)} (see their run.log)", file=sys.stderr)

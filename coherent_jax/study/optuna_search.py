@@ -72,10 +72,12 @@ def _optuna():
 
 
 def search_dir(out: Path, unit: Cell) -> Path:
+    """``STUDY_DIR/TASK/ALGO/LABEL@tune``: the unit's storage, record and trial cells."""
     return Path(out) / (unit.name + tune.SUFFIX)
 
 
 def search_spec(spec: tune.Tune, unit: Cell) -> dict[str, Any]:
+    """What ``search.json`` holds: the block and the unit's specification."""
     return {"tune": spec.spec(), "unit": unit.spec()}
 
 
@@ -135,17 +137,17 @@ class Active:
     pruned: bool = False
 
 
-def _next_trial(optuna, spec: tune.Tune, unit: Cell, search, out: Path):
-    """The trial the unit runs next: one a stopped study left running, else a new one while the
-    budget lasts (None when it is spent)."""
+def _next_trial(optuna, spec: tune.Tune, unit: Cell, search) -> tuple[Any, int] | None:
+    """The trial the unit runs next and the evaluations it reported: one a stopped study left
+    running, else a new one while the budget lasts (None when it is spent)."""
     running = search.get_trials(deepcopy=False, states=(optuna.trial.TrialState.RUNNING,))
     if running:
-        return optuna.trial.Trial(search, running[0]._trial_id)
+        return optuna.trial.Trial(search, running[0]._trial_id), len(running[0].intermediate_values)
     if counted(optuna, search) >= spec.budget:
         return None
     n = len(search.get_trials(deepcopy=False))
     search.sampler = optuna.samplers.TPESampler(seed=SAMPLER_SEED + n, n_startup_trials=startup(spec.budget))
-    return search.ask(distributions(optuna, tune.keys_of(spec, unit.label, unit)))
+    return search.ask(distributions(optuna, tune.keys_of(spec, unit.label, unit))), 0
 
 
 def _report(spec: tune.Tune, active: Active, out: Path) -> None:
@@ -178,7 +180,7 @@ def _end(optuna, spec: tune.Tune, active: Active, search, out: Path, code: int) 
     return f"failed (exit {code}; see {cell_dir(active.cell, out) / LOG})"
 
 
-def _start(spec: tune.Tune, unit: Cell, trial, executor, out: Path, cwd: Path) -> Active:
+def _start(spec: tune.Tune, unit: Cell, trial, reported: int, executor, out: Path, cwd: Path) -> Active:
     cell = tune.trial_cell(spec, unit, trial.number, trial.params)
     while running_pid(cell, out) is not None:  # a stopped study's sweep, checkpointing
         time.sleep(0.5)
@@ -186,7 +188,7 @@ def _start(spec: tune.Tune, unit: Cell, trial, executor, out: Path, cwd: Path) -
     command = prepare(cell, out)
     d = cell_dir(cell, out)
     executor.start(execute.Job(cell, tuple(command), cwd, d / LOG, d / PID_FILE))
-    return Active(unit, trial, cell)
+    return Active(unit, trial, cell, reported)
 
 
 def run(study, executor, stream: IO[str] | None = None) -> list[str]:
@@ -201,12 +203,12 @@ def run(study, executor, stream: IO[str] | None = None) -> list[str]:
             for unit in [u for u in pending if u.name not in active]:
                 if len(active) >= executor.slots:
                     break
-                trial = _next_trial(optuna, spec, unit, searches[unit.name], out)
-                if trial is None:
+                found = _next_trial(optuna, spec, unit, searches[unit.name])
+                if found is None:
                     pending.remove(unit)
                     continue
-                active[unit.name] = _start(spec, unit, trial, executor, out, study.base)
-                say(f"[study] {active[unit.name].cell.name}: started {trial.params}")
+                active[unit.name] = _start(spec, unit, *found, executor, out, study.base)
+                say(f"[study] {active[unit.name].cell.name}: started {found[0].params}")
             for job, code in executor.wait(timeout=POLL_S):
                 a = active.pop(job.cell.name.rsplit(tune.SUFFIX, 1)[0])
                 how = _end(optuna, spec, a, searches[a.unit.name], out, code)

@@ -22,7 +22,7 @@ tuning runs in ``TASK/ALGO/LABEL@tune``. With ``grid`` that is one cell whose sw
 the space's grid x the tuning seeds (one compiled program); with ``optuna`` one cell per
 trial (``TASK/ALGO/LABEL@tune/tNNN``), `coherent_jax.study.optuna_search`. The evaluation
 cells then run at each strategy's chosen values (`with_items`); the stage itself is
-`coherent_jax.study.tuning`.
+`coherent_jax.study.tune_run`.
 
 `check` refuses, in one line before anything runs: an unknown label or key, a grid larger
 than the budget, a key method grid cannot vary in one program (naming it, and optuna), a
@@ -77,6 +77,7 @@ class Range:
 
     @property
     def integer(self) -> bool:
+        """Whether Optuna draws integers (both ends are)."""
         return isinstance(self.low, int) and isinstance(self.high, int)
 
 
@@ -123,12 +124,22 @@ def _whole(value: Any, what: str, least: int) -> int:
     return value
 
 
+def _number(value: Any) -> Any:
+    """YAML reads ``1e-4`` (no dot) as text: a number's text as its number, else as it is."""
+    if isinstance(value, str):
+        try:
+            return float(value)
+        except ValueError:
+            return value
+    return value
+
+
 def _dimension(label: str, key: str, value: Any) -> Dimension:
     what = f"tune.space.{label}.{key}"
     if isinstance(value, list) and value and len(value) == len({text(v) for v in value}):
         return tuple(value)
     if isinstance(value, Mapping) and {"low", "high"} <= set(value) and set(value) <= set(RANGE_KEYS):
-        low, high, log = value["low"], value["high"], value.get("log", False)
+        low, high, log = _number(value["low"]), _number(value["high"]), value.get("log", False)
         numbers = all(isinstance(x, int | float) and not isinstance(x, bool) for x in (low, high))
         if numbers and low < high and isinstance(log, bool) and (not log or low > 0):
             return Range(low, high, log)
@@ -202,6 +213,7 @@ def candidates(dims: Mapping[str, Dimension]) -> list[dict[str, Any]]:
 
 # ------------------------------------------------------------------ the cells of the tuning
 def pair(cell: Cell) -> tuple[str, str]:
+    """The cell's (algo, explore): which keys it reads, and what an old key is now."""
     return cell.setting("algo", "ppo") or "ppo", cell.setting("explore", "action") or "action"
 
 
@@ -233,6 +245,7 @@ def units(tune: Tune, cells: Sequence[Cell]) -> list[Cell]:
 
 
 def base_items(tune: Tune, unit: Cell) -> list[str]:
+    """What every tuning cell of the unit sets: the tuning's budget and its first seed."""
     return [f"total_steps={steps(tune, unit)}", f"seed={tune.seeds[0]}"]
 
 
@@ -307,6 +320,7 @@ def optuna_installed() -> bool:
 
 
 def evaluation_seeds(cell: Cell) -> range:
+    """The seeds a cell's sweep runs: its ``seed`` (default 0) and the ``seeds - 1`` after it."""
     first = int(cell.setting("seed") or Config().seed)
     return range(first, first + cell.seeds)
 

@@ -34,6 +34,7 @@ TUNE_FILE = "tune.json"
 
 
 def units(study) -> list[Cell]:
+    """The study's evaluation cells (before tuning) whose strategy it tunes."""
     return tune.units(study.tune, study.cells(tuned=False))
 
 
@@ -44,6 +45,7 @@ def cells(study) -> list[Cell]:
 
 
 def read(study_dir: Path) -> dict[str, Any] | None:
+    """The study's ``tune.json``, or None."""
     try:
         return json.loads((Path(study_dir) / TUNE_FILE).read_text())
     except (OSError, ValueError):
