@@ -227,6 +227,88 @@ def test_the_report_states_the_protocol_the_budgets_and_flags_unequal_ones(tmp_p
     assert "not done" in "\n".join(tune_run.report_lines(tmp_path / "nothing"))
 
 
+# ------------------------------------------------------------------ Optuna's loop, with stand-in sweeps
+EVALS = 4
+
+
+class StandIn:
+    """An executor whose sweeps write one evaluation per `wait` to each seed's log: a return
+    that is higher the closer ``lr`` is to 1e-3 (and the same at every evaluation)."""
+
+    slots = 2
+
+    def __init__(self, out: Path, interrupt_at: int | None = None):
+        self.out, self.interrupt_at, self.waits, self.jobs, self.stopped = out, interrupt_at, 0, {}, set()
+
+    def start(self, job):
+        sweep = self.out / job.cell.name / "sweep"
+        first = int(job.cell.setting("seed"))
+        for i in range(job.cell.seeds):
+            point = sweep / f"p{i:03d}-seed={first + i}"
+            point.mkdir(parents=True, exist_ok=True)
+            (point / "config.yaml").write_text(f"seed: {first + i}\n")
+            (point / "metrics.jsonl").touch()
+        self.jobs[job.cell.name] = job
+
+    def wait(self, timeout):
+        self.waits += 1
+        if self.waits == self.interrupt_at:
+            raise KeyboardInterrupt
+        ended = []
+        for name, job in list(self.jobs.items()):
+            if name in self.stopped:
+                ended.append((job, 143))
+                continue
+            value = -10 * abs(math.log10(float(job.cell.setting("lr"))) + 3)
+            points = sorted(p for p in (self.out / name / "sweep").iterdir() if p.is_dir())
+            for point in points:
+                k = len((point / "metrics.jsonl").read_text().splitlines()) + 1
+                row = {"iteration": k, "env_steps": 32 * k, "eval/episode_return": value + k}
+                with open(point / "metrics.jsonl", "a") as log:
+                    log.write(json.dumps(row) + "\n")
+            if k == EVALS:
+                (self.out / name / "sweep" / "sweep.json").write_text("{}")
+                ended.append((job, 0))
+        for job, _ in ended:
+            del self.jobs[job.cell.name]
+        return ended
+
+    def stop(self):
+        self.jobs.clear()
+
+
+def test_optunas_trials_are_pruned_on_the_curve_and_a_stopped_search_continues(tmp_path, monkeypatch):
+    optuna = pytest.importorskip("optuna")
+    from coherent_jax.study import optuna_search
+
+    space = {"action": {"lr": {"low": 0.00001, "high": 0.1, "log": True}}}
+    path = _write(tmp_path, strategies=["action"], tune={"method": "optuna", "budget": 8, "space": space})
+    study, _, _ = command.parse([str(path)])
+    study.out.mkdir(parents=True)
+    first = StandIn(study.out, interrupt_at=3)  # the study stopped while its first trials run
+    monkeypatch.setattr(optuna_search, "stop_sweep", lambda cell, out: first.stopped.add(cell.name) or True)
+    with pytest.raises(KeyboardInterrupt):
+        tune_run.run_stage(study, first)
+    storage = f"sqlite:///{study.out}/pointmass/ppo/action@tune/optuna.db"
+    search = optuna.load_study(study_name="pointmass/ppo/action", storage=storage)
+    assert [t.state.name for t in search.trials] == ["RUNNING"]  # one trial at a time per strategy
+    again = StandIn(study.out)
+    monkeypatch.setattr(optuna_search, "stop_sweep", lambda cell, out: again.stopped.add(cell.name) or True)
+    resolved, failed = tune_run.run_stage(study, again)
+    assert failed == [] and resolved.chosen is not None
+    trials = optuna.load_study(study_name="pointmass/ppo/action", storage=storage).trials
+    # The stopped trial continued (not a new one): 8 trials, numbered 0 to 7, complete or pruned.
+    assert [t.number for t in trials] == list(range(8))
+    assert trials[0].params == search.trials[0].params and trials[0].state.name == "COMPLETE"
+    assert sorted(trials[0].intermediate_values) == list(range(EVALS))
+    pruned = [t for t in trials if t.state.name == "PRUNED"]
+    assert pruned and all(len(t.intermediate_values) < EVALS for t in pruned)
+    best = max((t for t in trials if t.state.name == "COMPLETE"), key=lambda t: t.value)
+    assert resolved.chosen["pointmass/ppo/action"] == (f"lr={best.params['lr']}",)
+    record = json.loads((study.out / tune_run.TUNE_FILE).read_text())
+    assert [c["state"] for c in record["units"][0]["candidates"]] == [t.state.name.lower() for t in trials]
+
+
 # ------------------------------------------------------------------ end to end
 # Two strategies of one program (a sweepable key each): the test run's compilation cache
 # compiles it for the tuning's points and for the evaluation's, not for each strategy.

@@ -158,10 +158,17 @@ def _report(spec: tune.Tune, active: Active, out: Path) -> None:
         active.trial.report(tune.mean_score([c[: k + 1] for c in seeds], spec.metric), k)
     active.reported = max(active.reported, ready)
     if ready and not active.pruned and active.trial.should_prune():
-        pid = running_pid(active.cell, out)
-        if pid is not None:  # a local sweep: stopped, its checkpoint kept
-            os.kill(pid, signal.SIGTERM)
-            active.pruned = True
+        active.pruned = stop_sweep(active.cell, out)
+
+
+def stop_sweep(cell: Cell, out: Path) -> bool:
+    """Stops a trial's sweep (SIGTERM: it checkpoints and ends); False where no process of this
+    machine runs it (the trial then runs to its end)."""
+    pid = running_pid(cell, out)
+    if pid is None:
+        return False
+    os.kill(pid, signal.SIGTERM)
+    return True
 
 
 def _end(optuna, spec: tune.Tune, active: Active, search, out: Path, code: int) -> str:
