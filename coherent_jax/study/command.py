@@ -17,7 +17,8 @@ flags). Bad input (a bad key or value in any cell, an unknown strategy, a refuse
 explore) pair, a folder holding another study) is one line on stderr and exit status 2
 before anything runs or is written. Exit status 0 when every cell is done (``verify``:
 bit-identical, or not comparable: made on another CPU), 1 when a cell's sweep failed
-(``verify``: a cell differs).
+(``verify``: a cell differs). A study with a ``tune:`` block tunes its strategies first
+(`coherent_jax.study.tune_run`); ``plan`` and ``status`` show both stages.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from typing import Any
 
 from coherent_jax.config import ConfigError, cli
 from coherent_jax.exit_codes import EXIT_BAD_INPUT
-from coherent_jax.study import carry, cost, curves, execute, plan, ray_executor, spec, verify
+from coherent_jax.study import carry, cost, curves, execute, plan, ray_executor, spec, tune_run, verify
 from coherent_jax.study.cell import Cell, StudyError
 
 EXECUTORS = ("local", "ray")  # this machine's worker processes; a Ray cluster's tasks (ray_executor)
@@ -144,6 +145,7 @@ def record(study: spec.Study, cells: Sequence[Cell], argv: Sequence[str]) -> dic
         "metrics": list(study.metrics),
         "compare": [str(c) for c in study.comparisons],
         "cells": [c.spec() for c in cells],
+        "tune": tune_run.record(study),
     }
 
 
@@ -166,6 +168,14 @@ def run(study: spec.Study, cells: list[Cell], settings: dict[str, Any], argv: Se
     executor, how = make_executor(settings)
     try:
         with execute.holding(study.out):
+            if study.tune is not None:  # the tuning first, then the cells at the values it chose
+                execute.write_record(study.out, record(study, study.cells(), argv))
+                study, failed = tune_run.run_stage(study, executor)
+                if failed:
+                    print(f"[study] tuning failed: {', '.join(failed)} (see their run.log)", file=sys.stderr)
+                    return 1
+                cells = tune_run.selected(study, cells)
+                execute.check_folder(study.out, study.name, cells)
             execute.write_record(study.out, record(study, study.cells(), argv))
             print(f"[study] {study.name}: {len(cells)} cells in {study.out}, {how}", flush=True)
             on_done = (lambda c: execute.commit_cell(c, study.out)) if settings["commit"] else None
@@ -184,11 +194,14 @@ def run(study: spec.Study, cells: list[Cell], settings: dict[str, Any], argv: Se
 def dispatch(study: spec.Study, cells: list[Cell], settings: dict[str, Any], argv: Sequence[str]) -> int:
     """The mode the settings choose: status, plan, verify, pack, or a run."""
     if settings["status"]:
+        if study.tune is not None:
+            print(tune_run.status_text(study))
         print(cost.status(cells, study.out))
         return 0
     if settings["plan"]:
         workers = settings["workers"] or execute.default_workers()
         try:
+            cells = [*tune_run.plan_cells(study), *cells]
             progs, of = plan.measure(cells, study.base, settings["probe"])
         except RuntimeError as exc:  # a probe's sweep failed: no estimate
             print(f"error: {exc}", file=sys.stderr)
@@ -236,10 +249,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return rebuild_tables(argv[1:])
     try:
         study, settings, _ = parse(argv)
+        study = tune_run.resolve(study)  # at the values its tuning chose, once it is done
         cells = select(study.cells(), settings["cells"], study.name)
         spec.check(study, cells)
         if not settings["status"] and not settings["verify"]:
             execute.check_folder(study.out, study.name, study.cells())
+            tune_run.check_folder(study)
         return dispatch(study, cells, settings, argv)
     except (StudyError, ConfigError, carry.CarryError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -53,7 +53,7 @@ from coherent_jax.study.cost import estimated_seconds, finished_cells
 RECORD = "study.json"
 LOCK = "study.lock"
 # What a study's folder holds besides its cells' task folders.
-STUDY_FILES = (RECORD, LOCK, curves.TABLE, "REPORT.md", "figures", "verify.json")
+STUDY_FILES = (RECORD, LOCK, curves.TABLE, "REPORT.md", "figures", "verify.json", "tune.json")
 GIB = 2**30
 CELL_MEMORY = 2 * GIB  # what one cell's sweep takes at most, for the default number of workers
 PR_SET_PDEATHSIG = 1  # prctl(2): the signal a process gets when its parent ends

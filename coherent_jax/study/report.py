@@ -12,6 +12,8 @@ them, with the metrics and the claims declared):
   median env step of the first time;
 * rliable's aggregates per algorithm (Agarwal et al. 2021): scores min-max normalised per
   task, IQM and optimality gap with 95% stratified-bootstrap intervals, performance profiles;
+* with a ``tune:`` block, the tuning: its protocol, the budget each strategy spent, the values
+  chosen and every candidate's score, the tuning and evaluation seeds (`coherent_jax.study.tune_run`);
 * a verdict per declared claim (``compare``): holds, does not hold or inconclusive, by the
   rule `coherent_jax.study.tables.VERDICT_RULE` states; and the probability of improvement of
   each claim on each task alone, as one matrix (claim x task).
@@ -38,7 +40,7 @@ from coherent_jax import plot
 from coherent_jax.config import ConfigError
 from coherent_jax.exit_codes import EXIT_BAD_INPUT
 from coherent_jax.run.rundir import cpu_info, git_state
-from coherent_jax.study import figures, stats, tables, verify
+from coherent_jax.study import figures, stats, tables, tune_run, verify
 from coherent_jax.study.cell import Cell, StudyError, cell_state
 from coherent_jax.study.curves import EVAL, TRAIN, TRAIN_GOAL
 from coherent_jax.study.execute import RECORD
@@ -183,6 +185,8 @@ def build(study_dir: Path, record: dict[str, Any]) -> str:
     foot = footer(record, done, study_dir)
     lines = [f"# Study `{record['name']}`", "", f"`{record['command']}`", "", foot.split("\n")[0] + ".", ""]
     lines += [f"Generated {time.strftime('%Y-%m-%d')} by `python -m coherent_jax.study report`.", ""]
+    if record.get("tune"):
+        lines += tune_run.report_lines(study_dir)
     lines += ["## Cells", ""]
     table, finals, aucs, _ = tables.cell_table(
         done, runs, {record["name"]: study_dir}, point_label, verify.load(study_dir), record["name"]

@@ -21,6 +21,8 @@ file its items override the file's::
     compare: [coherent > pink, coherent > action]   # the claims the report judges
     grids: [...]                 # optional: several blocks of tasks x algos x strategies, each
                                  # with its own tasks, algos, strategies, settings, total_steps
+    tune: {...}                  # optional: each strategy tuned with one budget first
+                                 # (`coherent_jax.study.tune`)
 
 A cell is one (task, algorithm, strategy) of a block: ``TASK/ALGO/LABEL``, run for
 ``seeds`` seeds as one sweep. Its overrides are, in this order: ``env``, ``algo``,
@@ -47,12 +49,13 @@ from coherent_jax import strategies
 from coherent_jax.config import Config, ConfigError
 from coherent_jax.config.parse import modern_items
 from coherent_jax.run.sweep import parse_sweep
+from coherent_jax.study import tune as tune_spec
 from coherent_jax.study.cell import Cell, StudyError
 
 METRICS = ("final", "auc", "reach")
 FILE_KEYS = (
     "name", "out", "seeds", "total_steps", "tasks", "algos", "strategies", "settings",
-    "evaluation", "metrics", "compare", "grids",
+    "evaluation", "metrics", "compare", "grids", "tune",
 )  # fmt: skip
 GRID_KEYS = ("tasks", "algos", "strategies", "settings", "total_steps", "evaluation")
 EVALUATION = {"episodes": "eval_episodes", "every": "eval_every"}
@@ -95,7 +98,8 @@ class Comparison:
 @dataclasses.dataclass(frozen=True)
 class Study:
     """A study: its name, folder, the folder its sweeps run in, its blocks and seeds, what its
-    report measures and judges."""
+    report measures and judges; its ``tune:`` block and, once the tuning is done, the values
+    it chose (cell name -> ``key=value`` items its evaluation cell takes)."""
 
     name: str
     out: Path
@@ -104,9 +108,16 @@ class Study:
     grids: tuple[Grid, ...]
     metrics: tuple[str, ...]
     comparisons: tuple[Comparison, ...]
+    tune: tune_spec.Tune | None = None
+    chosen: Mapping[str, tuple[str, ...]] | None = None
 
-    def cells(self) -> list[Cell]:
-        return [c for g in self.grids for c in grid_cells(self, g)]
+    def cells(self, tuned: bool = True) -> list[Cell]:
+        """The evaluation cells: at the values the tuning chose (`tuned`, once it is done), or
+        at their own settings."""
+        cells = [c for g in self.grids for c in grid_cells(self, g)]
+        if not tuned or not self.chosen:
+            return cells
+        return [tune_spec.with_items(c, self.chosen.get(c.name, ())) for c in cells]
 
     def labels(self) -> list[str]:
         """Every strategy label, in the order first declared."""
@@ -319,7 +330,8 @@ def make_study(data: Mapping[str, Any], base: Path, default_name: str) -> Study:
         bad = sorted(set(metrics) - set(METRICS))[0]
         raise StudyError(f"invalid value for 'metrics': {bad!r} (allowed: {', '.join(METRICS)})")
     out = (base / str(data.get("out") or Path("studies") / name)).resolve()
-    study = Study(name, out, base, seeds, grids, metrics, ())
+    tune = None if data.get("tune") is None else tune_spec.make_tune(data["tune"], _steps)
+    study = Study(name, out, base, seeds, grids, metrics, (), tune)
     return dataclasses.replace(study, comparisons=comparisons(data.get("compare"), study.labels()))
 
 
@@ -369,7 +381,8 @@ def check_pairs(study: Study) -> None:
 
 def check(study: Study, cells: Sequence[Cell]) -> None:
     """Refuses, before anything runs or is written, a bad study: a refused pair, two cells of one
-    name, a cell whose sweep would refuse its overrides (each parsed as the sweep will)."""
+    name, a cell whose sweep would refuse its overrides (each parsed as the sweep will), a bad
+    ``tune:`` block (`coherent_jax.study.tune.check`)."""
     check_pairs(study)
     names = [c.name for c in cells]
     twice = sorted({n for n in names if names.count(n) > 1})
@@ -384,3 +397,5 @@ def check(study: Study, cells: Sequence[Cell]) -> None:
                 parse_sweep(items)
             except ConfigError as exc:
                 raise StudyError(f"cell {cell.name!r}: {exc}") from None
+        if study.tune is not None:
+            tune_spec.check(study.tune, study.cells(tuned=False), study.labels())
