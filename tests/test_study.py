@@ -433,7 +433,7 @@ def _verify_tells_a_code_change_from_a_cpu_change(run, study, env, cwd):
     rows[i] = (*rows[i][:3], float(np.nextafter(np.float32(rows[i][3]), np.float32(np.inf))), *rows[i][4:])
     curves.write_table(table, rows)
     status, line = verify()
-    assert status == 1 and "differs from iteration 2 on the same CPU" in line, line
+    assert status == 1 and "differs from iteration 2 (the first compared) on the same CPU (" in line, line
     assert "last 'Changes bits:' commit: " in line, line
     versions = study / name / "sweep" / "versions.json"
     recorded = json.loads(versions.read_text())
