@@ -351,6 +351,31 @@ def test_cell_states_and_compute_left(tmp_path):
     assert any(a.startswith("run_dir=") for a in sweep_command(missing, tmp_path / missing.suite))
 
 
+def test_a_cell_not_started_also_costs_its_start_compile_and_evaluations(tmp_path, monkeypatch):
+    """The time left counts what a small cell mostly is: its sweep's seconds besides
+    training, from finished cells of its kind (this CPU's first), else the defaults; nothing
+    once the cell has started."""
+    monkeypatch.setattr(cost, "cpu_info", lambda: {"cpu_model": "This CPU"})
+    action, coherent, stopped, missing = reproduce.select("thesis", ["hopper/a2c/*"])
+    assert cost.start_seconds(missing, tmp_path / missing.suite) == cost.DEFAULT_START_S["a2c"]
+
+    def finished(cell, wall, train, cpu):
+        d = fake_sweep(cell, tmp_path, finished=True)
+        summary = {"sweep_env_steps_per_s": 1000.0, "wall_s": wall, "train_s": train}
+        (d / "sweep" / "sweep.json").write_text(json.dumps(summary))
+        (d / "sweep" / "versions.json").write_text(json.dumps({"cpu_model": cpu}))
+
+    finished(action, 300.0, 250.0, "Other CPU")
+    assert cost.start_seconds(missing, tmp_path / missing.suite) == pytest.approx(50.0)
+    finished(coherent, 100.0, 70.0, "This CPU")  # this CPU's cells first
+    assert cost.start_seconds(missing, tmp_path / missing.suite) == pytest.approx(30.0)
+    fake_sweep(stopped, tmp_path, finished=False)
+    assert cost.start_seconds(stopped, tmp_path / stopped.suite) == 0.0
+    text = cost.status([missing], tmp_path / missing.suite)
+    need = cost.estimated_seconds(missing, tmp_path / missing.suite) + 30.0
+    assert f"needs ~{need / 3600:6.2f} h" in text
+
+
 def test_results_of_another_specification_are_refused(tmp_path):
     cell = reproduce.select("thesis", ["hopper/ppo/action"])[0]
     d = fake_sweep(cell, tmp_path, finished=False)

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 from coherent_jax.run.rundir import cpu_info
-from coherent_jax.study.cell import Cell, cell_state, measured_rate, progress
+from coherent_jax.study.cell import Cell, cell_dir, cell_state, measured_rate, progress
 
 # Rough env steps/s of one point, used when no cell of the same task and algorithm has
 # finished yet and no probe measured it
@@ -37,6 +37,12 @@ STRATEGY_COST = {"coherent": 2.5, "noisynet": 1.5, "psne": 2.2, "gsde": 1.3, "pi
 # earliest episode start were skipped, 1.64x less since (HalfCheetah, over one episode
 # cycle, interleaved in one process; docs/benchmarks.md, "Long chains").
 EPISODE_GRADIENT_COST = 13.5
+# What a cell costs besides its env steps, before it has run: the sweep's start, compile and
+# evaluations (``wall_s - train_s`` of its ``sweep.json``). Used when no finished cell of the
+# same kind says: the medians of the committed cells (experiments/results/, 2026-12:
+# PPO 99.5 s over 85 cells, A2C 99.8 s over 47, SAC 407.6 s over 27, whose evaluations
+# run 1,000-step episodes).
+DEFAULT_START_S = {"ppo": 100.0, "a2c": 100.0, "sac": 400.0}
 
 
 def _cost(cell: Cell) -> float:
@@ -62,11 +68,22 @@ def _strategy(cell: Cell) -> tuple[str | None, ...]:
 
 
 class Finished(NamedTuple):
-    """A finished cell, its measured env steps/s and the CPU model it ran on (None if unknown)."""
+    """A finished cell, its measured env steps/s, the CPU model it ran on (None if unknown)
+    and its seconds besides training (start, compile, evaluations; None if not recorded)."""
 
     cell: Cell
     rate: float
     cpu_model: str | None
+    fixed_s: float | None = None
+
+
+def _fixed_seconds(sweep: Path) -> float | None:
+    """``wall_s - train_s`` of a finished sweep: its seconds besides training, or None."""
+    try:
+        summary = json.loads((sweep / "sweep.json").read_text())
+        return max(0.0, float(summary["wall_s"]) - float(summary["train_s"]))
+    except (OSError, KeyError, TypeError, ValueError):
+        return None
 
 
 def _cpu_model(sweep: Path) -> str | None:
@@ -92,7 +109,7 @@ def finished_cells(root: Path) -> list[Finished]:
             cell = Cell(spec["suite"], spec["name"], tuple(spec["overrides"]), int(spec["seeds"]))
         except (OSError, KeyError, TypeError, ValueError):
             continue
-        found.append(Finished(cell, rate, _cpu_model(sweep)))
+        found.append(Finished(cell, rate, _cpu_model(sweep), _fixed_seconds(sweep)))
     return found
 
 
@@ -140,6 +157,22 @@ def estimated_seconds(
     return (1.0 - fraction) * cell.env_steps / rate
 
 
+def start_seconds(cell: Cell, study_dir: Path, kin: list[Finished] | None = None) -> float:
+    """What a cell that has not started costs besides its env steps (0 once it has): the
+    median ``wall_s - train_s`` of the finished cells of its kind (`_kind`), those of this
+    CPU model if any, else `DEFAULT_START_S`. A study of small cells is mostly this."""
+    fraction, _ = progress(cell, study_dir)
+    if fraction > 0 or (cell_dir(cell, study_dir) / "sweep").exists():
+        return 0.0
+    every = finished_cells(Path(study_dir).parent) if kin is None else kin
+    same = [f for f in every if _kind(f.cell) == _kind(cell) and f.fixed_s is not None]
+    here = cpu_info()["cpu_model"]
+    same = [f for f in same if here is not None and f.cpu_model == here] or same
+    if same:
+        return statistics.median(f.fixed_s for f in same)
+    return DEFAULT_START_S.get(cell.setting("algo", "ppo"), 100.0)
+
+
 def status(cells: Iterable[Cell], study_dir: Path) -> str:
     """``--status``: per cell its state, progress and compute still needed; then the total."""
     lines, left = [], 0.0
@@ -148,6 +181,7 @@ def status(cells: Iterable[Cell], study_dir: Path) -> str:
         state = cell_state(cell, study_dir)
         fraction, _ = progress(cell, study_dir)
         need = 0.0 if state == "done" else estimated_seconds(cell, study_dir, kin=kin)
+        need += 0.0 if state == "done" else start_seconds(cell, study_dir, kin)
         left += need
         lines.append(
             f"{cell.name:44s} {state:8s} {100 * fraction:5.1f}%  "

@@ -48,7 +48,7 @@ from coherent_jax.study.cell import (
     running_pid,
     sweep_env,
 )
-from coherent_jax.study.cost import estimated_seconds, finished_cells
+from coherent_jax.study.cost import estimated_seconds, finished_cells, start_seconds
 
 RECORD = "study.json"
 LOCK = "study.lock"
@@ -266,9 +266,11 @@ def _wait_for_orphans(cells: Sequence[Cell], out: Path, display: Progress) -> No
 def _seconds_left(
     pending: Sequence[Cell], active: Sequence[Cell], out: Path, workers: int, probed: Mapping[str, float]
 ) -> float:
-    """The compute the cells not done still need, over the cells that run at a time."""
+    """The compute the cells not done still need (with the start, compile and evaluations of
+    those not started), over the cells that run at a time."""
     kin = finished_cells(out.parent)
-    need = sum(estimated_seconds(c, out, probed, kin) for c in [*pending, *active])
+    cells = [*pending, *active]
+    need = sum(estimated_seconds(c, out, probed, kin) + start_seconds(c, out, kin) for c in cells)
     return need / max(1, min(workers, len(pending) + len(active)))
 
 
