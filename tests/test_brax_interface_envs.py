@@ -220,17 +220,19 @@ def test_a_playground_env_steps_as_playground_steps_it_and_exposes_its_model():
     assert env.mj_model is not None and env.mj_model.nq == 5  # x, y, heading and two joints
     actions = jax.random.uniform(jax.random.PRNGKey(1), (3, 2, vec.action_size), minval=-1, maxval=1)
 
+    # Scanned, so that XLA compiles one MJX step, not three.
     def by_vec(key):
-        state = vec.reset(key)
-        for action in actions:
+        def step(state, action):
             state, out = vec.step(state, action)
-        return out.final_obs, out.reward, env.qpos(state.physics)
+            return state, (out.final_obs, out.reward)
+
+        state, (obs, reward) = jax.lax.scan(step, vec.reset(key), actions)
+        return obs[-1], reward[-1], env.qpos(state.physics)
 
     def by_hand(key):
         _, reset_key = jax.random.split(key)
         state = jax.vmap(env.env.reset)(jax.random.split(reset_key, 2))
-        for action in actions:
-            state = jax.vmap(env.env.step)(state, action)
+        state = jax.lax.scan(lambda s, a: (jax.vmap(env.env.step)(s, a), None), state, actions)[0]
         return state.obs, state.reward, state.data.qpos
 
     key = jax.random.PRNGKey(5)
