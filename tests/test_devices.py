@@ -19,7 +19,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from coherent_jax.run import devices as sharding, loop
+from coherent_jax.run import devices, loop
 
 from coherent_jax import sweep, train
 from coherent_jax.agents import make_trainer
@@ -33,8 +33,8 @@ out = {"device_count": jax.device_count()}
 for n in (1, 2):
     trainer = make_trainer(cfg)
     _, init_key = loop.run_keys(cfg.seed)
-    state, shardings = sharding.init_state(trainer, init_key, n, cfg.num_envs)
-    iteration = sharding.compile_iteration(trainer, state, shardings)
+    state, shardings = devices.init_state(trainer, init_key, n, cfg.num_envs)
+    iteration = devices.compile_iteration(trainer, state, shardings)
     metrics = []
     for _ in range(cfg.num_iterations):
         state, m = iteration(state)
@@ -42,10 +42,10 @@ for n in (1, 2):
     obs = state.env_state.obs
     out[str(n)] = {
         "metrics": metrics,
-        "obs_devices": sharding.device_count_of(obs),
+        "obs_devices": devices.device_count_of(obs),
         "obs_shard_rows": sorted(s.data.shape[0] for s in obs.addressable_shards),
         "physics_split": all(
-            sharding.device_count_of(x) == n and x.addressable_shards[0].data.shape[0] == 8 // n
+            devices.device_count_of(x) == n and x.addressable_shards[0].data.shape[0] == 8 // n
             for x in jax.tree.leaves(state.env_state.physics)
         ),
         "params_replicated": all(

@@ -19,6 +19,7 @@ from helpers import child_env, tensorboard_scalars
 from coherent_jax.config import parse_overrides
 from coherent_jax.run.checkpoint import CHECKPOINT, LoopState, decode_checkpoint, encode_checkpoint
 from coherent_jax.run.rundir import atomic_write, read_metrics, truncate_metrics
+from coherent_jax.study import carry
 from coherent_jax.train import main
 
 TINY = [
@@ -152,8 +153,6 @@ def test_a_sweep_stopped_before_its_first_evaluation_and_carried_resumes_to_the_
     sweep.json. Carried as a study carries a cell to another checkout (packed,
     the sweep directory deleted, unpacked) and resumed, every point's metrics equal those of a
     sweep never stopped."""
-    from coherent_jax.study import carry
-
     cell = tmp_path / "cell"
     sweep = cell / "sweep"
     args = [*(a for a in LONG if not a.startswith(("eval_every=", "checkpoint_every="))), "seeds=2"]
