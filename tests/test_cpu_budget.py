@@ -69,3 +69,11 @@ def test_a_test_over_the_budget_without_the_slow_marker_fails_in_one_line(pytest
 def test_the_budget_is_enforced_only_when_set(pytester, monkeypatch):
     calls, _ = _outcomes(pytester, monkeypatch, None)
     assert all(r.passed for r in calls.values()) and len(calls) == 5, calls
+
+
+def test_each_test_carries_its_cpu_seconds_into_the_junit_report(pytester, monkeypatch):
+    """Budget or not, a JUnit report gives each test's CPU seconds (a child's included)."""
+    calls, _ = _outcomes(pytester, monkeypatch, None)
+    cpu = {name: dict(r.user_properties)["cpu_s"] for name, r in calls.items()}
+    assert cpu["test_over_in_itself"] >= 0.2 and cpu["test_over_in_its_child"] >= 0.2, cpu
+    assert cpu["test_under"] < 0.1 and cpu["test_waits_without_cpu"] < 0.1, cpu
