@@ -358,6 +358,12 @@ def test_a_cell_not_started_also_costs_its_start_compile_and_evaluations(tmp_pat
     monkeypatch.setattr(cost, "cpu_info", lambda: {"cpu_model": "This CPU"})
     action, coherent, stopped, missing = reproduce.select("thesis", ["hopper/a2c/*"])
     assert cost.start_seconds(missing, tmp_path / missing.suite) == cost.DEFAULT_START_S["a2c"]
+    other = reproduce.select("thesis", ["hopper/ppo/action"])[0]  # another kind, same study
+    d = fake_sweep(other, tmp_path, finished=True)
+    (d / "sweep" / "sweep.json").write_text(
+        json.dumps({"sweep_env_steps_per_s": 1.0, "wall_s": 9.0, "train_s": 1.0})
+    )
+    assert cost.start_seconds(missing, tmp_path / missing.suite) == pytest.approx(8.0)
 
     def finished(cell, wall, train, cpu):
         d = fake_sweep(cell, tmp_path, finished=True)

@@ -160,14 +160,19 @@ def estimated_seconds(
 def start_seconds(cell: Cell, study_dir: Path, kin: list[Finished] | None = None) -> float:
     """What a cell that has not started costs besides its env steps (0 once it has): the
     median ``wall_s - train_s`` of the finished cells of its kind (`_kind`), those of this
-    CPU model if any, else `DEFAULT_START_S`. A study of small cells is mostly this."""
+    CPU model if any; else of the finished cells of its own study (same machine, same
+    evaluation settings: a closer guess than other studies' cells of other kinds); else
+    `DEFAULT_START_S`. A study of small cells is mostly this."""
     fraction, _ = progress(cell, study_dir)
     if fraction > 0 or (cell_dir(cell, study_dir) / "sweep").exists():
         return 0.0
-    every = finished_cells(Path(study_dir).parent) if kin is None else kin
-    same = [f for f in every if _kind(f.cell) == _kind(cell) and f.fixed_s is not None]
+    every = [
+        f for f in (finished_cells(Path(study_dir).parent) if kin is None else kin) if f.fixed_s is not None
+    ]
+    same = [f for f in every if _kind(f.cell) == _kind(cell)]
     here = cpu_info()["cpu_model"]
     same = [f for f in same if here is not None and f.cpu_model == here] or same
+    same = same or [f for f in every if f.cell.suite == cell.suite]
     if same:
         return statistics.median(f.fixed_s for f in same)
     return DEFAULT_START_S.get(cell.setting("algo", "ppo"), 100.0)
