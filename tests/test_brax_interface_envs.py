@@ -190,6 +190,7 @@ def test_physics_mjx_from_the_command_line_exits_2_writing_nothing(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow
 def test_train_one_iteration_from_the_command_line_then_evaluate(tmp_path):
     run = tmp_path / "run"
     tiny = ["num_envs=8", "unroll_length=8", "total_steps=64", "policy_hidden=[8]", "value_hidden=[8]"]

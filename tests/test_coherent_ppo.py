@@ -76,6 +76,7 @@ def test_behaviour_log_prob_equals_segment_recompute(short_episode_env, explore,
         assert np.isfinite(np.asarray(recomputed.entropy)).all()
 
 
+@pytest.mark.slow
 def test_coherent_first_minibatch_ratio_is_one():
     """Inside the jitted iteration, the first minibatch's KL is 0: old and new log-probs agree."""
     cfg = parse_overrides(TINY + ["explore=coherent", "unroll_length=16", "coherent.beta=0.2"])

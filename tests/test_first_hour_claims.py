@@ -8,6 +8,7 @@ import re
 from pathlib import Path
 
 import numpy as np
+import pytest
 from cell_fakes import fake_sweep, reproduce
 from helpers import load_experiment
 
@@ -85,6 +86,7 @@ TINY = [  # the smallest PPO iteration: the test's time is its two compiles
 SWEEP_RTOL, SWEEP_ATOL = 1e-5, 1e-6
 
 
+@pytest.mark.slow
 def test_row10_sweep_point_matches_its_single_run_to_rounding_not_bits():
     """The vmapped sweep of two seeds against each seed's single run, as `sweep` and `train`
     build them (`loop.run_keys`, `sweep_axis.vmap_points`): three iterations' parameters

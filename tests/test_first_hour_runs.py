@@ -206,6 +206,7 @@ def _custom_calls(physics: str) -> set[str]:
     return set(re.findall(r"custom_call @([\w.]+)", text))
 
 
+@pytest.mark.slow
 def test_row15_the_mjx_iteration_holds_no_host_callback_and_the_native_one_does():
     callback = re.compile(r"python.*callback|callback.*python|host_callback")
     native = _custom_calls("native")

@@ -40,6 +40,7 @@ TINY_SWEEP = [
 ]
 
 
+@pytest.mark.slow
 def test_row1_plot_takes_a_real_sweep_and_a_folder_of_sweeps_and_runs(tmp_path, capsys):
     """A sweep's root holds its own config.yaml beside grid.json: its points are the runs."""
     runs = tmp_path / "runs"
@@ -75,6 +76,7 @@ def readme_python_blocks() -> list[str]:
     return re.findall(r"^```python\n(.*?)^```$", text, flags=re.M | re.S)
 
 
+@pytest.mark.slow
 def test_row2_readme_python_snippets_run_as_written(tmp_path):
     """Each ```python block of the README runs unchanged, in a fresh directory, in seconds;
     the quickstart's ``action`` is the task's (pointmass: 2 numbers)."""
@@ -111,6 +113,7 @@ def load_example():
     return module
 
 
+@pytest.mark.slow
 def test_row3_example_runs_twice_each_in_a_fresh_run_dir(tmp_path, monkeypatch, capsys):
     """examples/train_and_act.py run twice: two run directories, no traceback; a named
     directory that holds a run is refused in one line, exit 2, and left as it was (the

@@ -139,6 +139,7 @@ def test_noise_covariance_is_sigma_and_stored_log_prob_is_its_density(sw):
         np.testing.assert_allclose(log_prob[0, i], want, rtol=1e-4, atol=1e-3)
 
 
+@pytest.mark.slow
 def test_noise_matrices_held_for_n_steps_and_redrawn_at_n_and_episode_starts():
     every, first_every, steps = 4, 11, 25
     strategy = build(f"lattice.resample_every={every}")
@@ -151,6 +152,7 @@ def test_noise_matrices_held_for_n_steps_and_redrawn_at_n_and_episode_starts():
     assert 11 in redraw and 12 not in redraw and 15 in redraw  # the period restarts at the reset
 
 
+@pytest.mark.slow
 def test_white_std_reg_noise_changes_every_step():
     strategy = build("lattice.resample_every=100", "lattice.std_reg=0.1")
     noise, _, _ = run_fixed_state(strategy, params_with_big_kernel(strategy), 16, 5, first_every=100)
@@ -267,6 +269,7 @@ def test_sac_noise_held_for_n_steps():
     assert [t for t in range(1, 12) if change[t - 1]] == [4, 8]
 
 
+@pytest.mark.slow
 def test_sac_runs_updates_with_lattice():
     """A few SAC iterations past warm-up: updates applied, losses finite."""
     cfg = parse_overrides(

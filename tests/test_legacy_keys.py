@@ -146,6 +146,7 @@ def test_a_coherent_sac_config_stored_before_its_group_loads_with_its_fingerprin
     assert from_stored(now).psne.sigma_init == 0.5 and from_stored(now).coherent_sac == cfg.coherent_sac
 
 
+@pytest.mark.slow
 def test_a_run_whose_config_was_stored_before_the_group_resumes(tmp_path, capsys):
     """A tiny Coherent-SAC run; its config.yaml rewritten as before (psne's group); resumed
     with a larger budget: not refused, and it continues with its sigma rule."""

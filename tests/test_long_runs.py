@@ -128,6 +128,7 @@ def test_sigkill_then_resume_equals_an_uninterrupted_run(tmp_path, monkeypatch):
     assert main([f"resume={run}", "total_steps=400"]) == 2
 
 
+@pytest.mark.slow
 def test_sigterm_stops_after_the_iteration_with_a_checkpoint(tmp_path):
     """SIGTERM: exit 128+15 after finishing the iteration, whose checkpoint is the last row's."""
     run = tmp_path / "run"

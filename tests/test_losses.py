@@ -163,6 +163,7 @@ def test_onpolicy_loss_against_float64_reference(clipped):
     np.testing.assert_allclose(float(metrics["approx_kl"]), np.mean(ratio - 1 - np.log(ratio)), rtol=1e-4)
 
 
+@pytest.mark.slow
 def test_onpolicy_loss_gradient_matches_finite_differences():
     """In float64: the gradient along a random direction equals a central difference."""
     import jax

@@ -183,6 +183,7 @@ def test_bench_physics_bad_input_exits_2_and_writes_nothing(tmp_path, capsys):
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_bench_physics_measures_and_writes_json(tmp_path):
     """A tiny real run (native MuJoCo without JAX, so no compile): one row per variant and count."""
     import json

@@ -48,6 +48,7 @@ def test_one_policy_class_and_one_load_policy_under_every_public_name():
     assert not hasattr(policy_package, "read_policy") and "PolicyError" in policy_package.__all__
 
 
+@pytest.mark.slow
 def test_predict_deterministic_one_and_batch(ppo_run):
     policy = load_policy(ppo_run)
     assert isinstance(policy, Policy) and coherent_jax.load_policy(ppo_run).origin == policy.origin

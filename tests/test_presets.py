@@ -306,6 +306,7 @@ def test_max_grad_norm_zero_means_no_clipping():
     assert float(metrics["train/grad_norm"]) > 1e-3  # so the tight clip did bind
 
 
+@pytest.mark.slow
 def test_sac_updates_start_at_update_after_during_the_random_actions():
     trainer = make_trainer(
         parse_overrides(

@@ -193,6 +193,7 @@ def test_coherent_sac_head_follows_the_beta_chain():
     assert abs(corr) < 0.05
 
 
+@pytest.mark.slow
 def test_auto_temperature_moves_alpha_towards_the_entropy_target():
     """Entropy below the target raises alpha; above it lowers alpha. The target is a
     hyperparameter of the state (one compiled update serves both), set by the config."""
@@ -227,6 +228,7 @@ def test_auto_temperature_moves_alpha_towards_the_entropy_target():
 
 
 # --------------------------------------------------------------------- training
+@pytest.mark.slow
 def test_warmup_collects_uniform_actions_without_updates():
     cfg = parse_overrides([*FAST, "sac.warmup_steps=256", "sac.utd_ratio=0.25"])
     trainer = SACTrainer(cfg)

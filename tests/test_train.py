@@ -27,6 +27,7 @@ def strip_times(rows):
     return [{k: v for k, v in r.items() if k != "time_s"} for r in rows]
 
 
+@pytest.mark.slow
 def test_cli_run_writes_run_dir_and_is_reproducible(tmp_path):
     """A CLI run writes config, metrics, params and summary; the same seed twice is identical."""
     run = tmp_path / "run"
