@@ -113,6 +113,13 @@ def finished_cells(root: Path) -> list[Finished]:
     return found
 
 
+def _this_cpu_first(found: list[Finished]) -> list[Finished]:
+    """Those of `found` that ran on this machine's CPU model if there are any, else all of
+    them (rates differed about twofold between the CPUs the suites ran on)."""
+    here = cpu_info()["cpu_model"]
+    return [f for f in found if here is not None and f.cpu_model == here] or found
+
+
 def default_rate(cell: Cell) -> float:
     """`DEFAULT_RATE` or `TASK_RATE` over the cell's `_cost`."""
     algo = cell.setting("algo", "ppo")
@@ -144,9 +151,7 @@ def estimated_seconds(
         rate = probed[cell.name]
     if rate is None:
         every = finished_cells(Path(study_dir).parent) if kin is None else kin
-        kin = [f for f in every if _kind(f.cell) == _kind(cell)]
-        here = cpu_info()["cpu_model"]
-        kin = [f for f in kin if here is not None and f.cpu_model == here] or kin
+        kin = _this_cpu_first([f for f in every if _kind(f.cell) == _kind(cell)])
         same = [f.rate for f in kin if _strategy(f.cell) == _strategy(cell)]
         if same:
             rate = statistics.median(same)
@@ -163,15 +168,12 @@ def start_seconds(cell: Cell, study_dir: Path, kin: list[Finished] | None = None
     CPU model if any; else of the finished cells of its own study (same machine, same
     evaluation settings: a closer guess than other studies' cells of other kinds); else
     `DEFAULT_START_S`. A study of small cells is mostly this."""
-    fraction, _ = progress(cell, study_dir)
-    if fraction > 0 or (cell_dir(cell, study_dir) / "sweep").exists():
+    if (cell_dir(cell, study_dir) / "sweep").exists() or progress(cell, study_dir)[0] > 0:
         return 0.0
     every = [
         f for f in (finished_cells(Path(study_dir).parent) if kin is None else kin) if f.fixed_s is not None
     ]
-    same = [f for f in every if _kind(f.cell) == _kind(cell)]
-    here = cpu_info()["cpu_model"]
-    same = [f for f in same if here is not None and f.cpu_model == here] or same
+    same = _this_cpu_first([f for f in every if _kind(f.cell) == _kind(cell)])
     same = same or [f for f in every if f.cell.suite == cell.suite]
     if same:
         return statistics.median(f.fixed_s for f in same)
@@ -185,8 +187,11 @@ def status(cells: Iterable[Cell], study_dir: Path) -> str:
     for cell in cells:
         state = cell_state(cell, study_dir)
         fraction, _ = progress(cell, study_dir)
-        need = 0.0 if state == "done" else estimated_seconds(cell, study_dir, kin=kin)
-        need += 0.0 if state == "done" else start_seconds(cell, study_dir, kin)
+        need = (
+            0.0
+            if state == "done"
+            else estimated_seconds(cell, study_dir, kin=kin) + start_seconds(cell, study_dir, kin)
+        )
         left += need
         lines.append(
             f"{cell.name:44s} {state:8s} {100 * fraction:5.1f}%  "
