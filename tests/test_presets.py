@@ -175,7 +175,7 @@ def test_preset_round_trips_through_config_yaml_and_resume(tmp_path):
 def test_unknown_preset_is_refused_in_one_line(tmp_path):
     with pytest.raises(ConfigError) as err:
         parse_overrides(["preset=spinningup"])
-    assert str(err.value) == "invalid value for 'preset': 'spinningup' (allowed: thesis)"
+    assert str(err.value) == "invalid value for 'preset': 'spinningup' (allowed: thesis, fast_sac)"
     proc = subprocess.run(
         [sys.executable, "-m", "coherent_jax.train", "preset=x", f"run_dir={tmp_path / 'run'}"],
         cwd=tmp_path,
@@ -185,7 +185,49 @@ def test_unknown_preset_is_refused_in_one_line(tmp_path):
         timeout=120,
     )
     assert proc.returncode == 2
-    assert proc.stderr.strip().splitlines() == ["error: invalid value for 'preset': 'x' (allowed: thesis)"]
+    assert proc.stderr.strip().splitlines() == [
+        "error: invalid value for 'preset': 'x' (allowed: thesis, fast_sac)"
+    ]
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_fast_sac_keeps_the_gradient_work_per_iteration_over_four_times_the_env_steps():
+    """``preset=fast_sac``: 64 envs x 8 steps and 32 updates of 1,024 per iteration, where
+    algo=sac's defaults take 8 x 16 steps and 128 updates of 256: the same transitions
+    sampled per iteration, 4x the env steps, and so 1/4 of the gradient work per env step."""
+    fast = parse_overrides(["algo=sac", "preset=fast_sac"])
+    default = parse_overrides(["algo=sac"])
+    assert (fast.num_envs, fast.unroll_length, fast.sac.batch_size) == (64, 8, 1024)
+    assert (fast.steps_per_iteration, fast.updates_per_iteration) == (512, 32)
+    assert (default.steps_per_iteration, default.updates_per_iteration) == (128, 128)
+    samples = [c.updates_per_iteration * c.sac.batch_size for c in (fast, default)]
+    assert samples[0] == samples[1]
+    assert fast.steps_per_iteration == 4 * default.steps_per_iteration
+    # What the preset leaves: the learner, the networks and algo=sac's other defaults.
+    same = ("lr", "gamma", "policy_hidden", "value_hidden", "total_steps", "sac.tau", "sac.warmup_steps")
+    assert all(get(fast, k) == get(default, k) for k in same)
+    # The user's values win; every strategy that SAC takes runs under it.
+    assert parse_overrides(["algo=sac", "preset=fast_sac", "num_envs=16"]).num_envs == 16
+    for explore in ("action", "coherent", "psne", "gsde", "pink", "lattice"):
+        assert parse_overrides(["algo=sac", "preset=fast_sac", f"explore={explore}"]).preset == "fast_sac"
+
+
+def test_a_preset_without_values_for_the_algo_is_refused_in_one_line(tmp_path):
+    for algo in ("ppo", "a2c"):
+        with pytest.raises(ConfigError) as err:
+            parse_overrides([f"algo={algo}", "preset=fast_sac"])
+        allowed = f"a preset with values for algo={algo}: thesis"
+        assert str(err.value) == f"invalid value for 'preset': 'fast_sac' (allowed: {allowed})"
+    proc = subprocess.run(
+        [sys.executable, "-m", "coherent_jax.train", "preset=fast_sac", f"run_dir={tmp_path / 'run'}"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        env=child_env(),
+        timeout=120,
+    )
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1
+    assert "'preset': 'fast_sac'" in proc.stderr and "algo=ppo: thesis" in proc.stderr
     assert list(tmp_path.iterdir()) == []
 
 

@@ -27,7 +27,7 @@ import difflib
 from collections.abc import Iterable
 from typing import Any
 
-from coherent_jax.config.schema import ENV_ALLOWED, FIELDS, NO_PRESET, SWEEPABLE, Config, get_value
+from coherent_jax.config.schema import ENV_ALLOWED, FIELDS, NO_PRESET, PRESETS, SWEEPABLE, Config, get_value
 from coherent_jax.envs.registry import (
     NATIVE_TASKS,
     TASKS,
@@ -226,6 +226,19 @@ def strategy_runs_with_algo(cfg: Config) -> None:
     )
 
 
+def preset_has_values_for_algo(cfg: Config) -> None:
+    """A preset holds values for some algorithms (`PRESETS`); with another it is refused,
+    not silently empty."""
+    algos = PRESETS.get(cfg.preset, {})
+    check(
+        cfg.preset in NO_PRESET or cfg.algo in algos,
+        "preset",
+        cfg.preset,
+        f"a preset with values for algo={cfg.algo}: "
+        + ", ".join(name for name, values in PRESETS.items() if cfg.algo in values),
+    )
+
+
 def minibatches_split_envs(cfg: Config) -> None:
     """A2C/PPO: minibatches split the envs, never time."""
     check(
@@ -367,6 +380,7 @@ def lattice_has_noise(cfg: Config) -> None:
 
 CROSS_CHECKS = (
     strategy_runs_with_algo,
+    preset_has_values_for_algo,
     minibatches_split_envs,
     value_steps_match_rate,
     sac_sizes,

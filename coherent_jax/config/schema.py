@@ -157,9 +157,23 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
             "eval_episodes": 10,  # ... num_test_episodes
         },
     },
+    # Many envs, large batches, fewer updates per env step (in the style of FastSAC and
+    # FastTD3; docs/presets.md): per iteration 512 env steps and 32 updates of 1,024
+    # transitions, where algo=sac's defaults take 128 steps and 128 updates of 256. The
+    # same gradient work per iteration (32 x 1,024 = 128 x 256 samples) over 4x the steps.
+    "fast_sac": {
+        "sac": {
+            "num_envs": 64,
+            "unroll_length": 8,
+            "sac": {"batch_size": 1024, "utd_ratio": 0.0625},
+            "eval_every": 10,  # every 5,120 env steps (algo=sac: every 2,560)
+            "checkpoint_every": 100,  # every 51,200 env steps
+        },
+    },
 }
 PRESET_DESCRIPTIONS = {
     "thesis": "the thesis's protocol, OpenAI Spinning Up's defaults (docs/presets.md)",
+    "fast_sac": "algo=sac only: 64 envs, batch 1024, 1/16 update per env step (docs/presets.md)",
 }
 # Values of ``preset`` that select no preset (``preset=`` is null); a config records "".
 NO_PRESET = ("", "none", "null", None)
