@@ -3,7 +3,7 @@
     python -m coherent_jax.study experiments/studies/fast_sac.yaml workers=1
     python experiments/fast_sac.py experiments/results/fast_sac [--out DIR]
 
-Reads each run's ``metrics.jsonl`` of the study's cells (``TASK/sac/{default,fast}/sweep``),
+Reads each run's ``metrics.jsonl`` of the study's cells (``TASK/sac/CONFIG/sweep``, `CONFIGS`),
 keeps its evaluations (env steps, wall seconds since the run started, compile included,
 and the deterministic evaluation's mean return), writes them to ``DIR/evaluations.csv``
 (default: the study's folder) and prints a Markdown table per task.
@@ -12,8 +12,10 @@ The target of a task is fixed by a rule, not chosen after looking: the highest r
 that *every* run of the task (both configurations, every seed) reached at some
 evaluation, i.e. the minimum over runs of each run's best evaluation. For each run the
 table gives the first evaluation at or above it: its wall seconds and env steps; then the
-medians over seeds and the ratio of the defaults' median seconds to the preset's.
-A run whose metrics are missing is named and left out.
+medians over seeds and the ratio of the defaults' median seconds to each other's. Beside
+it, each run's best return within the same wall time for all: the shortest run's.
+``--target R`` gives each run's time to a return R of your own instead; a run that never
+reaches it counts as infinitely slow in the median.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ import statistics
 import sys
 from pathlib import Path
 
-CONFIGS = ("default", "fast")
+CONFIGS = ("default", "fast", "batch64")
 RETURN = "eval/episode_return"
 
 
@@ -55,14 +57,20 @@ def first_reaching(evals: list[tuple[int, float, float]], target: float) -> tupl
     return next(((steps, wall) for steps, wall, ret in evals if ret >= target), None)
 
 
-def table(task: str, runs: dict) -> list[str]:
+def table(task: str, runs: dict, target: float | None = None) -> list[str]:
     mine = {k: v for k, v in runs.items() if k[0] == task and v}
-    target = min(max(r for _, _, r in evals) for evals in mine.values())
+    how = "given"
+    if target is None:
+        target = min(max(r for _, _, r in evals) for evals in mine.values())
+        how = "the lowest of the runs' best evaluations"
+    # The same wall time for every run: the shortest run's.
+    wall_all = min(evals[-1][1] for evals in mine.values())
     lines = [
-        f"{task}: target return {target:.1f} (the lowest of the runs' best evaluations)",
+        f"{task}: target return {target:.1f} ({how}); equal wall time {wall_all:.0f} s (the shortest run's)",
         "",
-        "| config | seed | wall s to target | env steps to target | best return | env steps/s |",
-        "|---|---|---|---|---|---|",
+        "| config | seed | wall s to target | env steps to target | best return "
+        f"| best return by {wall_all:.0f} s | env steps/s per seed |",
+        "|---|---|---|---|---|---|---|",
     ]
     medians = {}
     for config in CONFIGS:
@@ -70,22 +78,27 @@ def table(task: str, runs: dict) -> list[str]:
         for (_, c, seed), evals in sorted(mine.items()):
             if c != config:
                 continue
-            steps, wall = first_reaching(evals, target)
+            reached = first_reaching(evals, target)
+            steps, wall = reached if reached else (None, float("inf"))
             walls.append(wall)
             rate = evals[-1][0] / evals[-1][1]
             best = max(r for _, _, r in evals)
-            lines.append(f"| {config} | {seed} | {wall:.0f} | {steps:,} | {best:.1f} | {rate:.0f} |")
-        medians[config] = statistics.median(walls) if walls else float("nan")
-    ratio = medians["default"] / medians["fast"]
-    lines += ["", f"median wall s to target: default {medians['default']:.0f}, fast {medians['fast']:.0f}"]
-    lines += [f"default / fast: {ratio:.2f}x", ""]
-    return lines
+            by_wall = max(r for _, w, r in evals if w <= wall_all)
+            to = f"{wall:.0f} | {steps:,}" if reached else "not reached | -"
+            lines.append(f"| {config} | {seed} | {to} | {best:.1f} | {by_wall:.1f} | {rate:.0f} |")
+        if walls:
+            medians[config] = statistics.median(walls)
+    found = [c for c in CONFIGS if c in {k[1] for k in mine}]
+    lines += ["", "median wall s to target: " + ", ".join(f"{c} {medians[c]:.0f}" for c in found)]
+    lines += [f"default / {c}: {medians['default'] / medians[c]:.2f}x" for c in found if c != "default"]
+    return [*lines, ""]
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("study", type=Path)
     parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument("--target", type=float, default=None, help="a return of your own (default: the rule)")
     args = parser.parse_args(argv)
     runs = read_study(args.study)
     if not runs:
@@ -101,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
             writer.writerows([task, config, seed, s, f"{w:.2f}", f"{r:.3f}"] for s, w, r in evals)
     tmp.replace(out)
     for task in sorted({k[0] for k in runs}):
-        print("\n".join(table(task, runs)))
+        print("\n".join(table(task, runs, args.target)))
     print(f"wrote {out}")
     return 0
 

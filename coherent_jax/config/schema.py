@@ -173,7 +173,9 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
 }
 PRESET_DESCRIPTIONS = {
     "thesis": "the thesis's protocol, OpenAI Spinning Up's defaults (docs/presets.md)",
-    "fast_sac": "algo=sac only: 64 envs, batch 1024, 1/16 update per env step (docs/presets.md)",
+    "fast_sac": (
+        "algo=sac only: 64 envs, batch 1024, 1/16 update per env step; loses on a CPU (docs/presets.md)"
+    ),
 }
 # Values of ``preset`` that select no preset (``preset=`` is null); a config records "".
 NO_PRESET = ("", "none", "null", None)
