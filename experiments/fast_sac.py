@@ -83,7 +83,7 @@ def table(task: str, runs: dict, target: float | None = None) -> list[str]:
             walls.append(wall)
             rate = evals[-1][0] / evals[-1][1]
             best = max(r for _, _, r in evals)
-            by_wall = max(r for _, w, r in evals if w <= wall_all)
+            by_wall = max((r for _, w, r in evals if w <= wall_all), default=float("nan"))
             to = f"{wall:.0f} | {steps:,}" if reached else "not reached | -"
             lines.append(f"| {config} | {seed} | {to} | {best:.1f} | {by_wall:.1f} | {rate:.0f} |")
         if walls:
