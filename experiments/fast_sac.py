@@ -9,7 +9,7 @@ and the deterministic evaluation's mean return), writes them to ``DIR/evaluation
 (default: the study's folder) and prints a Markdown table per task.
 
 The target of a task is fixed by a rule, not chosen after looking: the highest return
-that *every* run of the task (both configurations, every seed) reached at some
+that *every* run of the task (every configuration, every seed) reached at some
 evaluation, i.e. the minimum over runs of each run's best evaluation. For each run the
 table gives the first evaluation at or above it: its wall seconds and env steps; then the
 medians over seeds and the ratio of the defaults' median seconds to each other's. Beside
@@ -88,9 +88,8 @@ def table(task: str, runs: dict, target: float | None = None) -> list[str]:
             lines.append(f"| {config} | {seed} | {to} | {best:.1f} | {by_wall:.1f} | {rate:.0f} |")
         if walls:
             medians[config] = statistics.median(walls)
-    found = [c for c in CONFIGS if c in {k[1] for k in mine}]
-    lines += ["", "median wall s to target: " + ", ".join(f"{c} {medians[c]:.0f}" for c in found)]
-    lines += [f"default / {c}: {medians['default'] / medians[c]:.2f}x" for c in found if c != "default"]
+    lines += ["", "median wall s to target: " + ", ".join(f"{c} {m:.0f}" for c, m in medians.items())]
+    lines += [f"default / {c}: {medians['default'] / m:.2f}x" for c, m in medians.items() if c != "default"]
     return [*lines, ""]
 
 

@@ -172,18 +172,23 @@ def test_preset_round_trips_through_config_yaml_and_resume(tmp_path):
         resume_config(str(tmp_path), ["preset=none"])
 
 
-def test_unknown_preset_is_refused_in_one_line(tmp_path):
-    with pytest.raises(ConfigError) as err:
-        parse_overrides(["preset=spinningup"])
-    assert str(err.value) == "invalid value for 'preset': 'spinningup' (allowed: thesis, fast_sac)"
-    proc = subprocess.run(
-        [sys.executable, "-m", "coherent_jax.train", "preset=x", f"run_dir={tmp_path / 'run'}"],
-        cwd=tmp_path,
+def _train_in(folder, *items):
+    """``python -m coherent_jax.train ITEMS run_dir=FOLDER/run``, run in `folder`."""
+    return subprocess.run(
+        [sys.executable, "-m", "coherent_jax.train", *items, f"run_dir={folder / 'run'}"],
+        cwd=folder,
         capture_output=True,
         text=True,
         env=child_env(),
         timeout=120,
     )
+
+
+def test_unknown_preset_is_refused_in_one_line(tmp_path):
+    with pytest.raises(ConfigError) as err:
+        parse_overrides(["preset=spinningup"])
+    assert str(err.value) == "invalid value for 'preset': 'spinningup' (allowed: thesis, fast_sac)"
+    proc = _train_in(tmp_path, "preset=x")
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == [
         "error: invalid value for 'preset': 'x' (allowed: thesis, fast_sac)"
@@ -218,14 +223,7 @@ def test_a_preset_without_values_for_the_algo_is_refused_in_one_line(tmp_path):
             parse_overrides([f"algo={algo}", "preset=fast_sac"])
         allowed = f"a preset with values for algo={algo}: thesis"
         assert str(err.value) == f"invalid value for 'preset': 'fast_sac' (allowed: {allowed})"
-    proc = subprocess.run(
-        [sys.executable, "-m", "coherent_jax.train", "preset=fast_sac", f"run_dir={tmp_path / 'run'}"],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        env=child_env(),
-        timeout=120,
-    )
+    proc = _train_in(tmp_path, "preset=fast_sac")
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1
     assert "'preset': 'fast_sac'" in proc.stderr and "algo=ppo: thesis" in proc.stderr
     assert list(tmp_path.iterdir()) == []
